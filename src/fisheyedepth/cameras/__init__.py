@@ -1,0 +1,31 @@
+"""Camera models behind one interface: project, unproject, resize, flip, serialise.
+
+See :mod:`fisheyedepth.cameras.base` for the conventions shared by every model.
+"""
+
+from .base import CAMERA_MODELS, CameraModel, CameraParameterError
+from .double_sphere import DoubleSphereCamera
+from .io import CalibrationError, camera_from_mapping, load_camera, save_camera
+from .kannala_brandt import KannalaBrandtCamera
+from .mei import MeiCamera
+from .pinhole import PinholeCamera, pinhole_like
+from .rays import RayCache, Rays, compute_rays, pixel_grid
+
+__all__ = [
+    "CAMERA_MODELS",
+    "CalibrationError",
+    "CameraModel",
+    "CameraParameterError",
+    "DoubleSphereCamera",
+    "KannalaBrandtCamera",
+    "MeiCamera",
+    "PinholeCamera",
+    "RayCache",
+    "Rays",
+    "camera_from_mapping",
+    "compute_rays",
+    "load_camera",
+    "pinhole_like",
+    "pixel_grid",
+    "save_camera",
+]

@@ -1,0 +1,273 @@
+"""The one interface every camera model implements.
+
+Conventions (all models):
+- Camera frame: x right, y down, z forward (OpenCV). Points are ``[..., 3]`` tensors.
+- Pixels: ``(u, v) = (column, row)``; integer coordinates are pixel *centres* (KITTI-360, OpenCV).
+- ``project(points) -> (uv, valid)``: ``valid`` is False where the point lies outside the model's
+  domain (behind a pinhole camera, beyond the fisheye's maximal incidence angle, at the centre of
+  projection). ``uv`` is always finite. Whether ``uv`` falls inside the image is a separate question:
+  :meth:`CameraModel.in_image`.
+- ``unproject(uv) -> (rays, valid)``: unit rays; ``valid`` is False where the pixel has no ray in the
+  model. ``rays`` is always finite (``(0, 0, 1)`` where invalid).
+- Any leading batch shape, float32 or float64, on any device; gradients flow through ``project``.
+
+A camera is an immutable value: equal parameters give equal, hashable cameras, which is what the
+per-camera ray cache keys on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, ClassVar
+
+import torch
+from torch import Tensor
+
+
+class CameraParameterError(ValueError):
+    """A camera parameter is missing, non-finite or impossible. ``key`` names the parameter."""
+
+    def __init__(self, key: str, message: str):
+        super().__init__(f"{key}: {message}")
+        self.key = key
+        self.reason = message
+
+
+# Registry of models by their serialised name; filled by ``register_model``.
+CAMERA_MODELS: dict[str, type[CameraModel]] = {}
+
+
+def register_model(cls: type[CameraModel]) -> type[CameraModel]:
+    CAMERA_MODELS[cls.model_name] = cls
+    return cls
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraModel:
+    """Base class: image size plus the model's scalar parameters (plain floats, device-free)."""
+
+    width: int
+    height: int
+
+    model_name: ClassVar[str] = ""
+    # Names of the parameters that are a focal length (pixels) along u and v, and the principal point.
+    # Resizing and flipping are generic over these.
+    _fu: ClassVar[str] = "fx"
+    _fv: ClassVar[str] = "fy"
+    _cu: ClassVar[str] = "cx"
+    _cv: ClassVar[str] = "cy"
+
+    # ---------------------------------------------------------------- construction and checks
+    def __post_init__(self) -> None:
+        for key in ("width", "height"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or value != int(value):
+                raise CameraParameterError(key, f"must be a positive integer, got {value!r}")
+            if value <= 0:
+                raise CameraParameterError(key, f"must be a positive integer, got {value!r}")
+            object.__setattr__(self, key, int(value))
+        for key in self.param_names():
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise CameraParameterError(key, f"must be a number, got {value!r}")
+            if not math.isfinite(value):
+                raise CameraParameterError(key, f"must be finite, got {value!r}")
+            object.__setattr__(self, key, float(value))
+        for key in (self._fu, self._fv):
+            if getattr(self, key) <= 0:
+                raise CameraParameterError(key, f"focal length must be positive, got {getattr(self, key)!r}")
+        self._check()
+
+    def _check(self) -> None:
+        """Model-specific parameter checks; raise :class:`CameraParameterError`."""
+
+    @classmethod
+    def param_names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name not in ("width", "height"))
+
+    # ---------------------------------------------------------------- the interface
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    def unproject(self, uv: Tensor) -> tuple[Tensor, Tensor]:
+        raise NotImplementedError
+
+    @property
+    def max_incidence(self) -> float:
+        """Largest angle (radians) between a ray and the optical axis inside the model's domain."""
+        raise NotImplementedError
+
+    def paraxial_focal(self) -> tuple[float, float]:
+        """Pixels per radian at the principal point (the focal of the best pinhole near the centre)."""
+        return getattr(self, self._fu), getattr(self, self._fv)
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return getattr(self, self._cu), getattr(self, self._cv)
+
+    def in_image(self, uv: Tensor) -> Tensor:
+        """True where a bilinear sample at ``uv`` has all four neighbours inside the image."""
+        u, v = uv[..., 0], uv[..., 1]
+        return (u >= 0) & (u <= self.width - 1) & (v >= 0) & (v <= self.height - 1)
+
+    # ---------------------------------------------------------------- derived cameras
+    def resize(self, width: int, height: int) -> CameraModel:
+        """The same camera for an image resampled to ``width x height``.
+
+        Exact under the pixel-centre convention: a point at continuous pixel ``u`` of the original image
+        is at ``(u + 0.5) * s - 0.5`` in the resized one, so focal lengths scale by ``s`` and the
+        principal point maps like any pixel (the reference implementation scales ``u0`` by ``s`` alone,
+        which is off by ``(1 - s) / 2`` px).
+        """
+        su, sv = width / self.width, height / self.height
+        changes = {
+            self._fu: getattr(self, self._fu) * su,
+            self._fv: getattr(self, self._fv) * sv,
+            self._cu: (getattr(self, self._cu) + 0.5) * su - 0.5,
+            self._cv: (getattr(self, self._cv) + 0.5) * sv - 0.5,
+        }
+        return dataclasses.replace(self, width=width, height=height, **changes)
+
+    def flip(self) -> CameraModel:
+        """The camera that sees the horizontally flipped image (``u -> W - 1 - u``).
+
+        It projects the mirrored point ``(-X, Y, Z)`` to ``W - 1 - u`` where this camera projects
+        ``(X, Y, Z)`` to ``u``. Relative poses mirror with :func:`fisheyedepth.geometry.mirror_pose_x`.
+        """
+        changes = {self._cu: self.width - 1 - getattr(self, self._cu)}
+        changes.update(self._flip_extra())
+        return dataclasses.replace(self, **changes)
+
+    def _flip_extra(self) -> dict[str, float]:
+        return {}
+
+    # ---------------------------------------------------------------- serialisation
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"model": self.model_name, "width": self.width, "height": self.height}
+        out.update({k: getattr(self, k) for k in self.param_names()})
+        return out
+
+    @staticmethod
+    def from_dict(data: dict[str, Any]) -> CameraModel:
+        """Build any registered model from :meth:`to_dict` output. Raises :class:`CameraParameterError`."""
+        if "model" not in data:
+            raise CameraParameterError("model", f"missing; one of {sorted(CAMERA_MODELS)}")
+        name = str(data["model"]).lower()
+        if name not in CAMERA_MODELS:
+            raise CameraParameterError("model", f"unknown camera model {data['model']!r}; one of {sorted(CAMERA_MODELS)}")
+        cls = CAMERA_MODELS[name]
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(fields) - {"model"})
+        if unknown:
+            raise CameraParameterError(unknown[0], f"not a parameter of the {name} model ({sorted(fields)})")
+        for key, field in fields.items():
+            no_default = field.default is dataclasses.MISSING
+            if no_default and key not in data:
+                raise CameraParameterError(key, f"missing (required by the {name} model)")
+        return cls(**{k: v for k, v in data.items() if k != "model"})
+
+
+# -------------------------------------------------------------------- shared numerical helpers
+def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
+    """Euclidean norm whose gradient is finite at zero."""
+    sq = (x * x).sum(dim=dim, keepdim=keepdim)
+    tiny = torch.finfo(x.dtype).tiny
+    return torch.sqrt(sq.clamp_min(tiny))
+
+
+def split_uv(uv: Tensor) -> tuple[Tensor, Tensor]:
+    if uv.shape[-1] != 2:
+        raise ValueError(f"pixel coordinates must have a last dimension of 2, got shape {tuple(uv.shape)}")
+    return uv[..., 0], uv[..., 1]
+
+
+def split_xyz(points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    if points.shape[-1] != 3:
+        raise ValueError(f"points must have a last dimension of 3, got shape {tuple(points.shape)}")
+    return points[..., 0], points[..., 1], points[..., 2]
+
+
+def finite_where(valid: Tensor, value: Tensor, fallback: float) -> Tensor:
+    """``value`` where valid, ``fallback`` elsewhere (keeps outputs finite for invalid entries)."""
+    return torch.where(valid, value, torch.full_like(value, fallback))
+
+
+def odd_poly(r: Tensor, coeffs: tuple[float, ...]) -> tuple[Tensor, Tensor]:
+    """``g(r) = r (1 + c1 r^2 + c2 r^4 + ...)`` and ``g'(r)``, by Horner's rule in ``r^2``."""
+    r2 = r * r
+    n = len(coeffs)
+    acc = r2 * coeffs[n - 1]  # sum_i c_i r^(2i), Horner from the highest term
+    dacc = r2 * ((2 * n + 1) * coeffs[n - 1])  # sum_i (2i + 1) c_i r^(2i)
+    for i in range(n - 1, 0, -1):
+        acc = (acc + coeffs[i - 1]) * r2
+        dacc = (dacc + (2 * i + 1) * coeffs[i - 1]) * r2
+    return r * (1 + acc), 1 + dacc
+
+
+def odd_poly_monotone_limit(coeffs: tuple[float, ...], cap: float = math.inf) -> float:
+    """Smallest ``r`` in ``(0, cap]`` where ``g'(r) = 1 + 3 c1 r^2 + 5 c2 r^4 + ...`` reaches zero.
+
+    Beyond it the distortion folds back and projection is no longer one-to-one, so it bounds the
+    model's domain. Returns ``cap`` when ``g`` stays increasing on ``(0, cap)``.
+    """
+    import numpy as np
+
+    # g'(r) as a polynomial in s = r^2, highest power first for numpy.roots.
+    poly = [(2 * i + 1) * c for i, c in reversed(list(enumerate(coeffs, start=1)))] + [1.0]
+    while len(poly) > 1 and poly[0] == 0.0:
+        poly = poly[1:]
+    if len(poly) == 1:
+        return cap
+    roots = np.roots(poly)
+    real = [float(s.real) for s in roots if abs(s.imag) <= 1e-12 * max(1.0, abs(s.real)) and s.real > 0]
+    limit = math.sqrt(min(real)) if real else math.inf
+    return min(limit, cap)
+
+
+def solve_odd_poly(
+    target: Tensor, coeffs: tuple[float, ...], r_max: float, max_iter: int = 60
+) -> tuple[Tensor, Tensor]:
+    """Solve ``g(r) = target`` for ``r`` in ``[0, r_max]`` (g increasing there); returns ``(r, ok)``.
+
+    Newton-Raphson with the analytic derivative, safeguarded by bisection: every step keeps a bracket
+    ``[lo, hi]`` around the root and falls back to its midpoint when Newton would leave it, so it
+    converges for every ``target`` in ``[0, g(r_max)]``. ``ok`` is False for targets beyond ``g(r_max)``.
+    Where ``r_max`` is infinite the upper bracket is found by doubling.
+    """
+    dtype = target.dtype
+    eps = torch.finfo(dtype).eps
+    if not coeffs or all(c == 0.0 for c in coeffs):
+        r = target.clone()
+        return r, r <= r_max
+    target = target.detach()
+    lo = torch.zeros_like(target)
+    if math.isfinite(r_max):
+        hi = torch.full_like(target, r_max)
+        g_hi, _ = odd_poly(hi, coeffs)
+        ok = target <= g_hi * (1 + 16 * eps)
+        target = torch.minimum(target, g_hi)
+    else:
+        hi = target.clone().clamp_min(1.0)
+        ok = torch.ones_like(target, dtype=torch.bool)
+        for _ in range(64):
+            g_hi, _ = odd_poly(hi, coeffs)
+            short = g_hi < target
+            if not bool(short.any()):
+                break
+            hi = torch.where(short, hi * 2, hi)
+    r = torch.minimum(target, hi)
+    for _ in range(max_iter):
+        g, dg = odd_poly(r, coeffs)
+        f = g - target
+        lo = torch.where(f < 0, r, lo)
+        hi = torch.where(f > 0, r, hi)
+        step = f / torch.where(dg > 0, dg, torch.ones_like(dg))
+        r_new = r - step
+        outside = (r_new < lo) | (r_new > hi) | (dg <= 0)
+        r_new = torch.where(outside, 0.5 * (lo + hi), r_new)
+        delta = (r_new - r).abs()
+        r = r_new
+        if bool((delta <= 4 * eps * r.abs().clamp_min(1.0)).all()):
+            break
+    return r, ok

@@ -1,0 +1,155 @@
+"""Reading and writing camera calibration files.
+
+Two formats are read by :func:`load_camera`:
+
+1. OpenCV YAML as written by KITTI-360 and CamOdoCal (first line ``%YAML:1.0``), with
+   ``model_type`` one of ``MEI`` (KITTI-360's ``image_02.yaml`` / ``image_03.yaml``),
+   ``KANNALA_BRANDT`` (CamOdoCal: ``projection_parameters`` k2..k5, mu, mv, u0, v0) or ``PINHOLE``
+   (``projection_parameters`` fx, fy, cx, cy; only without distortion).
+   For ``MEI`` the tangential coefficients p1/p2 are **ignored by default**, exactly like KITTI-360's
+   official projection and LiDAR tools; ``keep_tangential=True`` keeps them (OpenCV's omnidir model,
+   up to ~1.2 px different at 1400 px).
+2. The project's own YAML: the flat mapping of :meth:`CameraModel.to_dict`, e.g.
+   ``{model: mei, width: 1400, height: 1400, xi: 2.21, k1: ..., gamma1: ..., u0: ...}``.
+
+Every problem raises :class:`CalibrationError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .base import CameraModel, CameraParameterError
+
+
+class CalibrationError(ValueError):
+    """A calibration file is missing, malformed, or holds an impossible value."""
+
+    def __init__(self, path: str | os.PathLike, key: str | None, reason: str):
+        where = f"{path}" if key is None else f"{path}: key '{key}'"
+        super().__init__(f"{where}: {reason}")
+        self.path = str(path)
+        self.key = key
+        self.reason = reason
+
+
+class _OpenCVLoader(yaml.SafeLoader):
+    """Safe loader that also accepts OpenCV's ``!!opencv-matrix`` tag (read as a plain mapping)."""
+
+
+_OpenCVLoader.add_constructor(
+    "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
+)
+
+
+def _get(tree: dict, dotted: str, path) -> Any:
+    node: Any = tree
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise CalibrationError(path, dotted, "missing")
+        node = node[part]
+    return node
+
+
+def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
+    model_type = str(_get(tree, "model_type", path)).strip().upper()
+    size = {"width": _get(tree, "image_width", path), "height": _get(tree, "image_height", path)}
+    keys: dict[str, str]  # our parameter -> dotted key in the file
+    if model_type == "MEI":
+        keys = {
+            "xi": "mirror_parameters.xi",
+            "k1": "distortion_parameters.k1",
+            "k2": "distortion_parameters.k2",
+            "gamma1": "projection_parameters.gamma1",
+            "gamma2": "projection_parameters.gamma2",
+            "u0": "projection_parameters.u0",
+            "v0": "projection_parameters.v0",
+        }
+        if keep_tangential:
+            keys.update(p1="distortion_parameters.p1", p2="distortion_parameters.p2")
+        model = "mei"
+    elif model_type == "KANNALA_BRANDT":
+        keys = {
+            "k1": "projection_parameters.k2",
+            "k2": "projection_parameters.k3",
+            "k3": "projection_parameters.k4",
+            "k4": "projection_parameters.k5",
+            "fx": "projection_parameters.mu",
+            "fy": "projection_parameters.mv",
+            "cx": "projection_parameters.u0",
+            "cy": "projection_parameters.v0",
+        }
+        model = "kannala_brandt"
+    elif model_type == "PINHOLE":
+        keys = {name: f"projection_parameters.{name}" for name in ("fx", "fy", "cx", "cy")}
+        dist = tree.get("distortion_parameters") or {}
+        for name, value in dist.items():
+            if value not in (0, 0.0):
+                raise CalibrationError(path, f"distortion_parameters.{name}", "pinhole distortion is not supported")
+        model = "pinhole"
+    else:
+        raise CalibrationError(
+            path, "model_type", f"unknown model_type {model_type!r}; expected MEI, KANNALA_BRANDT or PINHOLE"
+        )
+    out: dict[str, Any] = {"model": model, **size}
+    out.update({ours: _get(tree, theirs, path) for ours, theirs in keys.items()})
+    out["_source_keys"] = {**keys, "width": "image_width", "height": "image_height"}
+    return out
+
+
+def camera_from_mapping(data: dict[str, Any], path="<mapping>") -> CameraModel:
+    """Build a camera from the project's YAML mapping, with errors naming ``path`` and the key."""
+    data = dict(data)
+    source_keys = data.pop("_source_keys", {})
+    try:
+        return CameraModel.from_dict(data)
+    except CameraParameterError as exc:
+        raise CalibrationError(path, source_keys.get(exc.key, exc.key), exc.reason) from None
+    except TypeError as exc:  # a value of the wrong kind reached a constructor
+        raise CalibrationError(path, None, str(exc)) from None
+
+
+def load_camera(path: str | os.PathLike, keep_tangential: bool = False) -> CameraModel:
+    """Read a camera from a KITTI-360/CamOdoCal OpenCV YAML file or the project's own YAML file.
+
+    ``keep_tangential`` applies to OpenCV ``MEI`` files only (see the module docstring).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise CalibrationError(path, None, f"cannot read calibration file ({exc.strerror or exc})") from None
+    opencv = text.lstrip().startswith("%YAML")
+    if opencv:  # PyYAML rejects OpenCV's '%YAML:1.0' directive; drop it
+        text = text.split("\n", 1)[1] if "\n" in text else ""
+    try:
+        tree = yaml.load(text, Loader=_OpenCVLoader)
+    except yaml.YAMLError as exc:
+        raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
+    if not isinstance(tree, dict):
+        raise CalibrationError(path, None, "expected a mapping of calibration keys")
+    data = _opencv_to_dict(tree, path, keep_tangential) if opencv else dict(tree)
+    return camera_from_mapping(data, path)
+
+
+def save_camera(camera: CameraModel, path: str | os.PathLike, overwrite: bool = False) -> Path:
+    """Write ``camera`` as the project's YAML, atomically; refuses to replace a file unless ``overwrite``."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = yaml.safe_dump(camera.to_dict(), sort_keys=False)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,39 @@
+"""Rigid-body helpers and the fisheye photometric warp."""
+
+from .se3 import (
+    axis_angle_to_matrix,
+    invert_pose,
+    make_pose,
+    mirror_pose_x,
+    pose_from_3x4,
+    quaternion_to_matrix,
+    relative_pose,
+    transform_points,
+)
+from .warp import (
+    ALIGN_CORNERS,
+    Warp,
+    grid_to_pixels,
+    pixels_to_grid,
+    project_cameras,
+    sample,
+    warp_to_source,
+)
+
+__all__ = [
+    "ALIGN_CORNERS",
+    "Warp",
+    "axis_angle_to_matrix",
+    "grid_to_pixels",
+    "invert_pose",
+    "make_pose",
+    "mirror_pose_x",
+    "pixels_to_grid",
+    "pose_from_3x4",
+    "quaternion_to_matrix",
+    "project_cameras",
+    "relative_pose",
+    "sample",
+    "transform_points",
+    "warp_to_source",
+]

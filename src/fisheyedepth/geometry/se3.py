@@ -1,0 +1,102 @@
+"""Rigid transforms as ``[..., 4, 4]`` homogeneous matrices (float32 or float64, any device).
+
+Naming: ``T_a_to_b`` maps points of frame ``a`` into frame ``b``. A pose ``P`` (body to world) and an
+extrinsic ``E`` (camera to body) are both such maps.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def make_pose(R: Tensor, t: Tensor) -> Tensor:
+    """``[..., 4, 4]`` from a rotation ``[..., 3, 3]`` and a translation ``[..., 3]``."""
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T
+
+
+def pose_from_3x4(values) -> Tensor:
+    """A KITTI-style 3x4 row-major matrix (12 numbers, or ``[..., 12]``/``[..., 3, 4]``) to ``[..., 4, 4]``."""
+    m = torch.as_tensor(values)
+    if not m.is_floating_point():
+        m = m.to(torch.float64)
+    if m.shape[-1] == 12:
+        m = m.reshape(*m.shape[:-1], 3, 4)
+    if m.shape[-2:] != (3, 4):
+        raise ValueError(f"expected 12 numbers or a 3x4 matrix, got shape {tuple(m.shape)}")
+    return make_pose(m[..., :3], m[..., 3])
+
+
+def invert_pose(T: Tensor) -> Tensor:
+    """Exact inverse of a rigid transform: ``(R, t)^-1 = (R^T, -R^T t)``."""
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    return make_pose(Rt, -(Rt @ T[..., :3, 3:4])[..., 0])
+
+
+def relative_pose(P_t: Tensor, P_s: Tensor, E_t: Tensor, E_s: Tensor | None = None) -> Tensor:
+    """``T_{t->s} = E_s^-1 P_s^-1 P_t E_t``: camera at time t to (possibly another) camera at time s.
+
+    ``P``: body-to-world poses at t and s; ``E``: camera-to-body extrinsics of the target camera (t) and
+    the source camera (s, default: the same camera). With one camera this is KITTI-360's
+    ``E^-1 P_s^-1 P_t E``.
+    """
+    E_s = E_t if E_s is None else E_s
+    return invert_pose(E_s) @ invert_pose(P_s) @ P_t @ E_t
+
+
+def transform_points(T: Tensor, points: Tensor) -> Tensor:
+    """Apply ``T [B, 4, 4]`` (or ``[4, 4]``) to ``points [B, ..., 3]`` (or ``[..., 3]``)."""
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    if T.dim() == 2:
+        return points @ R.transpose(0, 1) + t
+    batch = T.shape[:-2]
+    flat = points.reshape(*batch, -1, 3)
+    out = flat @ R.transpose(-1, -2) + t[..., None, :]
+    return out.reshape(points.shape)
+
+
+def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
+    """Rodrigues' formula, ``[..., 3] -> [..., 3, 3]``, with a Taylor expansion near zero angle."""
+    theta2 = (axis_angle * axis_angle).sum(-1, keepdim=True)[..., None]  # [..., 1, 1]
+    small = theta2 < 1e-8
+    theta2_safe = torch.where(small, torch.ones_like(theta2), theta2)
+    theta = torch.sqrt(theta2_safe)
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2_safe)
+    x, y, z = axis_angle.unbind(-1)
+    zero = torch.zeros_like(x)
+    K = torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), dim=-1).reshape(*axis_angle.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device).expand_as(K)
+    return eye + a * K + b * (K @ K)
+
+
+_MIRROR_X = (-1.0, 1.0, 1.0, 1.0)
+
+
+def mirror_pose_x(T: Tensor) -> Tensor:
+    """The transform between horizontally flipped cameras: ``M T M`` with ``M = diag(-1, 1, 1, 1)``.
+
+    If a camera is flipped (see ``CameraModel.flip``), points are mirrored ``X -> -X`` in both the
+    target and the source frame, so the relative pose conjugates by ``M``.
+    """
+    m = torch.tensor(_MIRROR_X, dtype=T.dtype, device=T.device)
+    return T * m[:, None] * m[None, :]
+
+
+def quaternion_to_matrix(q_xyzw: Tensor) -> Tensor:
+    """Unit quaternion ``[..., 4]`` in (x, y, z, w) order (ROS, Aria, scipy) to ``[..., 3, 3]``.
+
+    The quaternion is normalised first, so a slightly denormalised input still gives a rotation.
+    """
+    q = q_xyzw / torch.linalg.vector_norm(q_xyzw, dim=-1, keepdim=True)
+    x, y, z, w = q.unbind(-1)
+    rows = (
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    )
+    return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
