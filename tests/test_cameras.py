@@ -317,14 +317,14 @@ def test_to_dict_is_plain_data(camera):
 @pytest.mark.parametrize(
     "cls,params,key",
     [
-        (MeiCamera, dict(xi=-0.1, gamma1=100.0, gamma2=100.0), "xi"),
-        (MeiCamera, dict(xi=1.0, gamma1=0.0, gamma2=100.0), "gamma1"),
-        (MeiCamera, dict(xi=1.0, gamma1=100.0, gamma2=100.0, k1=float("nan")), "k1"),
-        (KannalaBrandtCamera, dict(fx=100.0, fy=-1.0), "fy"),
-        (KannalaBrandtCamera, dict(fx=100.0, fy=100.0, k4=float("inf")), "k4"),
-        (DoubleSphereCamera, dict(fx=100.0, fy=100.0, alpha=1.5), "alpha"),
-        (DoubleSphereCamera, dict(fx=100.0, fy=100.0, xi=-2.0), "xi"),
-        (PinholeCamera, dict(fx=100.0, fy=100.0, cx="a"), "cx"),
+        (MeiCamera, dict(xi=-0.1, gamma1=100.0, gamma2=100.0, u0=1.0, v0=1.0), "xi"),
+        (MeiCamera, dict(xi=1.0, gamma1=0.0, gamma2=100.0, u0=1.0, v0=1.0), "gamma1"),
+        (MeiCamera, dict(xi=1.0, gamma1=100.0, gamma2=100.0, u0=1.0, v0=1.0, k1=float("nan")), "k1"),
+        (KannalaBrandtCamera, dict(fx=100.0, fy=-1.0, cx=1.0, cy=1.0), "fy"),
+        (KannalaBrandtCamera, dict(fx=100.0, fy=100.0, cx=1.0, cy=1.0, k4=float("inf")), "k4"),
+        (DoubleSphereCamera, dict(fx=100.0, fy=100.0, cx=1.0, cy=1.0, xi=0.1, alpha=1.5), "alpha"),
+        (DoubleSphereCamera, dict(fx=100.0, fy=100.0, cx=1.0, cy=1.0, xi=-2.0, alpha=0.5), "xi"),
+        (PinholeCamera, dict(fx=100.0, fy=100.0, cx="a", cy=1.0), "cx"),
     ],
 )
 def test_impossible_parameters_name_the_key(cls, params, key):
@@ -335,6 +335,6 @@ def test_impossible_parameters_name_the_key(cls, params, key):
 
 def test_impossible_size_names_the_key():
     with pytest.raises(ValueError, match="width"):
-        PinholeCamera(width=0, height=10, fx=1.0, fy=1.0)
+        PinholeCamera(width=0, height=10, fx=1.0, fy=1.0, cx=0.0, cy=0.0)
     with pytest.raises(ValueError, match="height"):
-        PinholeCamera(width=10, height=2.5, fx=1.0, fy=1.0)
+        PinholeCamera(width=10, height=2.5, fx=1.0, fy=1.0, cx=0.0, cy=0.0)

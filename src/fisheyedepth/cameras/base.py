@@ -43,7 +43,7 @@ def register_model(cls: type[CameraModel]) -> type[CameraModel]:
     return cls
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class CameraModel:
     """Base class: image size plus the model's scalar parameters (plain floats, device-free)."""
 

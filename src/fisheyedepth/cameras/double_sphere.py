@@ -23,14 +23,14 @@ from .base import CameraModel, CameraParameterError, finite_where, register_mode
 
 
 @register_model
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class DoubleSphereCamera(CameraModel):
-    fx: float = 1.0
-    fy: float = 1.0
-    cx: float = 0.0
-    cy: float = 0.0
-    xi: float = 0.0
-    alpha: float = 0.5
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    xi: float
+    alpha: float
 
     model_name = "double_sphere"
 

@@ -30,12 +30,12 @@ from .base import (
 
 
 @register_model
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class KannalaBrandtCamera(CameraModel):
-    fx: float = 1.0
-    fy: float = 1.0
-    cx: float = 0.0
-    cy: float = 0.0
+    fx: float
+    fy: float
+    cx: float
+    cy: float
     k1: float = 0.0
     k2: float = 0.0
     k3: float = 0.0

@@ -41,17 +41,17 @@ from .base import (
 
 
 @register_model
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class MeiCamera(CameraModel):
-    xi: float = 0.0
+    xi: float
     k1: float = 0.0
     k2: float = 0.0
     p1: float = 0.0
     p2: float = 0.0
-    gamma1: float = 1.0
-    gamma2: float = 1.0
-    u0: float = 0.0
-    v0: float = 0.0
+    gamma1: float
+    gamma2: float
+    u0: float
+    v0: float
 
     model_name = "mei"
     _fu, _fv, _cu, _cv = "gamma1", "gamma2", "u0", "v0"

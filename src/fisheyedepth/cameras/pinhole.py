@@ -15,12 +15,12 @@ from .base import CameraModel, finite_where, register_model, safe_norm, split_uv
 
 
 @register_model
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class PinholeCamera(CameraModel):
-    fx: float = 1.0
-    fy: float = 1.0
-    cx: float = 0.0
-    cy: float = 0.0
+    fx: float
+    fy: float
+    cx: float
+    cy: float
 
     model_name = "pinhole"
 

@@ -24,6 +24,7 @@ from .se3 import transform_points
 
 ALIGN_CORNERS = False
 _OUTSIDE = -2.0  # grid value given to invalid pixels: outside [-1, 1], so zero-padded samples are 0
+_SLACK_PX = 1e-3  # a border pixel that maps onto itself up to rounding is still inside the image
 
 
 class Warp(NamedTuple):
@@ -94,7 +95,8 @@ def warp_to_source(
 
     ``valid`` is False where the pixel has no ray, the distance is not positive and finite, the point
     is outside the source model's domain (behind the camera), it falls outside the source image (all
-    four bilinear neighbours must be inside), or it lands on the source's body mask.
+    four bilinear neighbours must be inside, up to 1e-3 px of rounding), or its bilinear footprint
+    touches the source's body mask.
     """
     if distance.dim() == 4:
         distance = distance[:, 0]
@@ -107,7 +109,7 @@ def warp_to_source(
     width = _per_sample(source_cameras, batch, "width", uv[..., 0])
     height = _per_sample(source_cameras, batch, "height", uv[..., 0])
     u, v = uv[..., 0], uv[..., 1]
-    inside = (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
+    inside = (u >= -_SLACK_PX) & (u <= width - 1 + _SLACK_PX) & (v >= -_SLACK_PX) & (v <= height - 1 + _SLACK_PX)
     valid = valid & inside & rays_valid & finite
     grid = torch.stack(((2 * u + 1) / width - 1, (2 * v + 1) / height - 1), dim=-1)
     grid = torch.where(valid[..., None], grid, torch.full_like(grid, _OUTSIDE))
