@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import pytest
-from conftest import KITTI_02, kitti02
 
+from conftest import KITTI_02, kitti02
 from fisheyedepth.cameras import (
     CalibrationError,
     KannalaBrandtCamera,
@@ -24,9 +24,16 @@ def kitti_yaml(**override) -> str:
         return "" if values.get(key) is None else f"{indent}{key}: {values[key]}\n"
 
     return (
-        "%YAML:1.0\n---\n" + line("model_type") + "camera_name: image_02\n" + line("image_width")
-        + line("image_height") + "mirror_parameters:\n" + line("xi", "   ") + "distortion_parameters:\n"
-        + "".join(line(k, "   ") for k in ("k1", "k2", "p1", "p2")) + "projection_parameters:\n"
+        "%YAML:1.0\n---\n"
+        + line("model_type")
+        + "camera_name: image_02\n"
+        + line("image_width")
+        + line("image_height")
+        + "mirror_parameters:\n"
+        + line("xi", "   ")
+        + "distortion_parameters:\n"
+        + "".join(line(k, "   ") for k in ("k1", "k2", "p1", "p2"))
+        + "projection_parameters:\n"
         + "".join(line(k, "   ") for k in ("gamma1", "gamma2", "u0", "v0"))
     )
 
@@ -62,8 +69,18 @@ def test_camodocal_kannala_brandt(tmp_path):
         "   mu: 190.9\n   mv: 190.8\n   u0: 254.9\n   v0: 256.8\n"
     )
     cam = load_camera(write(tmp_path, text))
-    assert cam == KannalaBrandtCamera(width=512, height=512, fx=190.9, fy=190.8, cx=254.9, cy=256.8,
-                                      k1=0.0034, k2=0.0007, k3=-0.002, k4=0.0002)
+    assert cam == KannalaBrandtCamera(
+        width=512,
+        height=512,
+        fx=190.9,
+        fy=190.8,
+        cx=254.9,
+        cy=256.8,
+        k1=0.0034,
+        k2=0.0007,
+        k3=-0.002,
+        k4=0.0002,
+    )
 
 
 def test_opencv_pinhole_without_distortion(tmp_path):
@@ -72,8 +89,9 @@ def test_opencv_pinhole_without_distortion(tmp_path):
         "distortion_parameters:\n   k1: 0\n   k2: 0\n   p1: 0\n   p2: 0\n"
         "projection_parameters:\n   fx: 400.0\n   fy: 401.0\n   cx: 319.5\n   cy: 239.5\n"
     )
-    assert load_camera(write(tmp_path, text)) == PinholeCamera(width=640, height=480, fx=400, fy=401,
-                                                                 cx=319.5, cy=239.5)
+    assert load_camera(write(tmp_path, text)) == PinholeCamera(
+        width=640, height=480, fx=400, fy=401, cx=319.5, cy=239.5
+    )
     with pytest.raises(CalibrationError, match="distortion_parameters.k1"):
         load_camera(write(tmp_path, text.replace("k1: 0", "k1: 0.1"), "distorted.yaml"))
 
@@ -125,7 +143,10 @@ def test_bad_kitti_file_names_file_and_key(tmp_path, override, key):
         ("width: 10\nheight: 10\nfx: 1\nfy: 1\n", "model"),
         ("model: pinhole\nwidth: 10\nheight: 10\nfx: 1\n", "fy"),
         ("model: pinhole\nwidth: 10\nheight: 10\nfx: 1\nfy: 1\ncx: 1\ncy: 1\nxi: 2\n", "xi"),
-        ("model: double_sphere\nwidth: 10\nheight: 10\nfx: 1\nfy: 1\ncx: 1\ncy: 1\nxi: 0\nalpha: 1.2\n", "alpha"),
+        (
+            "model: double_sphere\nwidth: 10\nheight: 10\nfx: 1\nfy: 1\ncx: 1\ncy: 1\nxi: 0\nalpha: 1.2\n",
+            "alpha",
+        ),
         ("model: mei\nwidth: 10\nheight: 10\nxi: -1\ngamma1: 1\ngamma2: 1\nu0: 1\nv0: 1\n", "xi"),
         ("model: kannala_brandt\nwidth: 10\nheight: 10\nfx: 1\nfy: 1\ncy: 1\n", "cx"),
     ],

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import KITTI_02, all_cameras, kitti02, kitti03
 
+from conftest import KITTI_02, all_cameras, kitti02, kitti03
 from fisheyedepth.cameras import (
     CameraModel,
     DoubleSphereCamera,
@@ -30,7 +30,9 @@ def directions(theta_max: float, n: int = 20000, dtype=torch.float64, seed: int 
     rim = 1e-6 if dtype == torch.float64 else 1e-4
     theta[:5] = torch.tensor([0.0, 1e-9, 1e-4, theta_max * (1 - rim), theta_max * (1 - 1e-3)])
     phi = torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi
-    d = torch.stack((torch.sin(theta) * torch.cos(phi), torch.sin(theta) * torch.sin(phi), torch.cos(theta)), -1)
+    d = torch.stack(
+        (torch.sin(theta) * torch.cos(phi), torch.sin(theta) * torch.sin(phi), torch.cos(theta)), -1
+    )
     return d.to(dtype)
 
 
@@ -65,7 +67,9 @@ def test_kitti360_image02_full_grid_round_trip(dtype):
 
 def test_kitti360_domain_facts():
     cam2, cam3 = kitti02(), kitti03()
-    assert math.degrees(cam2.max_incidence) == pytest.approx(math.degrees(math.acos(-1 / KITTI_02["xi"])), abs=1e-9)
+    assert math.degrees(cam2.max_incidence) == pytest.approx(
+        math.degrees(math.acos(-1 / KITTI_02["xi"])), abs=1e-9
+    )
     assert math.degrees(cam2.max_incidence) == pytest.approx(116.9, abs=0.05)
     assert math.degrees(cam3.max_incidence) == pytest.approx(113.1, abs=0.05)
     # the middle of the left image border is seen at about 100 degrees of incidence
@@ -106,8 +110,19 @@ def test_round_trip_float64_beyond_90_degrees_is_exact():
 
 def test_tangential_fold_is_outside_the_domain():
     """With p1/p2 near a radial fold the plane folds before g'(r) = 0; both directions agree on it."""
-    cam = MeiCamera(width=320, height=240, xi=0.8, k1=-0.25, k2=0.02, p1=1e-3, p2=-5e-4,
-                    gamma1=300.0, gamma2=302.0, u0=160.3, v0=119.6)
+    cam = MeiCamera(
+        width=320,
+        height=240,
+        xi=0.8,
+        k1=-0.25,
+        k2=0.02,
+        p1=1e-3,
+        p2=-5e-4,
+        gamma1=300.0,
+        gamma2=302.0,
+        u0=160.3,
+        v0=119.6,
+    )
     d = directions(cam.max_incidence)
     uv, ok = cam.project(d)
     assert 0.95 < ok.float().mean() < 1.0  # a sliver at the rim folds
@@ -130,15 +145,20 @@ def test_outside_domain_is_invalid_and_finite(camera):
     beyond = camera.max_incidence + 0.05
     rows = [[0.0, 0.0, 0.0], [0.0, 0.0, -1.0]]  # the centre of projection; straight behind
     if beyond < math.pi:  # a model whose domain ends before 180 degrees: just beyond its rim
-        rows += [[math.sin(beyond), 0.0, math.cos(beyond)], [0.0, -math.sin(beyond) * 3, math.cos(beyond) * 3]]
+        rows += [
+            [math.sin(beyond), 0.0, math.cos(beyond)],
+            [0.0, -math.sin(beyond) * 3, math.cos(beyond) * 3],
+        ]
     pts = torch.tensor(rows, dtype=torch.float64, requires_grad=True)
     uv, ok = camera.project(pts)
     assert not bool(ok.any())
     assert torch.isfinite(uv).all()
     uv.sum().backward()
     assert torch.isfinite(pts.grad).all()
-    far = torch.tensor([[-1e7, -1e7], [1e9, 3.0], [float(camera.width) * 1e6, float(camera.height) * 1e6]],
-                       dtype=torch.float64)
+    far = torch.tensor(
+        [[-1e7, -1e7], [1e9, 3.0], [float(camera.width) * 1e6, float(camera.height) * 1e6]],
+        dtype=torch.float64,
+    )
     rays, ok = camera.unproject(far)
     assert torch.isfinite(rays).all()
     if not isinstance(camera, PinholeCamera):  # every pixel of a pinhole image has a ray
@@ -245,8 +265,9 @@ def test_pinhole_like_matches_fisheye_near_the_centre(camera):
     pin = pinhole_like(camera)
     assert (pin.cx, pin.cy) == camera.principal_point
     theta = 2e-3  # paraxial: the two agree to first order in theta
-    d = torch.tensor([[math.sin(theta), 0, math.cos(theta)], [0, math.sin(theta), math.cos(theta)]],
-                     dtype=torch.float64)
+    d = torch.tensor(
+        [[math.sin(theta), 0, math.cos(theta)], [0, math.sin(theta), math.cos(theta)]], dtype=torch.float64
+    )
     uv_f, _ = camera.project(d)
     uv_p, _ = pin.project(d)
     moved = (uv_f - torch.tensor(camera.principal_point, dtype=torch.float64)).norm(dim=-1)
@@ -266,7 +287,9 @@ def test_resize_maps_pixels_with_pixel_centre_convention(camera):
     assert (uv_s - expected).abs().max() < 1e-9
     back = small.resize(camera.width, camera.height).to_dict()
     for key, value in camera.to_dict().items():
-        assert back[key] == (value if isinstance(value, str) else pytest.approx(value, rel=1e-12, abs=1e-9)), key
+        assert back[key] == (
+            value if isinstance(value, str) else pytest.approx(value, rel=1e-12, abs=1e-9)
+        ), key
 
 
 def test_kitti_resize_to_training_resolution():

@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-from conftest import all_cameras, kitti02, kitti03
 
+from conftest import all_cameras, kitti02, kitti03
 from fisheyedepth.cameras import KannalaBrandtCamera, MeiCamera, PinholeCamera, RayCache, pixel_grid
 from fisheyedepth.geometry import (
     ALIGN_CORNERS,
@@ -54,8 +54,20 @@ def test_relative_pose_between_two_cameras_of_a_rig():
 
 
 def test_pose_from_3x4_reads_kitti_rows():
-    row = [0.9995185086, 0.0041276589, -0.0307524527, 0.7264036936, -0.0307926666, 0.0100608424,
-           -0.9994751579, -0.1499658517, -0.0038160970, 0.9999408692, 0.0101830998, -1.0686400091]
+    row = [
+        0.9995185086,
+        0.0041276589,
+        -0.0307524527,
+        0.7264036936,
+        -0.0307926666,
+        0.0100608424,
+        -0.9994751579,
+        -0.1499658517,
+        -0.0038160970,
+        0.9999408692,
+        0.0101830998,
+        -1.0686400091,
+    ]
     T = pose_from_3x4(row)
     assert T.shape == (4, 4) and T[3].tolist() == [0, 0, 0, 1]
     assert T[0, 3].item() == pytest.approx(0.7264036936) and T[2, 1].item() == pytest.approx(0.9999408692)
@@ -76,7 +88,9 @@ def test_transform_points_batched_shapes():
 def test_axis_angle_to_matrix():
     aa = torch.tensor([[0.0, 0.0, math.pi / 2], [1e-10, 0.0, 0.0], [0.3, -1.2, 0.5]], dtype=D64)
     R = axis_angle_to_matrix(aa)
-    assert torch.allclose(R[0] @ torch.tensor([1.0, 0, 0], dtype=D64), torch.tensor([0.0, 1, 0], dtype=D64), atol=1e-15)
+    assert torch.allclose(
+        R[0] @ torch.tensor([1.0, 0, 0], dtype=D64), torch.tensor([0.0, 1, 0], dtype=D64), atol=1e-15
+    )
     assert torch.allclose(R[1], torch.eye(3, dtype=D64), atol=1e-9)
     skew = torch.tensor([[0, -0.5, -1.2], [0.5, 0, -0.3], [1.2, 0.3, 0]], dtype=D64)
     assert torch.allclose(R[2], torch.linalg.matrix_exp(skew), atol=1e-12)
@@ -115,7 +129,10 @@ def setup_warp(camera, batch=1, dtype=D64):
 def test_identity_warp_maps_each_pixel_to_itself(name):
     cam = all_cameras()[name]
     rays, valid = setup_warp(cam)
-    dist = torch.rand(1, 1, cam.height, cam.width, generator=torch.Generator().manual_seed(0), dtype=D64) * 50 + 0.5
+    dist = (
+        torch.rand(1, 1, cam.height, cam.width, generator=torch.Generator().manual_seed(0), dtype=D64) * 50
+        + 0.5
+    )
     warp = warp_to_source(rays, valid, dist, torch.eye(4, dtype=D64)[None], cam)
     uv = pixel_grid(cam.width, cam.height, dtype=D64)
     assert bool(warp.valid[0][valid[0]].all())
@@ -129,7 +146,9 @@ def test_mei_warp_hand_computed():
     cam = MeiCamera(width=100, height=80, xi=1.0, gamma1=100.0, gamma2=100.0, u0=50.0, v0=40.0)
     ray = torch.tensor([[[[0.0, 0.0, 1.0]]]], dtype=D64)
     T = make_pose(torch.eye(3, dtype=D64), torch.tensor([-1.0, 0.0, 0.0], dtype=D64))[None]
-    warp = warp_to_source(ray, torch.ones(1, 1, 1, dtype=torch.bool), torch.full((1, 1, 1), 10.0, dtype=D64), T, cam)
+    warp = warp_to_source(
+        ray, torch.ones(1, 1, 1, dtype=torch.bool), torch.full((1, 1, 1), 10.0, dtype=D64), T, cam
+    )
     # X_s = (-1, 0, 10): x = s_x / (s_z + xi) = -1 / (10 + sqrt(101))
     assert warp.uv[0, 0, 0].tolist() == pytest.approx([50 - 100 / (10 + math.sqrt(101)), 40.0], abs=1e-12)
     assert bool(warp.valid.all())
@@ -155,8 +174,10 @@ def test_pinhole_warp_of_a_plane_is_the_homography():
 def test_fisheye_warp_of_a_plane_lands_where_the_points_project():
     """Points on a ground plane 1.6 m below a KITTI-like fisheye, the rig moved by a known motion."""
     target, source = kitti02().resize(128, 128), kitti03().resize(96, 96)
-    T = make_pose(axis_angle_to_matrix(torch.tensor([0.0, 0.15, 0.02], dtype=D64)),
-                  torch.tensor([0.2, 0.05, -0.9], dtype=D64))
+    T = make_pose(
+        axis_angle_to_matrix(torch.tensor([0.0, 0.15, 0.02], dtype=D64)),
+        torch.tensor([0.2, 0.05, -0.9], dtype=D64),
+    )
     rays, valid = setup_warp(target)
     h = 1.6
     down = rays[0, ..., 1] > 0.05
@@ -180,7 +201,12 @@ def test_fisheye_warp_of_a_plane_lands_where_the_points_project():
 def texture(X: torch.Tensor) -> torch.Tensor:
     """A smooth world-fixed texture on the ground (x, z), band-limited so bilinear sampling is accurate."""
     x, z = X[..., 0], X[..., 2]
-    return 0.5 + 0.2 * torch.sin(1.3 * x + 0.4 * z) + 0.15 * torch.cos(0.9 * z - 0.7 * x) + 0.1 * torch.sin(0.5 * x * z / 4)
+    return (
+        0.5
+        + 0.2 * torch.sin(1.3 * x + 0.4 * z)
+        + 0.15 * torch.cos(0.9 * z - 0.7 * x)
+        + 0.1 * torch.sin(0.5 * x * z / 4)
+    )
 
 
 def render_ground(camera, T_cam_to_world, height=1.5):
@@ -195,24 +221,39 @@ def render_ground(camera, T_cam_to_world, height=1.5):
 
 def test_warp_between_two_camera_models_reproduces_the_image():
     """A Kannala-Brandt target and a Mei source of another rig position, rendered from one world."""
-    target = KannalaBrandtCamera(width=160, height=120, fx=70.0, fy=70.0, cx=79.5, cy=59.5,
-                                 k1=0.01, k2=-0.002, k3=0.0005, k4=0.0)
+    target = KannalaBrandtCamera(
+        width=160, height=120, fx=70.0, fy=70.0, cx=79.5, cy=59.5, k1=0.01, k2=-0.002, k3=0.0005, k4=0.0
+    )
     source = kitti02().resize(160, 160)
-    T_s_to_w = make_pose(axis_angle_to_matrix(torch.tensor([0.05, -0.3, 0.0], dtype=D64)),
-                         torch.tensor([0.4, -0.1, 0.8], dtype=D64))
+    T_s_to_w = make_pose(
+        axis_angle_to_matrix(torch.tensor([0.05, -0.3, 0.0], dtype=D64)),
+        torch.tensor([0.4, -0.1, 0.8], dtype=D64),
+    )
     img_t, hit_t, dist_t = render_ground(target, torch.eye(4, dtype=D64))
     img_s, hit_s, _ = render_ground(source, T_s_to_w)
     rays, valid = setup_warp(target)
-    warp = warp_to_source(rays, valid & hit_t, dist_t[None], invert_pose(T_s_to_w)[None], source,
-                          source_mask=hit_s[None].to(D64))
+    warp = warp_to_source(
+        rays,
+        valid & hit_t,
+        dist_t[None],
+        invert_pose(T_s_to_w)[None],
+        source,
+        source_mask=hit_s[None].to(D64),
+    )
     warped = sample(img_s[None, None], warp.grid)[0, 0]
     m = warp.valid[0]
     assert m.sum() > 3000
     err = (warped - img_t).abs()[m]
     assert err.mean() < 0.01 and err.max() < 0.1
     # a wrong distance (x 1.3) must be clearly worse: the test can fail
-    wrong = warp_to_source(rays, valid & hit_t, 1.3 * dist_t[None], invert_pose(T_s_to_w)[None], source,
-                           source_mask=hit_s[None].to(D64))
+    wrong = warp_to_source(
+        rays,
+        valid & hit_t,
+        1.3 * dist_t[None],
+        invert_pose(T_s_to_w)[None],
+        source,
+        source_mask=hit_s[None].to(D64),
+    )
     err_wrong = (sample(img_s[None, None], wrong.grid)[0, 0] - img_t).abs()[wrong.valid[0]]
     assert err_wrong.mean() > 5 * err.mean()
 
@@ -254,7 +295,7 @@ def test_mixed_source_cameras_in_one_batch():
     sources = [b, a, b]
     batch = warp_to_source(rays, valid, dist, T, sources)
     for i in range(3):
-        single = warp_to_source(rays[i:i + 1], valid[i:i + 1], dist[i:i + 1], T[i:i + 1], sources[i])
+        single = warp_to_source(rays[i : i + 1], valid[i : i + 1], dist[i : i + 1], T[i : i + 1], sources[i])
         assert torch.equal(single.valid[0], batch.valid[i])
         assert torch.allclose(single.grid[0], batch.grid[i], atol=1e-12)
     with pytest.raises(ValueError, match="2 cameras for a batch of 3"):

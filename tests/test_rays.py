@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import kitti02, kitti03
 
+from conftest import kitti02, kitti03
 from fisheyedepth.cameras import RayCache, compute_rays, pixel_grid
 
 

@@ -39,7 +39,9 @@ def test_kitti360_lidar_ground_plane(realdata):
     """Backprojected LiDAR distances put the ground about 1.8 m below image_02, normal ~ (0, -1, 0)."""
     root = realdata / "kitti360_frame"
     cam = load_camera(root / "image_02.yaml")
-    distance = cv2.imread(str(root / "image_02_lidar_distance.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / 256
+    distance = (
+        cv2.imread(str(root / "image_02_lidar_distance.png"), cv2.IMREAD_UNCHANGED).astype(np.float64) / 256
+    )
     assert distance.shape == (cam.height, cam.width)
     rays, valid = RayCache().get(cam, dtype=D64)
     L = torch.from_numpy(distance)
@@ -71,7 +73,9 @@ def aria(realdata):
 
     def body_pose(t_ns):
         p = min(meta["poses_T_world_device"], key=lambda p: abs(p["t_us"] * 1000 - t_ns))
-        return make_pose(quaternion_to_matrix(torch.tensor(p["q_xyzw"], dtype=D64)), torch.tensor(p["t"], dtype=D64))
+        return make_pose(
+            quaternion_to_matrix(torch.tensor(p["q_xyzw"], dtype=D64)), torch.tensor(p["t"], dtype=D64)
+        )
 
     def extrinsic(name):
         return torch.tensor(meta["cameras"][name]["T_device_camera"], dtype=D64)
@@ -91,7 +95,9 @@ def test_aria_slam_left_warped_into_slam_right(realdata):
     img_r, t_r = frame("camera-slam-right_0")
     img_l, t_l = frame("camera-slam-left_0")
     z_mm, _ = frame("depthskel_camera-slam-right_0")
-    T = relative_pose(body_pose(t_r), body_pose(t_l), extrinsic("camera-slam-right"), extrinsic("camera-slam-left"))
+    T = relative_pose(
+        body_pose(t_r), body_pose(t_l), extrinsic("camera-slam-right"), extrinsic("camera-slam-left")
+    )
     rays, valid = RayCache().get(right, dtype=D64)
     z = torch.from_numpy(z_mm.astype(np.float64) / 1000)
     front = rays[..., 2] > 1e-3

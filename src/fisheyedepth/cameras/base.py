@@ -155,7 +155,9 @@ class CameraModel:
             raise CameraParameterError("model", f"missing; one of {sorted(CAMERA_MODELS)}")
         name = str(data["model"]).lower()
         if name not in CAMERA_MODELS:
-            raise CameraParameterError("model", f"unknown camera model {data['model']!r}; one of {sorted(CAMERA_MODELS)}")
+            raise CameraParameterError(
+                "model", f"unknown camera model {data['model']!r}; one of {sorted(CAMERA_MODELS)}"
+            )
         cls = CAMERA_MODELS[name]
         fields = {f.name: f for f in dataclasses.fields(cls)}
         unknown = sorted(set(data) - set(fields) - {"model"})

@@ -19,7 +19,15 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from .base import CameraModel, CameraParameterError, finite_where, register_model, safe_norm, split_uv, split_xyz
+from .base import (
+    CameraModel,
+    CameraParameterError,
+    finite_where,
+    register_model,
+    safe_norm,
+    split_uv,
+    split_xyz,
+)
 
 
 @register_model

@@ -90,7 +90,9 @@ def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
         dist = tree.get("distortion_parameters") or {}
         for name, value in dist.items():
             if value not in (0, 0.0):
-                raise CalibrationError(path, f"distortion_parameters.{name}", "pinhole distortion is not supported")
+                raise CalibrationError(
+                    path, f"distortion_parameters.{name}", "pinhole distortion is not supported"
+                )
         model = "pinhole"
     else:
         raise CalibrationError(

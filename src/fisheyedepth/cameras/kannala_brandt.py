@@ -63,7 +63,9 @@ class KannalaBrandtCamera(CameraModel):
         theta_d, _ = odd_poly(theta, self._coeffs)
         near_axis = rho <= tiny
         # theta_d / rho, with its limit 1/Z (times the distortion factor, 1 on the axis) where rho -> 0
-        scale = torch.where(near_axis, 1.0 / finite_where(Z > 0, Z, 1.0), theta_d / finite_where(~near_axis, rho, 1.0))
+        scale = torch.where(
+            near_axis, 1.0 / finite_where(Z > 0, Z, 1.0), theta_d / finite_where(~near_axis, rho, 1.0)
+        )
         valid = (theta < self._theta_max) & (safe_norm(points) > tiny) & ~(near_axis & (Z <= 0))
         uv = torch.stack((self.fx * scale * X + self.cx, self.fy * scale * Y + self.cy), dim=-1)
         return torch.where(valid[..., None], uv, torch.zeros_like(uv)), valid
@@ -74,7 +76,9 @@ class KannalaBrandtCamera(CameraModel):
         theta_d = torch.sqrt(mx * mx + my * my)
         theta, valid = solve_odd_poly(theta_d, self._coeffs, self._theta_max)
         positive = theta_d > 0
-        s = torch.where(positive, torch.sin(theta) / finite_where(positive, theta_d, 1.0), torch.ones_like(theta))
+        s = torch.where(
+            positive, torch.sin(theta) / finite_where(positive, theta_d, 1.0), torch.ones_like(theta)
+        )
         rays = torch.stack((s * mx, s * my, torch.cos(theta)), dim=-1)
         rays = rays / safe_norm(rays, keepdim=True)
         axis = torch.zeros_like(rays)

@@ -154,13 +154,15 @@ class MeiCamera(CameraModel):
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
         X, Y, Z = split_xyz(points)
         norm = safe_norm(points)
-        sz = Z / norm
-        denom = sz + self.xi
+        # x = s_x / (s_z + xi) = X / (Z + xi |X|): no normalisation to the sphere needed
+        denom = torch.add(Z, norm, alpha=self.xi)
         # The domain's rim is included up to rounding (a few ulps), so that rays unprojected from rim
         # pixels in float32 project back.
         slack = 16 * torch.finfo(points.dtype).eps
-        valid = (sz > self._z_min - slack) & (norm > torch.finfo(points.dtype).tiny ** 0.5) & (denom > 0)
-        inv = 1.0 / (norm * finite_where(valid, denom, 1.0))
+        valid = (
+            (Z > (self._z_min - slack) * norm) & (norm > torch.finfo(points.dtype).tiny ** 0.5) & (denom > 0)
+        )
+        inv = 1.0 / finite_where(valid, denom, 1.0)
         x, y = X * inv, Y * inv
         if math.isfinite(self._r_max):
             valid = valid & (x * x + y * y <= self._r_max**2 * (1 + slack))

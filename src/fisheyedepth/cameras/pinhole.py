@@ -1,6 +1,6 @@
 """Pinhole camera: what Monodepth2 assumes, and the "no fisheye projection" ablation.
 
-    u = fx X / Z + cx,  v = fy Y / Z + cy,   domain Z > 0.
+u = fx X / Z + cx,  v = fy Y / Z + cy,   domain Z > 0.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ def make_pose(R: Tensor, t: Tensor) -> Tensor:
 
 
 def pose_from_3x4(values) -> Tensor:
-    """A KITTI-style 3x4 row-major matrix (12 numbers, or ``[..., 12]``/``[..., 3, 4]``) to ``[..., 4, 4]``."""
+    """A KITTI 3x4 row-major matrix (12 numbers, ``[..., 12]`` or ``[..., 3, 4]``) as ``[..., 4, 4]``."""
     m = torch.as_tensor(values)
     if not m.is_floating_point():
         m = m.to(torch.float64)
@@ -95,8 +95,14 @@ def quaternion_to_matrix(q_xyzw: Tensor) -> Tensor:
     q = q_xyzw / torch.linalg.vector_norm(q_xyzw, dim=-1, keepdim=True)
     x, y, z, w = q.unbind(-1)
     rows = (
-        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
-        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
-        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - z * w),
+        2 * (x * z + y * w),
+        2 * (x * y + z * w),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - x * w),
+        2 * (x * z - y * w),
+        2 * (y * z + x * w),
+        1 - 2 * (x * x + y * y),
     )
     return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)

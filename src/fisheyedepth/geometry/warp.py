@@ -109,7 +109,9 @@ def warp_to_source(
     width = _per_sample(source_cameras, batch, "width", uv[..., 0])
     height = _per_sample(source_cameras, batch, "height", uv[..., 0])
     u, v = uv[..., 0], uv[..., 1]
-    inside = (u >= -_SLACK_PX) & (u <= width - 1 + _SLACK_PX) & (v >= -_SLACK_PX) & (v <= height - 1 + _SLACK_PX)
+    inside = (
+        (u >= -_SLACK_PX) & (u <= width - 1 + _SLACK_PX) & (v >= -_SLACK_PX) & (v <= height - 1 + _SLACK_PX)
+    )
     valid = valid & inside & rays_valid & finite
     grid = torch.stack(((2 * u + 1) / width - 1, (2 * v + 1) / height - 1), dim=-1)
     grid = torch.where(valid[..., None], grid, torch.full_like(grid, _OUTSIDE))
@@ -119,7 +121,10 @@ def warp_to_source(
             source_mask = source_mask[:, None]
         with torch.no_grad():
             usable = F.grid_sample(
-                source_mask.to(grid.dtype), grid.detach(), mode="bilinear", padding_mode="zeros",
+                source_mask.to(grid.dtype),
+                grid.detach(),
+                mode="bilinear",
+                padding_mode="zeros",
                 align_corners=ALIGN_CORNERS,
             )[:, 0]
         valid = valid & (usable >= 1 - 1e-3)
@@ -128,5 +133,6 @@ def warp_to_source(
 
 def sample(image: Tensor, grid: Tensor, padding_mode: str = "border") -> Tensor:
     """Bilinear sample of ``image [B, C, Hs, Ws]`` at ``grid [B, H, W, 2]`` (the module's convention)."""
-    return F.grid_sample(image, grid.to(image.dtype), mode="bilinear", padding_mode=padding_mode,
-                         align_corners=ALIGN_CORNERS)
+    return F.grid_sample(
+        image, grid.to(image.dtype), mode="bilinear", padding_mode=padding_mode, align_corners=ALIGN_CORNERS
+    )

@@ -1,0 +1,210 @@
+#!/usr/bin/env python
+"""Geometry benchmarks; results go into BENCHMARKS.md (between this script's markers).
+
+1. Ray-cache build (unprojection of every pixel) for the KITTI-360 image_02 Mei camera in float64,
+   at 1400x1400 and at the 384x384 training resolution. Targets: <= 1 s and <= 50 ms on 2 CPU cores.
+2. Warp + grid_sample, forward and backward, batch 8 at 256x256, for fisheye models against a pinhole
+   camera, interleaved round by round in one run so that machine noise hits all alike. Target: the
+   fisheye/pinhole ratio <= 1.05 (fisheye projection costs nothing once rays are cached).
+
+Usage: python scripts/bench_geometry.py [--threads 2] [--rounds 15] [--device cpu] [--no-write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from fisheyedepth.cameras import (
+    DoubleSphereCamera,
+    KannalaBrandtCamera,
+    MeiCamera,
+    RayCache,
+    compute_rays,
+    pinhole_like,
+)
+from fisheyedepth.cameras.presets import kitti360_camera
+from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_geometry:start -->", "<!-- bench_geometry:end -->"
+
+KITTI_02 = kitti360_camera(2)
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn, device) -> float:
+    sync(device)
+    t0 = time.perf_counter()
+    fn()
+    sync(device)
+    return time.perf_counter() - t0
+
+
+def bench_ray_cache(device, repeats: int) -> list[tuple[str, float, float]]:
+    rows = []
+    for size, target in ((1400, 1.0), (384, 0.050)):
+        cam = KITTI_02.resize(size, size)
+        compute_rays(cam, device, torch.float64)  # warm-up
+        times = [
+            timed(lambda cam=cam: compute_rays(cam, device, torch.float64), device) for _ in range(repeats)
+        ]
+        rows.append((f"{size}x{size}", statistics.median(times), target))
+    return rows
+
+
+def bench_warp(device, rounds: int, batch: int = 8, size: int = 256) -> dict[str, list[float]]:
+    kitti = KITTI_02.resize(size, size)
+    fx, fy = kitti.paraxial_focal()
+    cams = {
+        "pinhole": None,  # filled below: the pinhole with the fisheye's focal and centre
+        "mei (KITTI-360, radial)": kitti,
+        "mei (radial + tangential)": None,  # filled below
+        "kannala_brandt": KannalaBrandtCamera(
+            width=size,
+            height=size,
+            fx=fx,
+            fy=fy,
+            cx=kitti.u0,
+            cy=kitti.v0,
+            k1=0.0035,
+            k2=0.0007,
+            k3=-0.002,
+            k4=0.0002,
+        ),
+        "double_sphere": DoubleSphereCamera(
+            width=size,
+            height=size,
+            fx=fx * 0.83,
+            fy=fy * 0.83,
+            cx=kitti.u0,
+            cy=kitti.v0,
+            xi=-0.17,
+            alpha=0.59,
+        ),
+    }
+    params = {k: v for k, v in kitti.to_dict().items() if k != "model"}
+    cams["mei (radial + tangential)"] = MeiCamera(**{**params, "p1": 4.2e-4, "p2": 4.2e-4})
+    cams["pinhole"] = pinhole_like(kitti)
+
+    g = torch.Generator().manual_seed(0)
+    image = torch.rand(batch, 3, size, size, generator=g).to(device)
+    dist0 = (torch.rand(batch, 1, size, size, generator=g) * 20 + 2).to(device)
+    T = make_pose(axis_angle_to_matrix(torch.tensor([0.0, 0.03, 0.0])), torch.tensor([0.05, 0.0, 0.6]))
+    T = T.expand(batch, 4, 4).contiguous().to(device)
+    cache = RayCache()
+    prepared = {}
+    for name, cam in cams.items():
+        rays, valid = cache.get(cam, device, torch.float32)
+        prepared[name] = (cam, rays.expand(batch, -1, -1, -1), valid.expand(batch, -1, -1))
+
+    def step(name):
+        cam, rays, valid = prepared[name]
+        dist = dist0.clone().requires_grad_(True)
+        warp = warp_to_source(rays, valid, dist, T, cam)
+        loss = (sample(image, warp.grid) * warp.valid[:, None]).mean()
+        loss.backward()
+
+    for name in cams:  # warm-up
+        for _ in range(2):
+            step(name)
+    times = {name: [] for name in cams}
+    names = list(cams)
+    for r in range(rounds):
+        order = names[r % len(names) :] + names[: r % len(names)]  # rotate the order every round
+        for name in order:
+            times[name].append(timed(lambda name=name: step(name), device))
+    return times
+
+
+def render(cache_rows, warp_times, args, device) -> str:
+    cpu = platform.processor() or platform.machine()
+    lines = [
+        START,
+        "## Geometry (`scripts/bench_geometry.py`)",
+        "",
+        f"Command: `python scripts/bench_geometry.py --threads {args.threads} --rounds {args.rounds}"
+        f" --device {args.device}`  ",
+        f"Machine: {os.cpu_count()} CPUs ({cpu}), torch {torch.__version__}, "
+        f"{torch.get_num_threads()} threads, device {device}; {time.strftime('%Y-%m-%d')}.",
+        "",
+        "Ray-cache build, KITTI-360 image_02 (Mei), float64, median of repeats:",
+        "",
+        "| resolution | time | target | met |",
+        "|---|---|---|---|",
+    ]
+    for res, t, target in cache_rows:
+        lines.append(
+            f"| {res} | {t * 1e3:.1f} ms | <= {target * 1e3:.0f} ms | {'yes' if t <= target else 'NO'} |"
+        )
+    base = warp_times["pinhole"]
+    lines += [
+        "",
+        f"Warp + grid_sample, forward and backward, batch 8 at 256x256, float32; {args.rounds} interleaved",
+        "rounds. Ratio: median over rounds of (model time / pinhole time in that round); target <= 1.05:",
+        "",
+        "| camera | median time | ratio to pinhole | met |",
+        "|---|---|---|---|",
+    ]
+    for name, ts in warp_times.items():
+        ratio = statistics.median(t / b for t, b in zip(ts, base, strict=True))
+        met = "-" if name == "pinhole" else ("yes" if ratio <= 1.05 else "NO")
+        lines.append(f"| {name} | {statistics.median(ts) * 1e3:.1f} ms | {ratio:.3f} | {met} |")
+    lines.append(END)
+    return "\n".join(lines) + "\n"
+
+
+def write_section(path: Path, section: str) -> None:
+    text = (
+        path.read_text()
+        if path.exists()
+        else "# Benchmarks\n\nEach section names the command that produced it.\n\n"
+    )
+    if START in text and END in text:
+        head, rest = text.split(START, 1)
+        text = head + section + rest.split(END, 1)[1].lstrip("\n")
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as handle:
+        handle.write(text)
+    os.replace(tmp, path)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
+    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    cache_rows = bench_ray_cache(device, args.repeats)
+    warp_times = bench_warp(device, args.rounds)
+    section = render(cache_rows, warp_times, args, device)
+    print(section)
+    if not args.no_write:
+        write_section(args.output, section)
+        print(f"written to {args.output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

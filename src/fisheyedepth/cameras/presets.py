@@ -1,0 +1,76 @@
+"""Published calibrations, as cameras (facts from the datasets' own calibration files).
+
+- KITTI-360 fisheyes ``image_02`` (left) and ``image_03`` (right), Mei model, 1400 x 1400, from the
+  official ``calibration/image_0X.yaml``. ``kitti360_camera(2)`` drops p1/p2 like the official tools;
+  ``tangential=True`` keeps them.
+- TUM-VI 512 x 512 ``cam0`` as Kannala-Brandt and as double sphere.
+"""
+
+from __future__ import annotations
+
+from .double_sphere import DoubleSphereCamera
+from .kannala_brandt import KannalaBrandtCamera
+from .mei import MeiCamera
+
+KITTI360_MEI = {
+    2: dict(
+        xi=2.2134047507854890,
+        k1=1.6798235660113681e-02,
+        k2=1.6548773243373522,
+        p1=4.2223943394772046e-04,
+        p2=4.2462134260997584e-04,
+        gamma1=1.3363220825849971e03,
+        gamma2=1.3357883350012958e03,
+        u0=7.1694323510126321e02,
+        v0=7.0576498308221585e02,
+    ),
+    3: dict(
+        xi=2.5535139132482758,
+        k1=4.9370396274089505e-02,
+        k2=4.5068455478645308,
+        p1=1.3477698472982495e-03,
+        p2=-7.0340482615055284e-04,
+        gamma1=1.4854388981875156e03,
+        gamma2=1.4849477411748708e03,
+        u0=6.9888316784030962e02,
+        v0=6.9814541887723055e02,
+    ),
+}
+
+
+def kitti360_camera(index: int, tangential: bool = False) -> MeiCamera:
+    """KITTI-360 ``image_0{index}`` (2 or 3) at its native 1400 x 1400."""
+    if index not in KITTI360_MEI:
+        raise ValueError(f"KITTI-360 fisheye cameras are image_02 and image_03, not image_0{index}")
+    params = dict(KITTI360_MEI[index])
+    if not tangential:
+        params.update(p1=0.0, p2=0.0)
+    return MeiCamera(width=1400, height=1400, **params)
+
+
+def tumvi_kannala_brandt() -> KannalaBrandtCamera:
+    return KannalaBrandtCamera(
+        width=512,
+        height=512,
+        fx=190.97847715128717,
+        fy=190.9733070521226,
+        cx=254.93170605935475,
+        cy=256.8974428996504,
+        k1=0.0034823894022493434,
+        k2=0.0007150348452162257,
+        k3=-0.0020532361418706202,
+        k4=0.00020293673591811182,
+    )
+
+
+def tumvi_double_sphere() -> DoubleSphereCamera:
+    return DoubleSphereCamera(
+        width=512,
+        height=512,
+        fx=158.28600034966977,
+        fy=158.2743455478755,
+        cx=254.96116578191653,
+        cy=256.8894394501779,
+        xi=-0.17213086034353243,
+        alpha=0.5931177593944744,
+    )
