@@ -5,11 +5,12 @@ Conventions (all models):
 - Pixels: ``(u, v) = (column, row)``; integer coordinates are pixel *centres* (KITTI-360, OpenCV).
 - ``project(points) -> (uv, valid)``: ``valid`` is False where the point lies outside the model's
   domain (behind a pinhole camera, beyond the fisheye's maximal incidence angle, at the centre of
-  projection). ``uv`` is always finite. Whether ``uv`` falls inside the image is a separate question:
-  :meth:`CameraModel.in_image`.
+  projection). ``uv`` is always finite. Whether ``uv`` falls inside the image is the warp's question
+  (:func:`fisheyedepth.geometry.warp_to_source`), not the model's.
 - ``unproject(uv) -> (rays, valid)``: unit rays; ``valid`` is False where the pixel has no ray in the
   model. ``rays`` is always finite (``(0, 0, 1)`` where invalid).
 - Any leading batch shape, float32 or float64, on any device; gradients flow through ``project``.
+  ``unproject`` builds ray caches and is not meant for gradients (its iterations are not differentiated).
 
 A camera is an immutable value: equal parameters give equal, hashable cameras, which is what the
 per-camera ray cache keys on.
@@ -105,11 +106,6 @@ class CameraModel:
     @property
     def principal_point(self) -> tuple[float, float]:
         return getattr(self, self._cu), getattr(self, self._cv)
-
-    def in_image(self, uv: Tensor) -> Tensor:
-        """True where a bilinear sample at ``uv`` has all four neighbours inside the image."""
-        u, v = uv[..., 0], uv[..., 1]
-        return (u >= 0) & (u <= self.width - 1) & (v >= 0) & (v <= self.height - 1)
 
     # ---------------------------------------------------------------- derived cameras
     def resize(self, width: int, height: int) -> CameraModel:
