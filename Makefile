@@ -26,6 +26,7 @@ lint: install
 
 bench: install
 	$(PY) scripts/bench_geometry.py
+	$(PY) scripts/bench_synthetic.py
 
 train: install
 	@echo "make train: the training entry point (train.py, Hydra configs, synthetic default data) is wired by" >&2

@@ -17,12 +17,12 @@ import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import torch
 
+from _benchmarks import write_section
 from fisheyedepth.cameras import (
     DoubleSphereCamera,
     KannalaBrandtCamera,
@@ -166,23 +166,6 @@ def render(cache_rows, warp_times, args, device) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_section(path: Path, section: str) -> None:
-    text = (
-        path.read_text()
-        if path.exists()
-        else "# Benchmarks\n\nEach section names the command that produced it.\n\n"
-    )
-    if START in text and END in text:
-        head, rest = text.split(START, 1)
-        text = head + section + rest.split(END, 1)[1].lstrip("\n")
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as handle:
-        handle.write(text)
-    os.replace(tmp, path)
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -201,7 +184,7 @@ def main(argv=None) -> int:
     section = render(cache_rows, warp_times, args, device)
     print(section)
     if not args.no_write:
-        write_section(args.output, section)
+        write_section(args.output, START, END, section)
         print(f"written to {args.output}", file=sys.stderr)
     return 0
 

@@ -18,12 +18,12 @@ Every problem raises :class:`CalibrationError` naming the file and the key.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from ..utils import atomic_write_text
 from .base import CameraModel, CameraParameterError
 
 
@@ -144,14 +144,5 @@ def save_camera(camera: CameraModel, path: str | os.PathLike, overwrite: bool = 
     path = Path(path)
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = yaml.safe_dump(camera.to_dict(), sort_keys=False)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            handle.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_text(path, yaml.safe_dump(camera.to_dict(), sort_keys=False))
     return path

@@ -1,0 +1,21 @@
+"""Shared by the benchmark scripts: each owns one marked section of BENCHMARKS.md."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fisheyedepth.utils import atomic_write_text
+
+HEADER = "# Benchmarks\n\nEach section names the command that produced it.\n\n"
+
+
+def write_section(path: Path, start: str, end: str, section: str) -> None:
+    """Replace the text between ``start`` and ``end`` markers (or append it), atomically."""
+    text = path.read_text() if path.exists() else HEADER
+    if start in text and end in text:
+        head, rest = text.split(start, 1)
+        tail = rest.split(end, 1)[1].lstrip("\n")
+        text = head + section + ("\n" + tail if tail else "")
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    atomic_write_text(path, text)

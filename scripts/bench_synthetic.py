@@ -1,0 +1,109 @@
+#!/usr/bin/env python
+"""Synthetic-world rendering speed; results go into BENCHMARKS.md (between this script's markers).
+
+Camera-frames per second at 256x256 with 2x2 supersampling on 2 CPU cores (target >= 5, stretch 20):
+1. rendering alone, in this process with 2 threads (colour, exact distance, body mask; no files);
+2. the whole generator (`generate`: rendering, LiDAR, PNG/NPY/BIN files), in one process with 2 threads
+   and with 2 worker processes of 1 thread each.
+
+Usage: python scripts/bench_synthetic.py [--frames 24] [--size 256] [--no-write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from _benchmarks import write_section
+from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, make_world
+from fisheyedepth.data.synthetic.raycast import scene_tensors
+from fisheyedepth.data.synthetic.render import CameraRenderer
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_synthetic:start -->", "<!-- bench_synthetic:end -->"
+
+
+def render_only(frames: int, size: int, supersample: int) -> float:
+    world = make_world(0)
+    scene = scene_tensors(world)
+    rig = make_rig("kitti360", size)
+    poses = make_trajectory(world, frames + 2, 0)
+    renderers = [CameraRenderer(cam, rig.cam_to_pose[name], supersample) for name, cam in rig.cameras.items()]
+    for r in renderers:  # warm-up
+        r.render(scene, world, poses[0])
+    t0 = time.perf_counter()
+    for pose in poses[2:]:
+        for r in renderers:
+            r.render(scene, world, pose)
+    return frames * len(renderers) / (time.perf_counter() - t0)
+
+
+def end_to_end(frames: int, size: int, supersample: int, workers: int) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        generate(
+            Path(tmp) / "d",
+            "kitti360",
+            frames=frames,
+            size=size,
+            supersample=supersample,
+            workers=workers,
+            progress=False,
+        )
+        return frames * 2 / (time.perf_counter() - t0)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--frames", type=int, default=24)
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--supersample", type=int, default=2)
+    parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(2)
+    rows = [
+        ("rendering only, 1 process x 2 threads", render_only(args.frames, args.size, args.supersample)),
+        ("generate(), 1 process x 2 threads", end_to_end(args.frames, args.size, args.supersample, 0)),
+        (
+            "generate(), 2 worker processes x 1 thread",
+            end_to_end(args.frames, args.size, args.supersample, 2),
+        ),
+    ]
+    lines = [
+        START,
+        "## Synthetic world (`scripts/bench_synthetic.py`)",
+        "",
+        f"Command: `python scripts/bench_synthetic.py --frames {args.frames} --size {args.size}"
+        f" --supersample {args.supersample}`  ",
+        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}; "
+        f"{time.strftime('%Y-%m-%d')}. kitti360 rig (2 Mei cameras), {args.size}x{args.size}, "
+        f"{args.supersample}x{args.supersample} supersampling; end-to-end runs include LiDAR and files.",
+        "",
+        "| mode | camera-frames / s | target >= 5 | stretch >= 20 |",
+        "|---|---|---|---|",
+    ]
+    for name, fps in rows:
+        lines.append(
+            f"| {name} | {fps:.2f} | {'yes' if fps >= 5 else 'NO'} | {'yes' if fps >= 20 else 'no'} |"
+        )
+    lines.append(END)
+    section = "\n".join(lines) + "\n"
+    print(section)
+    if not args.no_write:
+        write_section(args.output, START, END, section)
+        print(f"written to {args.output}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
