@@ -21,8 +21,8 @@ test: install
 	$(PY) -m pytest
 
 lint: install
-	$(PY) -m ruff check src tests scripts
-	$(PY) -m ruff format --check src tests scripts
+	$(PY) -m ruff check --no-cache src tests scripts
+	$(PY) -m ruff format --no-cache --check src tests scripts
 
 bench: install
 	$(PY) scripts/bench_geometry.py

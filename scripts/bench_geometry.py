@@ -22,7 +22,6 @@ from pathlib import Path
 
 import torch
 
-from _benchmarks import write_section
 from fisheyedepth.cameras import (
     DoubleSphereCamera,
     KannalaBrandtCamera,
@@ -33,6 +32,8 @@ from fisheyedepth.cameras import (
 )
 from fisheyedepth.cameras.presets import kitti360_camera
 from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
+
+from _benchmarks import write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_geometry:start -->", "<!-- bench_geometry:end -->"

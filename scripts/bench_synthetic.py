@@ -21,10 +21,11 @@ from pathlib import Path
 
 import torch
 
-from _benchmarks import write_section
 from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, make_world
 from fisheyedepth.data.synthetic.raycast import scene_tensors
 from fisheyedepth.data.synthetic.render import CameraRenderer
+
+from _benchmarks import write_section
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_synthetic:start -->", "<!-- bench_synthetic:end -->"

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import pytest
 
-from conftest import KITTI_02, kitti02
 from fisheyedepth.cameras import (
     CalibrationError,
     KannalaBrandtCamera,
@@ -13,6 +12,8 @@ from fisheyedepth.cameras import (
     load_camera,
     save_camera,
 )
+
+from conftest import KITTI_02, kitti02
 
 
 def kitti_yaml(**override) -> str:

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import KITTI_02, all_cameras, kitti02, kitti03
 from fisheyedepth.cameras import (
     CameraModel,
     DoubleSphereCamera,
@@ -18,6 +17,8 @@ from fisheyedepth.cameras import (
     pinhole_like,
     pixel_grid,
 )
+
+from conftest import KITTI_02, all_cameras, kitti02, kitti03
 
 
 def directions(theta_max: float, n: int = 20000, dtype=torch.float64, seed: int = 0) -> torch.Tensor:

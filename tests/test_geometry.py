@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-from conftest import all_cameras, kitti02, kitti03
 from fisheyedepth.cameras import KannalaBrandtCamera, MeiCamera, PinholeCamera, RayCache, pixel_grid
 from fisheyedepth.geometry import (
     ALIGN_CORNERS,
@@ -24,6 +23,8 @@ from fisheyedepth.geometry import (
     transform_points,
     warp_to_source,
 )
+
+from conftest import all_cameras, kitti02, kitti03
 
 D64 = torch.float64
 

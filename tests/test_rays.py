@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from conftest import kitti02, kitti03
 from fisheyedepth.cameras import RayCache, compute_rays, pixel_grid
+
+from conftest import kitti02, kitti03
 
 
 def test_pixel_grid_is_column_row_at_centres():
