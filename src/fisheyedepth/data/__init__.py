@@ -1,0 +1,1 @@
+"""Data: the synthetic fisheye world, dataset readers and the DataModule."""

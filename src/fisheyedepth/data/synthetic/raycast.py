@@ -1,0 +1,224 @@
+"""Vectorised ray casting against the world's boxes, vertical cylinders, spheres and ground plane.
+
+Rays come in tiles (``[T, K, 3]``: T tiles of K neighbouring rays). Each tile gets a bounding cone;
+each object a bounding sphere; only (tile, object) pairs whose cone and sphere overlap are intersected,
+all pairs of one primitive kind in one batch of tensor operations. The nearest hit per ray is resolved
+with a scatter-min.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .world import GROUND, SKY, World
+
+_EPS = 1e-4  # hits closer than this (metres) are ignored
+
+
+@dataclasses.dataclass
+class SceneTensors:
+    box_lo: Tensor
+    box_hi: Tensor
+    box_material: Tensor
+    box_tint: Tensor
+    cylinders: Tensor
+    cylinder_material: Tensor
+    cylinder_tint: Tensor
+    spheres: Tensor
+    sphere_material: Tensor
+    sphere_tint: Tensor
+    # kind -> (bounding-sphere centre [N, 3], its radius [N], top height [N], footprint radius [N] around
+    # the centre's (x, y))
+    bounds: dict[str, tuple[Tensor, Tensor, Tensor, Tensor]]
+
+
+def scene_tensors(world: World, device="cpu") -> SceneTensors:
+    f = dict(dtype=torch.float32, device=device)
+    lo, hi = torch.as_tensor(world.boxes[:, :3], **f), torch.as_tensor(world.boxes[:, 3:], **f)
+    cyl = torch.as_tensor(world.cylinders, **f).reshape(-1, 5)
+    sph = torch.as_tensor(world.spheres, **f).reshape(-1, 4)
+    cyl_centre = torch.stack((cyl[:, 0], cyl[:, 1], 0.5 * (cyl[:, 3] + cyl[:, 4])), -1)
+    cyl_radius = torch.sqrt(cyl[:, 2] ** 2 + (0.5 * (cyl[:, 4] - cyl[:, 3])) ** 2)
+    return SceneTensors(
+        lo, hi, torch.as_tensor(world.box_material, device=device), torch.as_tensor(world.box_tint, **f),
+        cyl, torch.as_tensor(world.cylinder_material, device=device), torch.as_tensor(world.cylinder_tint, **f),
+        sph, torch.as_tensor(world.sphere_material, device=device), torch.as_tensor(world.sphere_tint, **f),
+        bounds={
+            "box": (0.5 * (lo + hi), 0.5 * (hi - lo).norm(dim=-1), hi[:, 2], 0.5 * (hi - lo)[:, :2].norm(dim=-1)),
+            "cylinder": (cyl_centre, cyl_radius, cyl[:, 4], cyl[:, 2]),
+            "sphere": (sph[:, :3], sph[:, 3], sph[:, 2] + sph[:, 3], sph[:, 3]),
+        },
+    )
+
+
+class Hit(NamedTuple):
+    t: Tensor  # [R] distance along the unit ray; inf where nothing was hit
+    material: Tensor  # [R] int64
+    normal: Tensor  # [R, 3] world-frame unit normal
+    tint: Tensor  # [R, 3]
+
+
+def tile_grid(grid: Tensor, th: int, tw: int) -> Tensor:
+    """``[H, W, C]`` -> ``[T, th * tw, C]`` tiles (H, W multiples of th, tw)."""
+    H, W, C = grid.shape
+    return grid.reshape(H // th, th, W // tw, tw, C).permute(0, 2, 1, 3, 4).reshape(-1, th * tw, C)
+
+
+def untile_grid(values: Tensor, H: int, W: int, th: int, tw: int) -> Tensor:
+    """Inverse of :func:`tile_grid`: ``[T * th * tw, ...]`` values in tiled ray order -> ``[H, W, ...]``."""
+    rest = tuple(values.shape[1:])
+    x = values.reshape(H // th, W // tw, th, tw, *rest)
+    return x.permute(0, 2, 1, 3, *range(4, 4 + len(rest))).reshape(H, W, *rest)
+
+
+def box_intersect(origin: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """Slab test. ``origin`` [..., 3] or [3], ``dirs`` [..., 3], ``lo``/``hi`` broadcastable.
+
+    Returns the entry distance (inf on a miss or when the origin is inside) and the entry axis.
+    """
+    safe = torch.where(dirs.abs() < 1e-12, torch.full_like(dirs, 1e-12), dirs)
+    inv = 1.0 / safe
+    t1, t2 = (lo - origin) * inv, (hi - origin) * inv
+    near, axis = torch.minimum(t1, t2).max(dim=-1)
+    far = torch.maximum(t1, t2).amin(dim=-1)
+    hit = (far >= near) & (near > _EPS)
+    return torch.where(hit, near, torch.full_like(near, float("inf"))), axis
+
+
+def _cylinder_intersect(origin: Tensor, dirs: Tensor, cyl: Tensor) -> Tensor:
+    """Vertical cylinders ``cyl [..., 5]`` (cx, cy, radius, z0, z1), one per ray ``dirs [..., 3]``."""
+    dx, dy, dz = dirs.unbind(-1)
+    cx, cy, r, z0, z1 = cyl.unbind(-1)
+    fx, fy = origin[0] - cx, origin[1] - cy
+    a = (dx * dx + dy * dy).clamp_min(1e-12)
+    b = 2 * (fx * dx + fy * dy)
+    c = fx * fx + fy * fy - r * r
+    disc = b * b - 4 * a * c
+    t = (-b - torch.sqrt(disc.clamp_min(0))) / (2 * a)
+    z = origin[2] + t * dz
+    hit = (disc >= 0) & (t > _EPS) & (z >= z0) & (z <= z1)
+    return torch.where(hit, t, torch.full_like(t, float("inf")))
+
+
+def _sphere_intersect(origin: Tensor, dirs: Tensor, sph: Tensor) -> Tensor:
+    """Spheres ``sph [..., 4]`` (centre, radius), one per ray ``dirs [..., 3]``."""
+    L = sph[..., :3] - origin
+    tca = (L * dirs).sum(-1)
+    d2 = (L * L).sum(-1) - tca * tca
+    r2 = sph[..., 3] ** 2
+    t = tca - torch.sqrt((r2 - d2).clamp_min(0))
+    hit = (d2 <= r2) & (t > _EPS)
+    return torch.where(hit, t, torch.full_like(t, float("inf")))
+
+
+def _overlapping_pairs(origin, cone_dir, cone_cos_sin, tile_min_dz, bounds, max_range):
+    """(tile, object, nearest possible distance, sine of the object's highest elevation) for every tile
+    cone that meets an object's bounding sphere and whose lowest ray is not above the object's top."""
+    centre, radius, top, footprint = bounds
+    v = centre - origin
+    dist = v.norm(dim=-1).clamp_min(1e-6)
+    near = dist - radius < max_range
+    idx = near.nonzero().squeeze(1)
+    if idx.numel() == 0:
+        empty = torch.zeros(0, device=centre.device)
+        return idx, idx, empty, empty
+    v, dist, radius = v[idx], dist[idx], radius[idx]
+    rise = top[idx] - origin[2]
+    flat = (v[:, :2].norm(dim=-1) - footprint[idx]).clamp_min(0)
+    sin_top = rise / torch.sqrt(rise * rise + flat * flat).clamp_min(1e-9)  # sine of the highest elevation
+    sin_b = (radius / dist).clamp(max=1.0)
+    cos_b = torch.sqrt(1 - sin_b * sin_b)
+    cos_a, sin_a = cone_cos_sin
+    # angle(tile axis, object) <= alpha + beta  <=>  cos(angle) >= cos(alpha + beta) (when alpha + beta < pi)
+    cos_ab = cos_a[:, None] * cos_b[None, :] - sin_a[:, None] * sin_b[None, :]
+    wide = (torch.acos(cos_a.clamp(-1, 1))[:, None] + torch.asin(sin_b)[None, :]) >= torch.pi
+    overlap = (cone_dir @ (v / dist[:, None]).T >= cos_ab) | wide | (dist <= radius)[None, :]
+    overlap &= tile_min_dz[:, None] <= sin_top[None, :] + 1e-6
+    tiles, objs = overlap.nonzero(as_tuple=True)
+    return tiles, idx[objs], (dist - radius).clamp_min(0)[objs], sin_top[objs]
+
+
+# Objects are intersected nearest first, in bands of their nearest possible distance; before each band,
+# a tile whose rays all hit something nearer than an object skips that object (occlusion culling).
+_BANDS = (0.0, 6.0, 15.0, 30.0, 60.0, float("inf"))
+
+
+def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 120.0) -> Hit:
+    """Nearest hit for tiled unit rays ``dirs [T, K, 3]`` from ``origin [3]`` (world frame)."""
+    T, K, _ = dirs.shape
+    flat = dirs.reshape(-1, 3)
+    n_rays = flat.shape[0]
+    inf = float("inf")
+    # ground plane z = 0
+    down = flat[:, 2] < -1e-9
+    t_ground = -origin[2] / torch.where(down, flat[:, 2], torch.full_like(flat[:, 2], -1e-9))
+    t_ground = torch.where(down & (t_ground <= max_range), t_ground, torch.full_like(t_ground, inf))
+
+    cone_dir = torch.nn.functional.normalize(dirs.mean(1), dim=-1)
+    cos_a = (dirs * cone_dir[:, None]).sum(-1).amin(1).clamp(-1, 1)
+    sin_a = torch.sqrt((1 - cos_a * cos_a).clamp_min(0))
+    ray_ids = torch.arange(n_rays, device=dirs.device).reshape(T, K)
+    tile_min_dz = dirs[..., 2].amin(1)
+    pairs = {
+        kind: _overlapping_pairs(origin, cone_dir, (cos_a, sin_a), tile_min_dz, scene.bounds[kind], max_range)
+        for kind in ("box", "cylinder", "sphere")
+        if scene.bounds[kind][0].shape[0]
+    }
+
+    t_best = t_ground.clone()
+    candidates = []  # (kind, ray ids [N], object ids [N], t [N])
+    for lo_band, hi_band in zip(_BANDS[:-1], _BANDS[1:], strict=True):
+        tile_far = t_best.reshape(T, K).amax(1)  # every ray of the tile hits something at most this far
+        for kind, (tiles, objs, near, sin_top) in pairs.items():
+            sel = ((near >= lo_band) & (near < hi_band) & (near < tile_far[tiles])).nonzero().squeeze(1)
+            if sel.numel() == 0:
+                continue
+            # only rays that have hit nothing nearer than the object and are not above its top can hit it
+            rid = ray_ids[tiles[sel]]
+            maybe = (t_best[rid] > near[sel, None]) & (flat[rid, 2] <= sin_top[sel, None] + 1e-6)
+            pair, k = maybe.nonzero(as_tuple=True)
+            rays, ob = ray_ids[tiles[sel[pair]], k], objs[sel[pair]]
+            d = flat[rays]
+            if kind == "box":
+                t, _ = box_intersect(origin, d, scene.box_lo[ob], scene.box_hi[ob])
+            elif kind == "cylinder":
+                t = _cylinder_intersect(origin, d, scene.cylinders[ob])
+            else:
+                t = _sphere_intersect(origin, d, scene.spheres[ob])
+            t = torch.where(t <= max_range, t, torch.full_like(t, inf))
+            t_best = t_best.scatter_reduce(0, rays, t, reduce="amin")
+            candidates.append((kind, rays, ob, t))
+
+    material = torch.full((n_rays,), SKY, dtype=torch.int64, device=dirs.device)
+    normal = torch.zeros(n_rays, 3, device=dirs.device)
+    tint = torch.ones(n_rays, 3, device=dirs.device)
+    ground = torch.isfinite(t_ground) & (t_ground == t_best)
+    material[ground] = GROUND
+    normal[ground] = torch.tensor([0.0, 0.0, 1.0], device=dirs.device)
+    for kind, rays, objs, t in candidates:
+        win = torch.isfinite(t) & (t == t_best[rays])
+        if not bool(win.any()):
+            continue
+        rays, obj = rays[win], objs[win]
+        point = origin + flat[rays] * t_best[rays, None]
+        if kind == "box":
+            lo, hi = scene.box_lo[obj], scene.box_hi[obj]
+            rel = (point - 0.5 * (lo + hi)) / (0.5 * (hi - lo)).clamp_min(1e-6)
+            axis = rel.abs().argmax(-1)
+            n = torch.zeros_like(point)
+            n[torch.arange(len(axis)), axis] = torch.sign(rel[torch.arange(len(axis)), axis])
+            mat, tn = scene.box_material[obj], scene.box_tint[obj]
+        elif kind == "cylinder":
+            cyl = scene.cylinders[obj]
+            n = torch.stack((point[:, 0] - cyl[:, 0], point[:, 1] - cyl[:, 1], torch.zeros_like(cyl[:, 0])), -1)
+            n = torch.nn.functional.normalize(n, dim=-1)
+            mat, tn = scene.cylinder_material[obj], scene.cylinder_tint[obj]
+        else:
+            n = torch.nn.functional.normalize(point - scene.spheres[obj, :3], dim=-1)
+            mat, tn = scene.sphere_material[obj], scene.sphere_tint[obj]
+        material[rays], normal[rays], tint[rays] = mat, n, tn
+    return Hit(t_best, material, normal, tint)
