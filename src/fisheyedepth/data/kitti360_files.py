@@ -37,7 +37,9 @@ def read_poses(path: str | os.PathLike) -> dict[int, np.ndarray]:
             continue
         values = _numbers(path, lineno, fields, 13)
         if values[0] != int(values[0]) or values[0] < 0:
-            raise ValueError(f"{path}:{lineno}: frame index must be a non-negative integer, got {fields[0]!r}")
+            raise ValueError(
+                f"{path}:{lineno}: frame index must be a non-negative integer, got {fields[0]!r}"
+            )
         poses[int(values[0])] = _pose(values[1:])
     return poses
 

@@ -10,7 +10,9 @@ from .writer import generate
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description="Render a synthetic multi-camera fisheye dataset in the KITTI-360 layout.")
+    p = argparse.ArgumentParser(
+        description="Render a synthetic multi-camera fisheye dataset in the KITTI-360 layout."
+    )
     p.add_argument("--out", required=True, help="output folder (must be absent or empty unless --overwrite)")
     p.add_argument("--rig", default="kitti360", choices=RIGS)
     p.add_argument("--frames", type=int, default=200, help="frames per camera over train/val/test together")
@@ -23,8 +25,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
     try:
-        out = generate(a.out, a.rig, a.frames, a.size, a.seed, a.supersample, a.workers, not a.no_lidar,
-                       a.overwrite, not a.quiet)
+        out = generate(
+            a.out,
+            a.rig,
+            a.frames,
+            a.size,
+            a.seed,
+            a.supersample,
+            a.workers,
+            not a.no_lidar,
+            a.overwrite,
+            not a.quiet,
+        )
     except (FileExistsError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

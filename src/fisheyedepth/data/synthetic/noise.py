@@ -65,7 +65,9 @@ def lod_weight(wavelength: float | Tensor, footprint: Tensor | None) -> Tensor |
     return (wavelength / (2.0 * footprint) - 1.0).clamp(0.0, 1.0)
 
 
-def fbm2(x: Tensor, y: Tensor, scale: float, octaves: int = 3, seed: int = 0, footprint: Tensor | None = None) -> Tensor:
+def fbm2(
+    x: Tensor, y: Tensor, scale: float, octaves: int = 3, seed: int = 0, footprint: Tensor | None = None
+) -> Tensor:
     """Fractal sum of 2-D value noise; ``scale`` is the coarsest feature size in metres. Range [0, 1].
     Octaves finer than the pixel ``footprint`` (metres) fade to their mean."""
     total, amp, norm, f = torch.zeros_like(x), 1.0, 0.0, 1.0 / scale
@@ -78,8 +80,15 @@ def fbm2(x: Tensor, y: Tensor, scale: float, octaves: int = 3, seed: int = 0, fo
     return total / norm
 
 
-def fbm3(x: Tensor, y: Tensor, z: Tensor, scale: float, octaves: int = 3, seed: int = 0,
-         footprint: Tensor | None = None) -> Tensor:
+def fbm3(
+    x: Tensor,
+    y: Tensor,
+    z: Tensor,
+    scale: float,
+    octaves: int = 3,
+    seed: int = 0,
+    footprint: Tensor | None = None,
+) -> Tensor:
     total, amp, norm, f = torch.zeros_like(x), 1.0, 0.0, 1.0 / scale
     for o in range(octaves):
         w = lod_weight(1.0 / f, footprint)

@@ -44,11 +44,23 @@ def scene_tensors(world: World, device="cpu") -> SceneTensors:
     cyl_centre = torch.stack((cyl[:, 0], cyl[:, 1], 0.5 * (cyl[:, 3] + cyl[:, 4])), -1)
     cyl_radius = torch.sqrt(cyl[:, 2] ** 2 + (0.5 * (cyl[:, 4] - cyl[:, 3])) ** 2)
     return SceneTensors(
-        lo, hi, torch.as_tensor(world.box_material, device=device), torch.as_tensor(world.box_tint, **f),
-        cyl, torch.as_tensor(world.cylinder_material, device=device), torch.as_tensor(world.cylinder_tint, **f),
-        sph, torch.as_tensor(world.sphere_material, device=device), torch.as_tensor(world.sphere_tint, **f),
+        lo,
+        hi,
+        torch.as_tensor(world.box_material, device=device),
+        torch.as_tensor(world.box_tint, **f),
+        cyl,
+        torch.as_tensor(world.cylinder_material, device=device),
+        torch.as_tensor(world.cylinder_tint, **f),
+        sph,
+        torch.as_tensor(world.sphere_material, device=device),
+        torch.as_tensor(world.sphere_tint, **f),
         bounds={
-            "box": (0.5 * (lo + hi), 0.5 * (hi - lo).norm(dim=-1), hi[:, 2], 0.5 * (hi - lo)[:, :2].norm(dim=-1)),
+            "box": (
+                0.5 * (lo + hi),
+                0.5 * (hi - lo).norm(dim=-1),
+                hi[:, 2],
+                0.5 * (hi - lo)[:, :2].norm(dim=-1),
+            ),
             "cylinder": (cyl_centre, cyl_radius, cyl[:, 4], cyl[:, 2]),
             "sphere": (sph[:, :3], sph[:, 3], sph[:, 2] + sph[:, 3], sph[:, 3]),
         },
@@ -214,7 +226,9 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
             mat, tn = scene.box_material[obj], scene.box_tint[obj]
         elif kind == "cylinder":
             cyl = scene.cylinders[obj]
-            n = torch.stack((point[:, 0] - cyl[:, 0], point[:, 1] - cyl[:, 1], torch.zeros_like(cyl[:, 0])), -1)
+            n = torch.stack(
+                (point[:, 0] - cyl[:, 0], point[:, 1] - cyl[:, 1], torch.zeros_like(cyl[:, 0])), -1
+            )
             n = torch.nn.functional.normalize(n, dim=-1)
             mat, tn = scene.cylinder_material[obj], scene.cylinder_tint[obj]
         else:

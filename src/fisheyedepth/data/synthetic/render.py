@@ -11,8 +11,8 @@ from torch import Tensor
 
 from ...cameras import CameraModel, compute_rays
 from . import world as W
-from .rig import EGO_BODY
 from .raycast import Hit, SceneTensors, box_intersect, cast, tile_grid, untile_grid
+from .rig import EGO_BODY
 from .shading import shade
 
 MAX_RANGE = 120.0
@@ -40,8 +40,9 @@ class _Rays:
         self.n_ego_body = torch.zeros_like(d_body)
         rows = torch.arange(d_body.shape[0])
         for lo, hi in EGO_BODY:
-            t_box, axis = box_intersect(t, d_body, torch.as_tensor(lo, dtype=torch.float32),
-                                        torch.as_tensor(hi, dtype=torch.float32))
+            t_box, axis = box_intersect(
+                t, d_body, torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
+            )
             nearer = t_box < self.t_ego
             n = torch.zeros_like(d_body)
             n[rows, axis] = -torch.sign(d_body[rows, axis])
@@ -81,7 +82,9 @@ class CameraRenderer:
         fine = camera.resize(camera.width * supersample, camera.height * supersample)
         self.fine = self._rays(fine, cam_to_pose)
         self.centre = self._rays(camera, cam_to_pose)
-        self.pixel_angle = 1.0 / min(camera.paraxial_focal())  # radians per output pixel, for texture filtering
+        self.pixel_angle = 1.0 / min(
+            camera.paraxial_focal()
+        )  # radians per output pixel, for texture filtering
         ego = self.centre.untile(torch.isfinite(self.centre.t_ego))
         self.body_mask = (~ego).numpy()  # True = usable (not the ego body; pixels without a ray included)
 

@@ -69,8 +69,18 @@ def make_rig(name: str, size: int) -> Rig:
             ("image_04", (1, 0, 0), (0, 1, 0), (1.7, 0.3, -0.95)),
             ("image_05", (-1, 0, 0), (0, -1, 0), (-3.5, 0.3, -0.95)),
         ):
-            cam = KannalaBrandtCamera(width=size, height=size, fx=f, fy=f, cx=(size - 1) / 2, cy=(size - 1) / 2,
-                                      k1=0.02, k2=-0.004, k3=0.0005, k4=0.0)
+            cam = KannalaBrandtCamera(
+                width=size,
+                height=size,
+                fx=f,
+                fy=f,
+                cx=(size - 1) / 2,
+                cy=(size - 1) / 2,
+                k1=0.02,
+                k2=-0.004,
+                k3=0.0005,
+                k4=0.0,
+            )
             cameras[cam_name] = written[cam_name] = cam
             cam_to_pose[cam_name] = _looking(forward, right, position)
     return Rig(name, cameras, written, cam_to_pose, _pose(KITTI360_CAM0_TO_VELO))

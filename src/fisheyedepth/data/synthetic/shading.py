@@ -19,7 +19,9 @@ from .raycast import Hit
 def _coverage(distance_to_centre: Tensor, half_width: float, footprint: Tensor) -> Tensor:
     """Fraction of a pixel of width ``footprint`` covered by a stripe ``|s| <= half_width`` (box filter)."""
     s, f = distance_to_centre, footprint
-    overlap = torch.minimum(s + f / 2, torch.full_like(s, half_width)) - torch.maximum(s - f / 2, torch.full_like(s, -half_width))
+    overlap = torch.minimum(s + f / 2, torch.full_like(s, half_width)) - torch.maximum(
+        s - f / 2, torch.full_like(s, -half_width)
+    )
     return (overlap.clamp_min(0) / f).clamp(max=1.0)
 
 
@@ -28,7 +30,9 @@ def _ground(world: W.World, p: Tensor, fp: Tensor, seed: int) -> Tensor:
     P, hr = world.pitch, world.half_road
     dx = (x - torch.round(x / P) * P).abs()  # distance to the nearest street along y (x = i P)
     dy = (y - torch.round(y / P) * P).abs()  # ... along x (y = j P)
-    asphalt = 0.3 + 0.35 * (fbm2(x, y, 2.0, 4, seed, fp) - 0.5) + 0.2 * (fbm2(x, y, 0.5, 2, seed + 7, fp) - 0.5)
+    asphalt = (
+        0.3 + 0.35 * (fbm2(x, y, 2.0, 4, seed, fp) - 0.5) + 0.2 * (fbm2(x, y, 0.5, 2, seed + 7, fp) - 0.5)
+    )
     grass = 0.7 + 1.2 * (fbm2(x, y, 1.5, 4, seed + 13, fp) - 0.5)
     out = torch.stack((0.25 * grass, 0.42 * grass, 0.16 * grass), -1)
     road = (dx <= hr) | (dy <= hr)
@@ -65,9 +69,11 @@ def _facade(p: Tensor, n: Tensor, tint: Tensor, fp: Tensor, seed: int) -> Tensor
     shade = _blocks(u, v, 0.9, 0.35, seed, fp) + 0.6 * (fbm2(u, v, 2.0, 4, seed + 3, fp) - 0.5)
     out = tint * shade[:, None]
     # windows: floors every 3.2 m from 1.2 m, 1.4 m wide every 3 m (box-filtered edges)
-    win = _coverage((torch.remainder(u, 3.0) - 1.5).abs(), 0.7, fp) * _coverage(
-        (torch.remainder(v - 1.2, 3.2) - 0.8).abs(), 0.8, fp
-    ) * (v > 1.2).to(u.dtype)
+    win = (
+        _coverage((torch.remainder(u, 3.0) - 1.5).abs(), 0.7, fp)
+        * _coverage((torch.remainder(v - 1.2, 3.2) - 0.8).abs(), 0.8, fp)
+        * (v > 1.2).to(u.dtype)
+    )
     glass = 0.12 + 0.12 * fbm2(u, v, 0.8, 2, seed + 5, fp)
     out = out * (1 - win[:, None]) + win[:, None] * torch.stack((glass, glass * 1.1, glass * 1.3), -1)
     concrete = 0.55 + 0.5 * (fbm2(p[:, 0], p[:, 1], 2.0, 4, seed + 9, fp) - 0.5)

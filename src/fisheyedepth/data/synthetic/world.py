@@ -75,7 +75,13 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
     pitch = float(rng.uniform(38.0, 48.0))
     hr, sw, kerb = 5.5, 3.0, 0.12
     b = _Builder()
-    facade_colours = ([0.55, 0.32, 0.25], [0.75, 0.7, 0.6], [0.6, 0.55, 0.5], [0.45, 0.4, 0.38], [0.7, 0.5, 0.35])
+    facade_colours = (
+        [0.55, 0.32, 0.25],
+        [0.75, 0.7, 0.6],
+        [0.6, 0.55, 0.5],
+        [0.45, 0.4, 0.38],
+        [0.7, 0.5, 0.35],
+    )
     car_colours = ([0.7, 0.1, 0.1], [0.15, 0.2, 0.6], [0.85, 0.85, 0.85], [0.2, 0.2, 0.22], [0.6, 0.6, 0.1])
 
     for i in range(n_blocks + 1):
@@ -103,8 +109,15 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
                             lo, hi = _oriented(axis, s, s + length, mid - 0.9, mid + 0.9, 0.3, 1.05)
                             b.box(lo, hi, CAR, tint)
                             cab = rng.uniform(0.2, 0.6)
-                            lo, hi = _oriented(axis, s + cab + 0.5, s + length - cab - 0.6, mid - 0.78, mid + 0.78,
-                                               1.05, rng.uniform(1.4, 1.55))
+                            lo, hi = _oriented(
+                                axis,
+                                s + cab + 0.5,
+                                s + length - cab - 0.6,
+                                mid - 0.78,
+                                mid + 0.78,
+                                1.05,
+                                rng.uniform(1.4, 1.55),
+                            )
                             b.box(lo, hi, CAR, tint * 0.6)
                         s += length + rng.uniform(1.0, 5.0)
                     # poles and trees on the sidewalk
@@ -113,8 +126,15 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
                         lat = c + side * (hr + 0.6)
                         x, y = (s, lat) if axis == 0 else (lat, s)
                         if rng.random() < 0.5:
-                            b.cylinder(x, y, rng.uniform(0.08, 0.14), kerb, rng.uniform(4.5, 7.5), POLE,
-                                       _tint(rng, [0.5, 0.52, 0.55], 0.05))
+                            b.cylinder(
+                                x,
+                                y,
+                                rng.uniform(0.08, 0.14),
+                                kerb,
+                                rng.uniform(4.5, 7.5),
+                                POLE,
+                                _tint(rng, [0.5, 0.52, 0.55], 0.05),
+                            )
                         else:
                             lat = c + side * (hr + 1.6)
                             x, y = (s, lat) if axis == 0 else (lat, s)
@@ -134,9 +154,16 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
     cyl, cyl_m, cyl_t = _Builder._split(b.cyl, 5)
     sph, sph_m, sph_t = _Builder._split(b.sph, 4)
     elevation, azimuth = math.radians(rng.uniform(35, 60)), rng.uniform(0, 2 * math.pi)
-    sun = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
-                    math.sin(elevation)])
-    return World(seed, pitch, hr, sw, n_blocks, boxes, box_m, box_t, cyl, cyl_m, cyl_t, sph, sph_m, sph_t, sun)
+    sun = np.array(
+        [
+            math.cos(elevation) * math.cos(azimuth),
+            math.cos(elevation) * math.sin(azimuth),
+            math.sin(elevation),
+        ]
+    )
+    return World(
+        seed, pitch, hr, sw, n_blocks, boxes, box_m, box_t, cyl, cyl_m, cyl_t, sph, sph_m, sph_t, sun
+    )
 
 
 def _oriented(axis, s0, s1, l0, l1, z0, z1):
@@ -148,7 +175,9 @@ def _oriented(axis, s0, s1, l0, l1, z0, z1):
 
 def _tree(b, rng, x, y, z0):
     trunk = rng.uniform(2.0, 3.2)
-    b.cylinder(x, y, rng.uniform(0.15, 0.25), z0, z0 + trunk + 0.5, BARK, _tint(rng, [0.35, 0.25, 0.17], 0.04))
+    b.cylinder(
+        x, y, rng.uniform(0.15, 0.25), z0, z0 + trunk + 0.5, BARK, _tint(rng, [0.35, 0.25, 0.17], 0.04)
+    )
     r = rng.uniform(1.3, 2.4)
     b.sphere((x, y, z0 + trunk + r * 0.8), r, FOLIAGE, _tint(rng, [0.22, 0.45, 0.15], 0.06))
 
@@ -161,7 +190,11 @@ def _buildings(b, rng, x0, x1, y0, y1, colours):
             if rng.random() < 0.1:
                 continue
             lo = (xs[a] + rng.uniform(0.0, 2.0), ys[c] + rng.uniform(0.0, 2.0), 0.0)
-            hi = (xs[a + 1] - rng.uniform(0.0, 2.0), ys[c + 1] - rng.uniform(0.0, 2.0), rng.uniform(6.0, 24.0))
+            hi = (
+                xs[a + 1] - rng.uniform(0.0, 2.0),
+                ys[c + 1] - rng.uniform(0.0, 2.0),
+                rng.uniform(6.0, 24.0),
+            )
             b.box(lo, hi, FACADE, _tint(rng, colours[rng.integers(len(colours))], 0.06))
 
 
@@ -169,8 +202,10 @@ def _park(b, rng, x0, x1, y0, y1):
     h, t = rng.uniform(0.8, 1.3), 0.3
     tint = _tint(rng, [0.6, 0.58, 0.55], 0.05)
     for lo, hi in (
-        ((x0, y0, 0), (x1, y0 + t, h)), ((x0, y1 - t, 0), (x1, y1, h)),
-        ((x0, y0, 0), (x0 + t, y1, h)), ((x1 - t, y0, 0), (x1, y1, h)),
+        ((x0, y0, 0), (x1, y0 + t, h)),
+        ((x0, y1 - t, 0), (x1, y1, h)),
+        ((x0, y0, 0), (x0 + t, y1, h)),
+        ((x1 - t, y0, 0), (x1, y1, h)),
     ):
         b.box(lo, hi, CONCRETE, tint)
     for _ in range(int(rng.integers(5, 12))):
@@ -249,7 +284,11 @@ def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float =
     rng = np.random.default_rng([seed, 7])
     phases = rng.uniform(0, 2 * math.pi, 4)
     k = np.arange(n_frames)
-    speed = 0.9 + 0.35 * np.sin(2 * math.pi * k / 90 + phases[0]) + 0.15 * np.sin(2 * math.pi * k / 31 + phases[1])
+    speed = (
+        0.9
+        + 0.35 * np.sin(2 * math.pi * k / 90 + phases[0])
+        + 0.15 * np.sin(2 * math.pi * k / 31 + phases[1])
+    )
     route = _route(world, rng, float(speed.sum()) * 1.2 + 20.0)
     centre = _fillet_path(route, radius=8.0)
     centre, _ = _resample(centre, 0.05)
@@ -265,7 +304,9 @@ def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float =
         bend = np.interp(s[i - 1], s_lane, curvature)
         s[i] = s[i - 1] + float(np.clip(speed[i] * (1.0 - min(0.5, 4.0 * bend)), 0.3, 1.5))
     if s[-1] > s_lane[-1]:
-        raise RuntimeError("the route is too short for the requested frames")  # cannot happen: route has slack
+        raise RuntimeError(
+            "the route is too short for the requested frames"
+        )  # cannot happen: route has slack
     x, y = np.interp(s, s_lane, lane[:, 0]), np.interp(s, s_lane, lane[:, 1])
     yaw = np.interp(s, s_lane, heading)
     poses = np.zeros((n_frames, 4, 4))

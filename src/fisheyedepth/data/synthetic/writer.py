@@ -40,8 +40,10 @@ class Job:
 
 def opencv_yaml(name: str, camera: CameraModel) -> str:
     """A calibration file in KITTI-360's (CamOdoCal's) OpenCV YAML layout."""
-    head = f"%YAML:1.0\n---\nmodel_type: {{}}\ncamera_name: {name}\nimage_width: {camera.width}\n" \
+    head = (
+        f"%YAML:1.0\n---\nmodel_type: {{}}\ncamera_name: {name}\nimage_width: {camera.width}\n"
         f"image_height: {camera.height}\n"
+    )
     if isinstance(camera, MeiCamera):
         c = camera
         return head.format("MEI") + (
@@ -80,7 +82,8 @@ class _Worker:
         self.root, self.world, self.rig = root, make_world(seed), make_rig(rig_name, size)
         self.scene = scene_tensors(self.world)
         self.cameras = {
-            name: CameraRenderer(cam, self.rig.cam_to_pose[name], supersample) for name, cam in self.rig.cameras.items()
+            name: CameraRenderer(cam, self.rig.cam_to_pose[name], supersample)
+            for name, cam in self.rig.cameras.items()
         }
         self.lidar = LidarRenderer(self.rig.velo_to_pose) if lidar else None
 
@@ -94,7 +97,9 @@ class _Worker:
             np.save(self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy", frame.distance)
         if self.lidar is not None:
             points = self.lidar.render(self.scene, self.world, job.pose)
-            points.tofile(self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin")
+            points.tofile(
+                self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin"
+            )
 
 
 _WORKER: _Worker | None = None
@@ -111,13 +116,17 @@ def _run_job(job: Job) -> None:
     _WORKER(job)
 
 
-def _write_layout(root: Path, rig: Rig, body_masks: dict[str, np.ndarray], jobs: list[Job], lidar: bool) -> None:
+def _write_layout(
+    root: Path, rig: Rig, body_masks: dict[str, np.ndarray], jobs: list[Job], lidar: bool
+) -> None:
     calib = root / "calibration"
     calib.mkdir(parents=True)
     for name, cam in rig.written.items():
         (calib / f"{name}.yaml").write_text(opencv_yaml(name, cam))
         cv2.imwrite(str(calib / f"body_mask_{name}.png"), np.where(body_masks[name], 255, 0).astype(np.uint8))
-    (calib / "calib_cam_to_pose.txt").write_text("".join(f"{k}: {_row(T)}\n" for k, T in rig.cam_to_pose.items()))
+    (calib / "calib_cam_to_pose.txt").write_text(
+        "".join(f"{k}: {_row(T)}\n" for k, T in rig.cam_to_pose.items())
+    )
     (calib / "calib_cam_to_velo.txt").write_text(_row(rig.cam0_to_velo) + "\n")
     for seq in sorted({j.sequence for j in jobs}):
         for name in rig.cameras:
@@ -171,7 +180,9 @@ def generate(
         if workers > 1:
             ctx = get_context("spawn")
             args = (tmp, seed, rig, size, supersample, lidar)
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=args) as pool:
+            with ProcessPoolExecutor(
+                workers, mp_context=ctx, initializer=_init_worker, initargs=args
+            ) as pool:
                 for future in as_completed([pool.submit(_run_job, job) for job in jobs]):
                     future.result()
                     bar.update()
@@ -182,12 +193,23 @@ def generate(
         bar.close()
         meta = {
             "generator": f"fisheyedepth {__version__}",
-            "seed": seed, "rig": rig, "size": size, "supersample": supersample, "frames": frames,
+            "seed": seed,
+            "rig": rig,
+            "size": size,
+            "supersample": supersample,
+            "frames": frames,
             "cameras": {name: cam.to_dict() for name, cam in worker.rig.cameras.items()},
-            "sequences": {split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])}
-                          for split in SPLITS},
-            "world": {"pitch": world.pitch, "sun": world.sun.tolist(), "boxes": len(world.boxes),
-                      "cylinders": len(world.cylinders), "spheres": len(world.spheres)},
+            "sequences": {
+                split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])}
+                for split in SPLITS
+            },
+            "world": {
+                "pitch": world.pitch,
+                "sun": world.sun.tolist(),
+                "boxes": len(world.boxes),
+                "cylinders": len(world.cylinders),
+                "spheres": len(world.spheres),
+            },
             "lidar": lidar,
         }
         (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
