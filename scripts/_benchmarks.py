@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from fisheyedepth.utils import atomic_write_text
@@ -19,3 +20,11 @@ def write_section(path: Path, start: str, end: str, section: str) -> None:
     else:
         text = text.rstrip("\n") + "\n\n" + section
     atomic_write_text(path, text)
+
+
+def publish(section: str, path: Path, start: str, end: str, write: bool) -> None:
+    """Print the section and, unless told not to, store it in ``path``."""
+    print(section)
+    if write:
+        write_section(path, start, end, section)
+        print(f"written to {path}", file=sys.stderr)

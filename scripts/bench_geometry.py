@@ -16,7 +16,6 @@ import argparse
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -33,7 +32,7 @@ from fisheyedepth.cameras import (
 from fisheyedepth.cameras.presets import kitti360_camera
 from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
 
-from _benchmarks import write_section
+from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_geometry:start -->", "<!-- bench_geometry:end -->"
@@ -183,10 +182,7 @@ def main(argv=None) -> int:
     cache_rows = bench_ray_cache(device, args.repeats)
     warp_times = bench_warp(device, args.rounds)
     section = render(cache_rows, warp_times, args, device)
-    print(section)
-    if not args.no_write:
-        write_section(args.output, START, END, section)
-        print(f"written to {args.output}", file=sys.stderr)
+    publish(section, args.output, START, END, write=not args.no_write)
     return 0
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, mak
 from fisheyedepth.data.synthetic.raycast import scene_tensors
 from fisheyedepth.data.synthetic.render import CameraRenderer
 
-from _benchmarks import write_section
+from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_synthetic:start -->", "<!-- bench_synthetic:end -->"
@@ -99,10 +98,7 @@ def main(argv=None) -> int:
         )
     lines.append(END)
     section = "\n".join(lines) + "\n"
-    print(section)
-    if not args.no_write:
-        write_section(args.output, START, END, section)
-        print(f"written to {args.output}", file=sys.stderr)
+    publish(section, args.output, START, END, write=not args.no_write)
     return 0
 
 

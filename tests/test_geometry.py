@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from fisheyedepth.cameras import KannalaBrandtCamera, MeiCamera, PinholeCamera, RayCache, pixel_grid
+from fisheyedepth.cameras.presets import KITTI360_CAM_TO_POSE
 from fisheyedepth.geometry import (
     ALIGN_CORNERS,
     axis_angle_to_matrix,
@@ -55,20 +56,7 @@ def test_relative_pose_between_two_cameras_of_a_rig():
 
 
 def test_pose_from_3x4_reads_kitti_rows():
-    row = [
-        0.9995185086,
-        0.0041276589,
-        -0.0307524527,
-        0.7264036936,
-        -0.0307926666,
-        0.0100608424,
-        -0.9994751579,
-        -0.1499658517,
-        -0.0038160970,
-        0.9999408692,
-        0.0101830998,
-        -1.0686400091,
-    ]
+    row = list(KITTI360_CAM_TO_POSE["image_02"])  # a line of the official calib_cam_to_pose.txt
     T = pose_from_3x4(row)
     assert T.shape == (4, 4) and T[3].tolist() == [0, 0, 0, 1]
     assert T[0, 3].item() == pytest.approx(0.7264036936) and T[2, 1].item() == pytest.approx(0.9999408692)
