@@ -75,3 +75,24 @@ def realdata() -> Path:
     if not path.is_dir():
         pytest.skip(f"real data not found at {path} (set FISHEYEDEPTH_REALDATA)")
     return path
+
+
+TRAIN_SEQ = "2013_05_28_drive_0000_sync"
+
+
+@pytest.fixture(scope="session")
+def kitti_data(tmp_path_factory):
+    """A 256 x 256 kitti360 synthetic dataset (12 frames with LiDAR), rendered once per test session."""
+    from fisheyedepth.data.synthetic import generate
+
+    return generate(
+        tmp_path_factory.mktemp("syn") / "kitti", "kitti360", frames=12, size=256, seed=3, progress=False
+    )
+
+
+def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 64)):
+    """A training batch read through ``load_sample``, resized to ``size`` (the camera models with it)."""
+    from fisheyedepth.data.batch import collate
+    from fisheyedepth.data.kitti360 import load_sample
+
+    return collate([load_sample(root, TRAIN_SEQ, f, c, size=size) for f in frames for c in cameras])

@@ -23,13 +23,6 @@ TRAIN = "2013_05_28_drive_0000_sync"
 
 
 @pytest.fixture(scope="session")
-def kitti_data(tmp_path_factory):
-    return generate(
-        tmp_path_factory.mktemp("syn") / "kitti", "kitti360", frames=12, size=SIZE, seed=3, progress=False
-    )
-
-
-@pytest.fixture(scope="session")
 def surround_data(tmp_path_factory):
     return generate(
         tmp_path_factory.mktemp("syn") / "surround",

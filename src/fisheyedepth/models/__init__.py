@@ -1,0 +1,20 @@
+"""Networks: ResNet encoders, the depth network with multi-channel or sigmoid heads, and PoseNet."""
+
+from .depth_net import DepthDecoder, DepthNet, depth_scale_for
+from .heads import MultiChannelHead, SigmoidHead, distance_bins, gather_output, sigmoid_to_distance
+from .posenet import PoseNet
+from .resnet import ResNetEncoder, WeightsError
+
+__all__ = [
+    "DepthDecoder",
+    "DepthNet",
+    "MultiChannelHead",
+    "PoseNet",
+    "ResNetEncoder",
+    "SigmoidHead",
+    "WeightsError",
+    "depth_scale_for",
+    "distance_bins",
+    "gather_output",
+    "sigmoid_to_distance",
+]

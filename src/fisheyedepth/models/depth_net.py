@@ -1,0 +1,109 @@
+"""The depth network: ResNet encoder, Monodepth2 U-Net decoder, and a head at each of 4 scales."""
+
+from __future__ import annotations
+
+import os
+
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from .heads import MultiChannelHead, SigmoidHead, conv3x3, distance_bins, gather_output, sigmoid_to_distance
+from .resnet import ResNetEncoder
+
+DECODER_CHANNELS = (16, 32, 64, 128, 256)
+
+
+class ConvBlock(nn.Module):
+    """3x3 convolution (reflection padded) + ELU (Monodepth2)."""
+
+    def __init__(self, in_ch: int, out_ch: int):
+        super().__init__()
+        self.conv = conv3x3(in_ch, out_ch)
+        self.act = nn.ELU(inplace=True)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.act(self.conv(x))
+
+
+class DepthDecoder(nn.Module):
+    """Monodepth2's decoder: per level an up-convolution, nearest 2x upsampling, the skip connection and a
+    second convolution; heads read the features at scales 0..3 (full, 1/2, 1/4, 1/8 resolution)."""
+
+    def __init__(self, encoder_channels: list[int], scales: tuple[int, ...] = (0, 1, 2, 3)):
+        super().__init__()
+        self.scales = scales
+        self.up0, self.up1 = nn.ModuleList(), nn.ModuleList()
+        for i in range(4, -1, -1):
+            in_ch = encoder_channels[-1] if i == 4 else DECODER_CHANNELS[i + 1]
+            self.up0.append(ConvBlock(in_ch, DECODER_CHANNELS[i]))
+            skip = encoder_channels[i - 1] if i > 0 else 0
+            self.up1.append(ConvBlock(DECODER_CHANNELS[i] + skip, DECODER_CHANNELS[i]))
+
+    def forward(self, features: list[Tensor]) -> dict[int, Tensor]:
+        x = features[-1]
+        out = {}
+        for j, i in enumerate(range(4, -1, -1)):
+            x = F.interpolate(self.up0[j](x), scale_factor=2, mode="nearest")
+            if i > 0:
+                x = torch.cat((x, features[i - 1]), 1)
+            x = self.up1[j](x)
+            if i in self.scales:
+                out[i] = x
+        return out
+
+
+class DepthNet(nn.Module):
+    """Image -> Euclidean distance (and normalised disparity) at 4 scales.
+
+    ``multi_channel=True``: the paper's head (``n_bins`` log-spaced bins, channel attention,
+    :func:`gather_output`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
+    ``depth_scale`` (per sample) multiplies the binned distance, so cameras of different focal lengths can
+    share one network (see :func:`depth_scale_for`).
+    """
+
+    def __init__(
+        self,
+        resnet: int = 18,
+        weights: str | os.PathLike | None = None,
+        multi_channel: bool = True,
+        n_bins: int = 64,
+        attention: bool = True,
+        min_distance: float = 0.5,
+        max_distance: float = 150.0,
+        scales: tuple[int, ...] = (0, 1, 2, 3),
+    ):
+        super().__init__()
+        self.encoder = ResNetEncoder(resnet, 1, weights)
+        self.decoder = DepthDecoder(self.encoder.channels, scales)
+        self.multi_channel, self.scales = multi_channel, tuple(scales)
+        self.min_distance, self.max_distance = min_distance, max_distance
+        if multi_channel:
+            self.heads = nn.ModuleDict(
+                {str(s): MultiChannelHead(DECODER_CHANNELS[s], n_bins, attention) for s in scales}
+            )
+            self.register_buffer("bins", distance_bins(n_bins, min_distance, max_distance), persistent=False)
+        else:
+            self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s]) for s in scales})
+
+    def forward(self, image: Tensor, depth_scale: Tensor | float = 1.0) -> dict[str, dict[int, Tensor]]:
+        """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}``."""
+        features = self.decoder(self.encoder(image))
+        distance, disp = {}, {}
+        for s, x in features.items():
+            y = self.heads[str(s)](x)
+            if self.multi_channel:
+                distance[s], disp[s] = gather_output(
+                    y, depth_scale, self.bins, self.min_distance, self.max_distance
+                )
+            else:
+                scale = torch.as_tensor(depth_scale, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
+                distance[s], disp[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale, y
+        return {"distance": distance, "disp": disp}
+
+
+def depth_scale_for(cameras, base_focal: float | None) -> Tensor:
+    """Per-sample ``paraxial focal / base_focal`` (1 when ``base_focal`` is unset)."""
+    if base_focal is None:
+        return torch.ones(len(cameras))
+    return torch.tensor([min(cam.paraxial_focal()) / base_focal for cam in cameras])

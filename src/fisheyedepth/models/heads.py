@@ -1,0 +1,70 @@
+"""Output heads: the paper's multi-channel head with channel attention, and Monodepth2's sigmoid head.
+
+Both turn decoder features into a Euclidean distance map (metres along each pixel's ray) and a
+disparity map normalised to [0, 1] (used by the smoothness loss and for display).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+
+def conv3x3(in_ch: int, out_ch: int) -> nn.Sequential:
+    """3x3 convolution with reflection padding (Monodepth2's ``Conv3x3``)."""
+    return nn.Sequential(nn.ReflectionPad2d(1), nn.Conv2d(in_ch, out_ch, 3))
+
+
+def distance_bins(n_bins: int, min_distance: float, max_distance: float) -> Tensor:
+    """``n_bins`` log-spaced distances from ``min_distance`` to ``max_distance`` (metres)."""
+    return torch.exp(torch.linspace(math.log(min_distance), math.log(max_distance), n_bins))
+
+
+def gather_output(
+    logits: Tensor, depth_scale: Tensor | float, bins: Tensor, min_distance: float, max_distance: float
+) -> tuple[Tensor, Tensor]:
+    """Multi-channel logits ``[B, K, H, W]`` -> (distance ``[B, 1, H, W]``, disparity ``[B, 1, H, W]``).
+
+    distance = depth_scale * sum_k softmax(clamp(logits, -10, 10))_k * bin_k, a softmax expectation over
+    ``K`` log-spaced bins; it is monotone in each logit's weight and lies in
+    ``[min_distance, max_distance] * depth_scale``. The disparity is that of the unscaled expectation,
+    ``(1/d - 1/max) / (1/min - 1/max)``, so it stays in [0, 1] for every camera.
+    """
+    p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
+    d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
+    disp = (1.0 / d - 1.0 / max_distance) / (1.0 / min_distance - 1.0 / max_distance)
+    scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
+    return d * scale, disp
+
+
+def sigmoid_to_distance(sigmoid: Tensor, min_distance: float, max_distance: float) -> Tensor:
+    """Monodepth2's ``disp_to_depth``: inverse distance linear in the sigmoid between 1/max and 1/min."""
+    inv = 1.0 / max_distance + (1.0 / min_distance - 1.0 / max_distance) * sigmoid
+    return 1.0 / inv
+
+
+class MultiChannelHead(nn.Module):
+    """A_i = sigmoid(Conv_attn(X_i)); logits_i = Conv_disp,i(A_i * X_i) with K channels (the paper, III-C)."""
+
+    def __init__(self, in_ch: int, n_bins: int = 64, attention: bool = True):
+        super().__init__()
+        self.attention = conv3x3(in_ch, in_ch) if attention else None
+        self.logits = conv3x3(in_ch, n_bins)
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.attention is not None:
+            x = torch.sigmoid(self.attention(x)) * x
+        return self.logits(x)
+
+
+class SigmoidHead(nn.Module):
+    """Monodepth2's single sigmoid channel."""
+
+    def __init__(self, in_ch: int):
+        super().__init__()
+        self.conv = conv3x3(in_ch, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return torch.sigmoid(self.conv(x))

@@ -1,0 +1,47 @@
+"""Monodepth2's PoseNet, for the ablation without real-scale poses: a ResNet on two stacked frames and a
+small convolutional decoder predicting axis-angle and translation (no metric scale)."""
+
+from __future__ import annotations
+
+import os
+
+import torch
+from torch import Tensor, nn
+
+from ..geometry import axis_angle_to_matrix, invert_pose, make_pose
+from .resnet import ResNetEncoder
+
+
+class PoseDecoder(nn.Module):
+    def __init__(self, in_ch: int):
+        super().__init__()
+        self.squeeze = nn.Conv2d(in_ch, 256, 1)
+        self.conv1 = nn.Conv2d(256, 256, 3, 1, 1)
+        self.conv2 = nn.Conv2d(256, 256, 3, 1, 1)
+        self.out = nn.Conv2d(256, 6, 1)
+        self.relu = nn.ReLU()
+
+    def forward(self, feature: Tensor) -> tuple[Tensor, Tensor]:
+        x = self.relu(self.squeeze(feature))
+        x = self.relu(self.conv1(x))
+        x = self.relu(self.conv2(x))
+        x = 0.01 * self.out(x).mean((2, 3))
+        return x[:, :3], x[:, 3:]
+
+
+class PoseNet(nn.Module):
+    def __init__(self, resnet: int = 18, weights: str | os.PathLike | None = None):
+        super().__init__()
+        self.encoder = ResNetEncoder(resnet, 2, weights)
+        self.decoder = PoseDecoder(self.encoder.channels[-1])
+
+    def forward(self, target: Tensor, source: Tensor, source_is_earlier: bool) -> Tensor:
+        """``[B, 4, 4]`` transform from the target camera to the source camera.
+
+        As in Monodepth2, the frames are fed in temporal order and the result is inverted for an earlier
+        source, so the network always sees forward motion.
+        """
+        pair = torch.cat((source, target) if source_is_earlier else (target, source), 1)
+        axis_angle, translation = self.decoder(self.encoder(pair)[-1])
+        T = make_pose(axis_angle_to_matrix(axis_angle), translation)
+        return invert_pose(T) if source_is_earlier else T

@@ -1,0 +1,261 @@
+"""``FisheyeDepthModule``: the LightningModule that trains a distance network with fisheye warps.
+
+One switch per ablation of the paper's Table 2:
+- ``fisheye_projection``: off -> every camera is replaced by the pinhole camera with its paraxial focal
+  length and principal point (what Monodepth2 assumes) for both the rays and the reprojection;
+- ``real_scale``: off -> relative poses come from a PoseNet instead of the batch (evaluate with median
+  scaling);
+- ``multi_channel``: off -> Monodepth2's single sigmoid channel instead of the binned head with attention.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any
+
+import cv2
+import lightning as L
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from .cameras import CameraModel, RayCache, pinhole_like
+from .geometry import sample, warp_to_source
+from .losses import ReprojectionLoss, edge_aware_smoothness
+from .metrics import DepthMetrics
+from .models import DepthNet, PoseNet, depth_scale_for
+from .viz import panel
+
+
+class FisheyeDepthModule(L.LightningModule):
+    def __init__(
+        self,
+        *,
+        resnet: int = 18,
+        weights: str | None = None,
+        fisheye_projection: bool = True,
+        real_scale: bool = True,
+        multi_channel: bool = True,
+        n_bins: int = 64,
+        attention: bool = True,
+        min_distance: float = 0.5,
+        max_distance: float = 150.0,
+        base_focal: float | None = None,
+        scales: tuple[int, ...] = (0, 1, 2, 3),
+        source_offsets: tuple[int, ...] = (-1, 1),
+        automask: bool = True,
+        smoothness: float | None = None,
+        lr: float = 1e-4,
+        weight_decay: float = 1e-5,
+        lr_step: int = 8,
+        lr_gamma: float = 0.1,
+        grad_clip: float | None = 1.0,
+        eval_min: float = 1e-3,
+        eval_max: float = 80.0,
+        log_images_every: int = 200,
+    ):
+        """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s); None picks
+        the reference's 1e-5 for the binned head and Monodepth2's 1e-3 for the sigmoid head."""
+        super().__init__()
+        self.save_hyperparameters()
+        self.scales = tuple(scales)
+        self.source_offsets = tuple(source_offsets)
+        self.depth_net = DepthNet(
+            resnet, weights, multi_channel, n_bins, attention, min_distance, max_distance, self.scales
+        )
+        self.pose_net = None if real_scale else PoseNet(resnet, weights)
+        self.smoothness = (1e-5 if multi_channel else 1e-3) if smoothness is None else smoothness
+        self.reprojection = ReprojectionLoss(automask=automask)
+        self.rays = RayCache()
+        self.val_metrics = DepthMetrics(eval_min, eval_max)
+        self.val_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
+        self.test_metrics = DepthMetrics(eval_min, eval_max)
+        self.test_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
+        self.skipped_batches = 0
+
+    # ------------------------------------------------------------------------------- geometry
+    def warp_camera(self, camera: CameraModel) -> CameraModel:
+        """The camera model the warp uses: the real one, or its pinhole stand-in when the switch is off."""
+        return camera if self.hparams.fisheye_projection else pinhole_like(camera)
+
+    def forward(self, image: Tensor, cameras: list[CameraModel]) -> dict[str, dict[int, Tensor]]:
+        scale = depth_scale_for(cameras, self.hparams.base_focal).to(image)
+        return self.depth_net(image, scale)
+
+    def relative_poses(self, batch: dict[str, Any]) -> Tensor:
+        """``[B, S, 4, 4]`` target-to-source transforms: the batch's real-scale poses, or the PoseNet's."""
+        if self.pose_net is None:
+            return batch["poses"].to(batch["image"].dtype)
+        target = batch.get("image_aug", batch["image"])
+        sources = batch.get("sources_aug", batch["sources"])
+        poses = [
+            self.pose_net(target, sources[:, j], offset < 0) for j, offset in enumerate(self.source_offsets)
+        ]
+        return torch.stack(poses, 1)
+
+    def losses(
+        self, batch: dict[str, Any], outputs: dict[str, dict[int, Tensor]]
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        target, sources = batch["image"], batch["sources"]
+        B, S = sources.shape[:2]
+        H, W = target.shape[-2:]
+        cameras = [self.warp_camera(c) for c in batch["camera"]]
+        source_cameras = [
+            [self.warp_camera(c) for c in cams]
+            for cams in batch.get("source_camera", [[c] * S for c in batch["camera"]])
+        ]
+        rays, rays_valid = self.rays.batch(cameras, target.device, target.dtype)
+        mask = (batch["mask"][:, 0] > 0.5) & rays_valid
+        source_mask = batch.get("source_mask", batch["mask"][:, None].expand(B, S, 1, H, W))
+        poses = self.relative_poses(batch)
+        logs: dict[str, Tensor] = {}
+        total = target.new_zeros(())
+        for s in self.scales:
+            distance = outputs["distance"][s]
+            if distance.shape[-2:] != (H, W):  # full-resolution multi-scale: warp at the input resolution
+                distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
+            warped, valid = [], []
+            for j in range(S):
+                warp = warp_to_source(
+                    rays, rays_valid, distance, poses[:, j], [c[j] for c in source_cameras], source_mask[:, j]
+                )
+                warped.append(sample(sources[:, j], warp.grid))
+                valid.append(warp.valid)
+            photo, used = self.reprojection(
+                target, torch.stack(warped, 1), torch.stack(valid, 1), sources, mask
+            )
+            disp = outputs["disp"][s]
+            image_s = F.interpolate(target, size=disp.shape[-2:], mode="area") if s else target
+            smooth = edge_aware_smoothness(disp, image_s)
+            total = total + photo + self.smoothness / 2**s * smooth
+            logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
+        total = total / len(self.scales)
+        logs["loss"] = total
+        return total, logs
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""
+        if isinstance(batch, dict):
+            return {
+                k: v.to(device, non_blocking=True) if isinstance(v, Tensor) else v for k, v in batch.items()
+            }
+        return super().transfer_batch_to_device(batch, device, dataloader_idx)
+
+    # ------------------------------------------------------------------------------- steps
+    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        # a non-finite batch must not poison BatchNorm's running statistics either: keep them to restore
+        saved = {name: b.clone() for name, b in self.named_buffers() if "running_" in name}
+        outputs = self(batch.get("image_aug", batch["image"]), batch["camera"])
+        loss, logs = self.losses(batch, outputs)
+        if not torch.isfinite(loss):
+            with torch.no_grad():
+                for name, b in self.named_buffers():
+                    if name in saved:
+                        b.copy_(saved[name])
+            self.skipped_batches += 1
+            warnings.warn(
+                f"non-finite loss at step {self.global_step} (batch {batch_idx}): batch skipped", stacklevel=1
+            )
+            self.log("train/skipped_batches", float(self.skipped_batches), batch_size=len(batch["camera"]))
+            return None
+        batch_size = len(batch["camera"])
+        logs.pop("loss")
+        self.log_dict({f"train/{k}": v.detach() for k, v in logs.items()}, batch_size=batch_size)
+        self.log("train/loss", loss.detach(), prog_bar=True, batch_size=batch_size)
+        self.log(
+            "train/lr",
+            self.trainer.optimizers[0].param_groups[0]["lr"] if self._trainer else 0.0,
+            batch_size=batch_size,
+        )
+        every = self.hparams.log_images_every
+        if every and self.global_step % every == 0:
+            self.log_panel("train", batch, outputs["distance"][0])
+        return loss
+
+    def _evaluate(
+        self, batch: dict[str, Any], stage: str, metrics: DepthMetrics, scaled: DepthMetrics
+    ) -> Tensor:
+        outputs = self(batch["image"], batch["camera"])
+        loss, _ = self.losses(batch, outputs)
+        batch_size = len(batch["camera"])
+        self.log(f"{stage}/loss", loss, batch_size=batch_size, sync_dist=True)
+        if "distance" in batch:
+            pred, gt = outputs["distance"][0], batch["distance"]
+            valid = batch["mask"] > 0.5
+            metrics.update(pred, gt, valid)
+            scaled.update(pred, gt, valid)
+        return loss
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        loss = self._evaluate(batch, "val", self.val_metrics, self.val_metrics_scaled)
+        if batch_idx == 0:
+            with torch.no_grad():
+                self.log_panel("val", batch, self(batch["image"], batch["camera"])["distance"][0])
+        return loss
+
+    def test_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
+        return self._evaluate(batch, "test", self.test_metrics, self.test_metrics_scaled)
+
+    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
+        return self(batch["image"], batch["camera"])["distance"][0]
+
+    def _log_metrics(self, stage: str, metrics: DepthMetrics, scaled: DepthMetrics) -> None:
+        if int(metrics.images) == 0:
+            metrics.reset()
+            scaled.reset()
+            return
+        self.log_dict({f"{stage}/{k}": v.float() for k, v in metrics.compute().items()})
+        self.log_dict({f"{stage}/scaled/{k}": v.float() for k, v in scaled.compute().items()})
+        metrics.reset()
+        scaled.reset()
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics("val", self.val_metrics, self.val_metrics_scaled)
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics("test", self.test_metrics, self.test_metrics_scaled)
+
+    # ------------------------------------------------------------------------------- optimisation
+    def configure_optimizers(self):
+        optimizer = torch.optim.Adam(
+            self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay
+        )
+        scheduler = torch.optim.lr_scheduler.StepLR(optimizer, self.hparams.lr_step, self.hparams.lr_gamma)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
+
+    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None):
+        value = gradient_clip_val if gradient_clip_val is not None else self.hparams.grad_clip
+        if value:
+            self.clip_gradients(
+                optimizer, gradient_clip_val=value, gradient_clip_algorithm=gradient_clip_algorithm or "norm"
+            )
+
+    # ------------------------------------------------------------------------------- pictures
+    def log_panel(self, stage: str, batch: dict[str, Any], distance: Tensor) -> None:
+        """Input | distance | GT | error of the first sample, through the logger or as a PNG in its folder."""
+        if self._trainer is None or not self.trainer.is_global_zero:
+            return
+        gt = batch["distance"][0] if "distance" in batch else None
+        vmax = min(self.hparams.eval_max, self.hparams.max_distance)
+        picture = panel(batch["image"][0], distance[0], gt, self.hparams.min_distance, vmax)
+        tag = f"{stage}/panel"
+        logger = self.logger
+        if logger is not None and hasattr(logger, "log_image"):  # wandb
+            logger.log_image(key=tag, images=[picture], step=self.global_step)
+        elif logger is not None and hasattr(getattr(logger, "experiment", None), "add_image"):  # tensorboard
+            logger.experiment.add_image(tag, picture, self.global_step, dataformats="HWC")
+        else:
+            folder = Path(
+                logger.log_dir if logger is not None and logger.log_dir else self.trainer.default_root_dir
+            )
+            folder = folder / "images"
+            folder.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(folder / f"{stage}_step{self.global_step:07d}.png"), picture[..., ::-1])
+
+
+def count_parameters(module: torch.nn.Module | None) -> int:
+    return 0 if module is None else sum(p.numel() for p in module.parameters())
+
+
+__all__ = ["FisheyeDepthModule", "count_parameters"]

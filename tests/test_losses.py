@@ -1,0 +1,84 @@
+"""Losses: SSIM/L1 photometric error, minimum reprojection with auto-masking, smoothness."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fisheyedepth.losses import (
+    ReprojectionLoss,
+    edge_aware_smoothness,
+    min_reprojection,
+    photometric_error,
+    ssim,
+)
+
+
+def textured(seed=0, shape=(1, 3, 16, 16)):
+    return torch.rand(shape, generator=torch.Generator().manual_seed(seed))
+
+
+def test_ssim_and_photometric_error():
+    x = textured()
+    assert torch.allclose(ssim(x, x), torch.ones_like(x), atol=1e-6)
+    assert torch.allclose(photometric_error(x, x), torch.zeros(1, 16, 16), atol=1e-6)
+    # a constant offset leaves local structure intact: the L1 term dominates
+    err = photometric_error(x + 0.1, x)
+    assert err.mean().item() == pytest.approx(0.15 * 0.1, abs=0.01)
+    y = textured(1)
+    assert photometric_error(y, x).mean() > 5 * err.mean()
+
+
+def test_min_reprojection_picks_the_best_valid_source_and_automasks():
+    reproj = torch.tensor([[[[0.5, 0.2]], [[0.1, 0.3]]]])  # [B=1, S=2, H=1, W=2]
+    valid = torch.tensor([[[[True, True]], [[False, True]]]])
+    loss, used = min_reprojection(reproj, valid)
+    assert torch.allclose(loss, torch.tensor([[[0.5, 0.2]]])) and bool(used.all())
+    none_valid = torch.zeros_like(valid)
+    loss, used = min_reprojection(reproj, none_valid)
+    assert not bool(used.any()) and torch.equal(loss, torch.zeros_like(loss))
+    identity = torch.tensor([[[[0.4, 0.9]], [[0.6, 0.9]]]])  # unwarped source 0 explains pixel 0 better
+    loss, used = min_reprojection(reproj, valid, identity)
+    assert used.tolist() == [[[False, True]]]
+
+
+def test_reprojection_loss_is_normalised_by_used_pixels_only():
+    torch.manual_seed(0)
+    target = textured(0, (1, 3, 8, 8))
+    good = target.clone() + 0.05
+    warped = torch.stack((good, good), 1)
+    sources = torch.stack((textured(3, (1, 3, 8, 8)), textured(4, (1, 3, 8, 8))), 1)
+    valid = torch.ones(1, 2, 8, 8, dtype=torch.bool)
+    mask = torch.ones(1, 8, 8, dtype=torch.bool)
+    fn = ReprojectionLoss(automask=False)
+    full, frac = fn(target, warped, valid, sources, mask)
+    assert frac.item() == 1.0
+    assert full.item() == pytest.approx(photometric_error(good, target).mean().item(), rel=1e-5)
+    # a masked half with huge errors changes neither the value nor anything but the fraction
+    bad = warped.clone()
+    bad[..., 4:, :] = 10.0
+    mask2 = mask.clone()
+    mask2[:, 4:] = False
+    half, frac2 = fn(target, bad, valid, sources, mask2)
+    assert frac2.item() == 0.5
+    assert half.item() == pytest.approx(photometric_error(bad[:, 0], target)[:, :4].mean().item(), rel=1e-5)
+    # invalid warps do not count either
+    valid2 = valid.clone()
+    valid2[..., 4:, :] = False
+    again, frac3 = fn(target, bad, valid2, sources, mask)
+    assert frac3.item() == 0.5 and again.item() == pytest.approx(half.item(), rel=1e-6)
+
+
+def test_edge_aware_smoothness():
+    image = torch.zeros(1, 3, 8, 8)
+    flat = torch.full((1, 1, 8, 8), 0.3)
+    assert edge_aware_smoothness(flat, image).item() == pytest.approx(0.0, abs=1e-7)
+    ramp = torch.linspace(0.1, 1, 8).reshape(1, 1, 1, 8).expand(1, 1, 8, 8)
+    s = edge_aware_smoothness(ramp, image)
+    assert s > 0
+    assert edge_aware_smoothness(ramp * 7, image).item() == pytest.approx(
+        s.item(), rel=1e-5
+    )  # mean-normalised
+    edges = image.clone()
+    edges[..., ::2] = 1.0  # image gradients everywhere along x damp the x term
+    assert edge_aware_smoothness(ramp, edges) < s

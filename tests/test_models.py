@@ -1,0 +1,129 @@
+"""Networks: ResNet fidelity and weight loading, heads, gather_output, PoseNet."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fisheyedepth.geometry import invert_pose
+from fisheyedepth.models import (
+    DepthNet,
+    PoseNet,
+    ResNetEncoder,
+    WeightsError,
+    distance_bins,
+    gather_output,
+    sigmoid_to_distance,
+)
+
+# torchvision's resnet parameter counts minus the 1000-way fc layer
+TORCHVISION_PARAMS = {18: 11_689_512 - 513_000, 34: 21_797_672 - 513_000, 50: 25_557_032 - 2_049_000}
+
+
+@pytest.mark.parametrize("depth", [18, 34, 50])
+def test_resnet_matches_torchvision_layout(depth):
+    enc = ResNetEncoder(depth)
+    assert sum(p.numel() for p in enc.parameters()) == TORCHVISION_PARAMS[depth]
+    feats = enc(torch.rand(1, 3, 64, 96))
+    assert [f.shape[1] for f in feats] == enc.channels
+    assert [f.shape[-1] for f in feats] == [48, 24, 12, 6, 3]
+    assert "layer4.1.bn2.running_var" in enc.state_dict() or depth == 50
+
+
+def test_imagenet_weights_load_in_torchvision_layout(tmp_path):
+    src = ResNetEncoder(18)
+    state = dict(src.state_dict())
+    state["fc.weight"], state["fc.bias"] = (
+        torch.zeros(1000, 512),
+        torch.zeros(1000),
+    )  # as torchvision ships it
+    path = tmp_path / "resnet18.pth"
+    torch.save(state, path)
+    loaded = ResNetEncoder(18, weights=path).eval()
+    x = torch.rand(2, 3, 64, 64)
+    assert all(torch.equal(a, b) for a, b in zip(src.eval()(x), loaded(x), strict=True))
+    pose = ResNetEncoder(18, in_images=2, weights=path)
+    assert torch.allclose(pose.conv1.weight, torch.cat([state["conv1.weight"]] * 2, 1) / 2)
+
+
+def test_bad_weights_name_the_file_and_key(tmp_path):
+    wrong_depth = tmp_path / "resnet34.pth"
+    torch.save(ResNetEncoder(34).state_dict(), wrong_depth)
+    with pytest.raises(WeightsError, match=r"resnet34.pth: key 'layer1.2"):
+        ResNetEncoder(18, weights=wrong_depth)
+    state = ResNetEncoder(18).state_dict()
+    state["layer2.0.conv1.weight"] = torch.zeros(128, 64, 5, 5)
+    bad_shape = tmp_path / "shape.pth"
+    torch.save(state, bad_shape)
+    with pytest.raises(WeightsError, match=r"shape.pth: key 'layer2.0.conv1.weight' has shape"):
+        ResNetEncoder(18, weights=bad_shape)
+    with pytest.raises(WeightsError, match="missing.pth"):
+        ResNetEncoder(18, weights=tmp_path / "missing.pth")
+    junk = tmp_path / "junk.pth"
+    junk.write_bytes(b"not a checkpoint")
+    with pytest.raises(WeightsError, match="junk.pth"):
+        ResNetEncoder(18, weights=junk)
+
+
+@pytest.mark.parametrize("multi_channel", [True, False])
+def test_depth_net_shapes_ranges_and_gradients(multi_channel):
+    net = DepthNet(multi_channel=multi_channel, n_bins=16, min_distance=0.5, max_distance=150.0)
+    image = torch.rand(2, 3, 64, 96)
+    scale = torch.tensor([1.0, 2.5])
+    out = net(image, scale)
+    for s in (0, 1, 2, 3):
+        d, disp = out["distance"][s], out["disp"][s]
+        assert d.shape == disp.shape == (2, 1, 64 // 2**s, 96 // 2**s)
+        assert (disp >= 0).all() and (disp <= 1).all()
+        for b in range(2):
+            assert (d[b] >= 0.5 * scale[b] - 1e-4).all() and (d[b] <= 150.0 * scale[b] * (1 + 1e-5)).all()
+    sum(v.mean() for v in out["distance"].values()).backward()
+    grads = [p.grad for p in net.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_gather_output_is_a_monotone_expectation_within_the_bins():
+    bins = distance_bins(64, 0.5, 150.0)
+    assert bins[0].item() == pytest.approx(0.5) and bins[-1].item() == pytest.approx(150.0)
+    assert torch.all(bins[1:] / bins[:-1] > 1)  # log-spaced, increasing
+    # a peak moving to farther bins moves the distance monotonically
+    peaks = torch.full((64, 64, 1, 1), -10.0)
+    peaks[torch.arange(64), torch.arange(64)] = 10.0
+    d, disp = gather_output(peaks, 1.0, bins, 0.5, 150.0)
+    d = d.flatten()
+    assert torch.all(d[1:] > d[:-1]) and torch.all(disp.flatten()[1:] < disp.flatten()[:-1])
+    assert d[0].item() == pytest.approx(0.5, rel=1e-4) and d[-1].item() == pytest.approx(150.0, rel=1e-4)
+    # raising one logit moves the expectation towards that bin
+    logits = torch.randn(1, 64, 3, 3, generator=torch.Generator().manual_seed(0))
+    base, _ = gather_output(logits, 1.0, bins, 0.5, 150.0)
+    bumped = logits.clone()
+    bumped[:, 63] += 1.0
+    far, _ = gather_output(bumped, 1.0, bins, 0.5, 150.0)
+    assert torch.all(far > base)
+    scaled, _ = gather_output(logits, torch.tensor([2.0]), bins, 0.5, 150.0)
+    assert torch.allclose(scaled, 2 * base)
+    # huge logits are clamped: no overflow, finite gradients
+    wild = (torch.randn(1, 64, 2, 2) * 1e4).requires_grad_(True)
+    out, _ = gather_output(wild, 1.0, bins, 0.5, 150.0)
+    out.sum().backward()
+    assert torch.isfinite(out).all() and torch.isfinite(wild.grad).all()
+
+
+def test_sigmoid_head_mapping():
+    s = torch.tensor([0.0, 0.5, 1.0])
+    d = sigmoid_to_distance(s, 0.1, 100.0)
+    assert d[0].item() == pytest.approx(100.0) and d[2].item() == pytest.approx(0.1)
+    assert 1 / d[1].item() == pytest.approx(0.5 * (1 / 0.1 + 1 / 100.0))
+
+
+def test_posenet_outputs_rigid_motion_and_inverts_for_earlier_sources():
+    torch.manual_seed(0)
+    net = PoseNet().eval()
+    a, b = torch.rand(2, 3, 64, 64), torch.rand(2, 3, 64, 64)
+    T = net(a, b, source_is_earlier=False)
+    R = T[:, :3, :3]
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3).expand(2, 3, 3), atol=1e-5)
+    assert torch.equal(T[:, 3], torch.tensor([[0.0, 0, 0, 1]] * 2))
+    # target b with an earlier source a sees the same frame pair (a, b): the inverse transform
+    assert torch.allclose(net(b, a, source_is_earlier=True), invert_pose(T), atol=1e-6)

@@ -1,0 +1,146 @@
+"""The LightningModule: it learns, it measures geometry, each ablation switch does one thing."""
+
+from __future__ import annotations
+
+import copy
+import warnings
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from fisheyedepth.cameras import MeiCamera, PinholeCamera, pinhole_like
+from fisheyedepth.data.batch import collate
+from fisheyedepth.models import MultiChannelHead, SigmoidHead
+from fisheyedepth.module import FisheyeDepthModule, count_parameters
+
+from conftest import tiny_batch
+
+
+def photometric_after(module, batch, steps, lr):
+    opt = torch.optim.Adam(module.parameters(), lr)
+    history = []
+    for _ in range(steps):
+        loss, logs = module.losses(batch, module(batch["image"], batch["camera"]))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        history.append(logs["photometric/0"].item())
+    return history
+
+
+@pytest.mark.parametrize("real_scale,lr,factor", [(True, 3e-4, 0.8), (False, 1e-3, 0.88)])
+def test_overfitting_a_batch_cuts_the_photometric_loss(kitti_data, real_scale, lr, factor):
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(real_scale=real_scale, automask=False, log_images_every=0)
+    history = photometric_after(module, tiny_batch(kitti_data), 40, lr)
+    assert history[-1] < factor * history[0], history[::5]
+
+
+def test_the_loss_measures_geometry(kitti_data):
+    """Ground-truth distance as the prediction beats a wrong constant distance, for every camera."""
+    module = FisheyeDepthModule(scales=(0,), automask=False)
+    batch = tiny_batch(kitti_data, size=None)  # at 256 px: at 64 px mixed pixels swamp the parallax
+    gt = batch["distance"]
+
+    def loss_with(distance):
+        disp = torch.full_like(distance, 0.5)
+        return module.losses(batch, {"distance": {0: distance}, "disp": {0: disp}})[1]["photometric/0"].item()
+
+    # the same pixels in every case: sky (GT 0) stays without a distance, hence without a warp
+    surface = gt > 0
+    truth = loss_with(gt)
+    for wrong in (3.0, 10.0, 40.0):
+        assert truth < 0.8 * loss_with(torch.where(surface, torch.full_like(gt, wrong), gt)), wrong
+    assert truth < 0.95 * loss_with(gt * 1.3) and truth < 0.95 * loss_with(gt * 0.8)
+
+
+def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
+    full = FisheyeDepthModule()
+    pin = FisheyeDepthModule(fisheye_projection=False)
+    pin.load_state_dict(full.state_dict())
+    batch = tiny_batch(kitti_data)
+    cam = batch["camera"][0]
+    assert isinstance(cam, MeiCamera) and full.warp_camera(cam) is cam
+    assert pin.warp_camera(cam) == pinhole_like(cam) and isinstance(pin.warp_camera(cam), PinholeCamera)
+    with torch.no_grad():
+        out = full(batch["image"], batch["camera"])
+        assert torch.equal(out["distance"][0], pin(batch["image"], batch["camera"])["distance"][0])
+        assert full.losses(batch, out)[0] != pin.losses(batch, out)[0]
+
+
+def test_multi_channel_switch_replaces_only_the_heads():
+    mc, single = FisheyeDepthModule(), FisheyeDepthModule(multi_channel=False)
+    assert all(isinstance(h, MultiChannelHead) for h in mc.depth_net.heads.values())
+    assert all(isinstance(h, SigmoidHead) for h in single.depth_net.heads.values())
+    for part in ("encoder", "decoder"):
+        assert count_parameters(getattr(mc.depth_net, part)) == count_parameters(
+            getattr(single.depth_net, part)
+        )
+    assert mc.smoothness == 1e-5 and single.smoothness == 1e-3
+    assert mc.pose_net is None and single.pose_net is None
+
+
+def test_real_scale_switch_replaces_only_the_poses(kitti_data):
+    batch = tiny_batch(kitti_data)
+    moved = dict(batch, poses=batch["poses"].clone())
+    moved["poses"][..., :3, 3] *= 1.5
+    real, learned = FisheyeDepthModule(automask=False), FisheyeDepthModule(real_scale=False, automask=False)
+    assert learned.pose_net is not None and real.pose_net is None
+    assert count_parameters(real.depth_net) == count_parameters(learned.depth_net)
+    with torch.no_grad():
+        out = real(batch["image"], batch["camera"])
+        assert real.losses(batch, out)[0] != real.losses(moved, out)[0]  # real-scale poses are used ...
+        out = learned(batch["image"], batch["camera"])
+        assert learned.losses(batch, out)[0] == learned.losses(moved, out)[0]  # ... or ignored
+
+
+def test_mixed_cameras_in_one_batch(kitti_data):
+    batch = tiny_batch(kitti_data, frames=(4,), cameras=("image_02", "image_03"))
+    assert batch["camera"][0] != batch["camera"][1]
+    module = FisheyeDepthModule(scales=(0, 1))
+    loss, logs = module.losses(batch, module(batch["image"], batch["camera"]))
+    assert torch.isfinite(loss) and 0.1 < logs["used_pixels/0"].item() <= 1.0  # sky, body, corners: out
+
+
+class _Loader(list):
+    pass
+
+
+def test_lightning_fit_validate_test_and_skip_non_finite_batches(kitti_data, tmp_path):
+    samples = [
+        tiny_batch(kitti_data, frames=(f,), cameras=(c,)) for f in (1, 2, 3) for c in ("image_02", "image_03")
+    ]
+    flat = [{k: (v[0] if not isinstance(v, list) else v[0]) for k, v in s.items()} for s in samples]
+    poisoned = copy.deepcopy(flat[0])
+    poisoned["image"][:] = float("nan")
+    train = DataLoader([poisoned, *flat], batch_size=2, collate_fn=collate)
+    val = DataLoader(flat, batch_size=3, collate_fn=collate)
+    module = FisheyeDepthModule(scales=(0, 1), log_images_every=1)
+    logger = L.pytorch.loggers.CSVLogger(tmp_path, name="run")
+    trainer = L.Trainer(
+        max_epochs=1,
+        logger=logger,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        accelerator="cpu",
+        gradient_clip_val=1.0,
+        enable_model_summary=False,
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trainer.fit(module, train, val)
+    assert module.skipped_batches == 1
+    assert all(torch.isfinite(b).all() for b in module.buffers())  # BatchNorm statistics restored
+    assert any("non-finite loss" in str(w.message) for w in caught)
+    metrics = trainer.callback_metrics
+    for key in ("val/abs_rel", "val/scaled/abs_rel", "val/a1", "train/loss", "train/skipped_batches"):
+        assert key in metrics and torch.isfinite(metrics[key]), key
+    assert 0 < metrics["val/abs_rel"] < 10
+    images = list((tmp_path / "run").rglob("images/*.png"))
+    assert any(p.name.startswith("train_") for p in images) and any(p.name.startswith("val_") for p in images)
+    results = trainer.test(module, val, verbose=False)[0]
+    assert "test/rmse" in results and "test/scaled/rmse" in results
+    predictions = trainer.predict(module, val)
+    assert predictions[0].shape == (3, 1, 64, 64) and (predictions[0] > 0).all()
