@@ -51,7 +51,7 @@ def test_reprojection_loss_is_normalised_by_used_pixels_only():
     valid = torch.ones(1, 2, 8, 8, dtype=torch.bool)
     mask = torch.ones(1, 8, 8, dtype=torch.bool)
     fn = ReprojectionLoss(automask=False)
-    full, frac = fn(target, warped, valid, sources, mask)
+    full, frac = fn(target, warped, valid, fn.identity(sources, target), mask)
     assert frac.item() == 1.0
     assert full.item() == pytest.approx(photometric_error(good, target).mean().item(), rel=1e-5)
     # a masked half with huge errors changes neither the value nor anything but the fraction
@@ -59,13 +59,13 @@ def test_reprojection_loss_is_normalised_by_used_pixels_only():
     bad[..., 4:, :] = 10.0
     mask2 = mask.clone()
     mask2[:, 4:] = False
-    half, frac2 = fn(target, bad, valid, sources, mask2)
+    half, frac2 = fn(target, bad, valid, None, mask2)
     assert frac2.item() == 0.5
     assert half.item() == pytest.approx(photometric_error(bad[:, 0], target)[:, :4].mean().item(), rel=1e-5)
     # invalid warps do not count either
     valid2 = valid.clone()
     valid2[..., 4:, :] = False
-    again, frac3 = fn(target, bad, valid2, sources, mask)
+    again, frac3 = fn(target, bad, valid2, None, mask)
     assert frac3.item() == 0.5 and again.item() == pytest.approx(half.item(), rel=1e-6)
 
 

@@ -109,6 +109,7 @@ class FisheyeDepthModule(L.LightningModule):
         mask = (batch["mask"][:, 0] > 0.5) & rays_valid
         source_mask = batch.get("source_mask", batch["mask"][:, None].expand(B, S, 1, H, W))
         poses = self.relative_poses(batch)
+        identity = self.reprojection.identity(sources, target)  # the same at every scale: once per step
         logs: dict[str, Tensor] = {}
         total = target.new_zeros(())
         for s in self.scales:
@@ -123,7 +124,7 @@ class FisheyeDepthModule(L.LightningModule):
                 warped.append(sample(sources[:, j], warp.grid))
                 valid.append(warp.valid)
             photo, used = self.reprojection(
-                target, torch.stack(warped, 1), torch.stack(valid, 1), sources, mask
+                target, torch.stack(warped, 1), torch.stack(valid, 1), identity, mask
             )
             disp = outputs["disp"][s]
             image_s = F.interpolate(target, size=disp.shape[-2:], mode="area") if s else target

@@ -50,28 +50,31 @@ class ReprojectionLoss:
     automask: bool = True
     alpha: float = 0.85
 
+    def photometric(self, images: Tensor, target: Tensor) -> Tensor:
+        """``[B, S, 3, H, W]`` images against the ``[B, 3, H, W]`` target: ``[B, S, H, W]`` errors."""
+        B, S = images.shape[:2]
+        flat = images.reshape(B * S, *images.shape[2:])
+        rep = target[:, None].expand(B, S, *target.shape[1:]).reshape(B * S, *target.shape[1:])
+        return photometric_error(flat, rep, self.alpha).reshape(B, S, *target.shape[2:])
+
+    def identity(self, sources: Tensor, target: Tensor) -> Tensor | None:
+        """Errors of the unwarped sources for auto-masking (None when it is off); the same at every scale,
+        so compute it once per step."""
+        return self.photometric(sources, target) if self.automask else None
+
     def __call__(
-        self, target: Tensor, warped: Tensor, valid: Tensor, sources: Tensor, mask: Tensor
+        self, target: Tensor, warped: Tensor, valid: Tensor, identity: Tensor | None, mask: Tensor
     ) -> tuple[Tensor, Tensor]:
         """
         Args:
             target: ``[B, 3, H, W]`` un-augmented target image.
             warped: ``[B, S, 3, H, W]`` sources sampled at the warp.
             valid: ``[B, S, H, W]`` warp validity (includes the source body masks).
-            sources: ``[B, S, 3, H, W]`` unwarped sources (for auto-masking).
+            identity: ``[B, S, H, W]`` from :meth:`identity`, or None.
             mask: ``[B, H, W]`` target pixels that may contribute (body mask and pixels with a ray).
         The loss is normalised by the number of used pixels, never by a count including masked ones.
         """
-        B, S = warped.shape[:2]
-        flat = lambda x: x.reshape(B * S, *x.shape[2:])  # noqa: E731
-        rep = lambda x: x[:, None].expand(B, S, *x.shape[1:]).reshape(B * S, *x.shape[1:])  # noqa: E731
-        reproj = photometric_error(flat(warped), rep(target), self.alpha).reshape(B, S, *target.shape[2:])
-        identity = None
-        if self.automask:
-            identity = photometric_error(flat(sources), rep(target), self.alpha).reshape(
-                B, S, *target.shape[2:]
-            )
-        loss, used = min_reprojection(reproj, valid & mask[:, None], identity)
+        loss, used = min_reprojection(self.photometric(warped, target), valid & mask[:, None], identity)
         used = used & mask
         n = used.sum()
         return (loss * used).sum() / n.clamp_min(1), n / used.numel()

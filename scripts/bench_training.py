@@ -1,0 +1,170 @@
+#!/usr/bin/env python
+"""Training-step time and peak memory for the Table 2 configurations; results go into BENCHMARKS.md.
+
+One step = forward, losses at 4 scales, backward and an Adam step, batch 4 at 256x256 on a synthetic
+kitti360 batch (two source frames), 2 CPU threads. Times are measured side by side: configurations
+take turns within every round. Peak memory is the peak resident set (VmHWM, Linux) of a fresh process
+that ran two steps of one configuration.
+Targets: fisheye projection <= 5 % of a step (full model against itself with pinhole projection);
+real-scale poses make the step >= 1.6x faster than the same model with a PoseNet.
+
+Usage: python scripts/bench_training.py [--rounds 5] [--no-write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from fisheyedepth.data.batch import collate
+from fisheyedepth.data.kitti360 import load_sample
+from fisheyedepth.data.synthetic import generate
+from fisheyedepth.module import FisheyeDepthModule
+
+from _benchmarks import publish
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_training:start -->", "<!-- bench_training:end -->"
+CONFIGS = {  # name: (fisheye_projection, real_scale, multi_channel)
+    "Monodepth2 baseline": (False, False, False),
+    "FFT": (True, False, False),
+    "FFT + RS": (True, True, False),
+    "FFT + MC": (True, False, True),
+    "FFT + RS + MC (full)": (True, True, True),
+    "full, pinhole projection": (False, True, True),
+}
+
+
+def make_batch(root: Path, size: int, batch: int):
+    frames = [(f, c) for f in range(1, 1 + batch) for c in ("image_02", "image_03")][:batch]
+    return collate(
+        [load_sample(root, "2013_05_28_drive_0000_sync", f, c, size=(size, size)) for f, c in frames]
+    )
+
+
+def make_module(config: str) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
+    fisheye, real, mc = CONFIGS[config]
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(
+        fisheye_projection=fisheye, real_scale=real, multi_channel=mc, log_images_every=0
+    )
+    return module, torch.optim.Adam(module.parameters(), lr=1e-4)
+
+
+def step(module, optimizer, batch) -> None:
+    loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+    optimizer.zero_grad()
+    loss.backward()
+    optimizer.step()
+
+
+def memory_child(config: str, root: Path, size: int, batch: int) -> None:
+    torch.set_num_threads(2)
+    data = make_batch(root, size, batch)
+    module, optimizer = make_module(config)
+    for _ in range(2):
+        step(module, optimizer, data)
+    # VmHWM: this process's peak resident set (ru_maxrss would include the parent's, inherited at fork)
+    status = Path("/proc/self/status").read_text()
+    print(next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:")))  # kB
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--size", type=int, default=256)
+    parser.add_argument("--batch", type=int, default=4)
+    parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
+    parser.add_argument("--memory-child", help=argparse.SUPPRESS)
+    parser.add_argument("--data", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.memory_child:
+        memory_child(args.memory_child, args.data, args.size, args.batch)
+        return 0
+    torch.set_num_threads(2)
+    with tempfile.TemporaryDirectory() as tmp:
+        root = generate(
+            Path(tmp) / "d", "kitti360", frames=20, size=args.size, seed=0, lidar=False, progress=False
+        )
+        data = make_batch(root, args.size, args.batch)
+        modules = {name: make_module(name) for name in CONFIGS}
+        for module, optimizer in modules.values():  # warm-up
+            step(module, optimizer, data)
+        times = {name: [] for name in CONFIGS}
+        names = list(CONFIGS)
+        for r in range(args.rounds):
+            for name in names[r % len(names) :] + names[: r % len(names)]:
+                t0 = time.perf_counter()
+                step(*modules[name], data)
+                times[name].append(time.perf_counter() - t0)
+        peak = {}
+        for name in CONFIGS:
+            out = subprocess.run(
+                [
+                    sys.executable,
+                    __file__,
+                    "--memory-child",
+                    name,
+                    "--data",
+                    str(root),
+                    "--size",
+                    str(args.size),
+                    "--batch",
+                    str(args.batch),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            )
+            peak[name] = int(out.stdout.strip().splitlines()[-1]) / 1024
+
+    med = {name: statistics.median(ts) for name, ts in times.items()}
+
+    def paired(a: str, b: str) -> float:
+        return statistics.median(x / y for x, y in zip(times[a], times[b], strict=True))
+
+    fisheye_cost = paired("FFT + RS + MC (full)", "full, pinhole projection") - 1
+    posenet_speedup = paired("FFT + MC", "FFT + RS + MC (full)")
+    lines = [
+        START,
+        "## Training step (`scripts/bench_training.py`)",
+        "",
+        f"Command: `python scripts/bench_training.py --rounds {args.rounds} --size {args.size} "
+        f"--batch {args.batch}`  ",
+        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}, 2 threads; "
+        f"{time.strftime('%Y-%m-%d')}. Batch {args.batch} at {args.size}x{args.size}, two source frames, "
+        f"ResNet-18, 4 scales; median over {args.rounds} interleaved rounds.",
+        "",
+        "| configuration | fisheye projection | real-scale poses | multi-channel | step time | peak RSS |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, (fisheye, real, mc) in CONFIGS.items():
+        flags = " | ".join("yes" if f else "no" for f in (fisheye, real, mc))
+        lines.append(f"| {name} | {flags} | {med[name]:.2f} s | {peak[name]:.0f} MB |")
+    lines += [
+        "",
+        f"- Fisheye projection costs {100 * fisheye_cost:+.1f} % of a step (full model against itself with "
+        f"pinhole projection, paired per round); target <= 5 %: "
+        f"{'met' if fisheye_cost <= 0.05 else 'NOT met'}.",
+        f"- Real-scale poses make the step {posenet_speedup:.2f}x faster than the same model with a PoseNet "
+        f"(FFT + MC against full); target >= 1.6x: {'met' if posenet_speedup >= 1.6 else 'NOT met'}.",
+        END,
+    ]
+    publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
