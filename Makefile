@@ -27,6 +27,7 @@ lint: install
 bench: install
 	$(PY) scripts/bench_geometry.py
 	$(PY) scripts/bench_synthetic.py
+	$(PY) scripts/bench_training.py
 
 train: install
 	@echo "make train: the training entry point (train.py, Hydra configs, synthetic default data) is wired by" >&2

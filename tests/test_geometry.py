@@ -12,6 +12,7 @@ from fisheyedepth.cameras.presets import KITTI360_CAM_TO_POSE
 from fisheyedepth.geometry import (
     ALIGN_CORNERS,
     axis_angle_to_matrix,
+    distance_to_depth,
     grid_to_pixels,
     invert_pose,
     make_pose,
@@ -321,3 +322,13 @@ def test_gradients_reach_the_distance():
     assert torch.isfinite(dist.grad).all()
     assert dist.grad[0, 0][warp.valid[0]].abs().gt(0).float().mean() > 0.5
     assert dist.grad[0, 0][~warp.valid[0]].abs().max() == 0
+
+
+def test_distance_to_depth_uses_the_ray():
+    cam = kitti02().resize(32, 32)
+    rays, _ = RayCache().get(cam)
+    distance = torch.full((1, 1, 32, 32), 5.0)
+    z = distance_to_depth(distance, rays[None])
+    assert torch.allclose(z[0, 0], 5.0 * rays[..., 2])
+    assert z[0, 0, 16, 16] == pytest.approx(5.0, abs=0.01)  # on the axis
+    assert (z[0, 0, 16, :2] < 0).all()  # the image border is seen beyond 90 degrees: behind the image plane

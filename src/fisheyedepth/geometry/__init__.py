@@ -13,6 +13,7 @@ from .se3 import (
 from .warp import (
     ALIGN_CORNERS,
     Warp,
+    distance_to_depth,
     grid_to_pixels,
     pixels_to_grid,
     project_cameras,
@@ -24,6 +25,7 @@ __all__ = [
     "ALIGN_CORNERS",
     "Warp",
     "axis_angle_to_matrix",
+    "distance_to_depth",
     "grid_to_pixels",
     "invert_pose",
     "make_pose",

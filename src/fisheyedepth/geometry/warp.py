@@ -136,3 +136,10 @@ def sample(image: Tensor, grid: Tensor, padding_mode: str = "border") -> Tensor:
     return F.grid_sample(
         image, grid.to(image.dtype), mode="bilinear", padding_mode=padding_mode, align_corners=ALIGN_CORNERS
     )
+
+
+def distance_to_depth(distance: Tensor, rays: Tensor) -> Tensor:
+    """z-depth from Euclidean distance along unit rays: ``z = L * ray_z`` (``[B, 1, H, W]`` and
+    ``[B, H, W, 3]``). Negative for points behind the image plane, which fisheye pixels beyond 90 degrees
+    see; distance stays the quantity the network predicts."""
+    return distance * rays[..., 2].unsqueeze(1).to(distance)
