@@ -25,8 +25,7 @@ from pathlib import Path
 
 import torch
 
-from fisheyedepth.data.batch import collate
-from fisheyedepth.data.kitti360 import load_sample
+from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.synthetic import generate
 from fisheyedepth.module import FisheyeDepthModule
 
@@ -44,11 +43,10 @@ CONFIGS = {  # name: (fisheye_projection, real_scale, multi_channel)
 }
 
 
-def make_batch(root: Path, size: int, batch: int):
-    frames = [(f, c) for f in range(1, 1 + batch) for c in ("image_02", "image_03")][:batch]
-    return collate(
-        [load_sample(root, "2013_05_28_drive_0000_sync", f, c, size=(size, size)) for f, c in frames]
-    )
+def make_batch(root: Path, size: int, batch: int, cache_dir: Path):
+    layout = Kitti360Layout(root)
+    dataset = FisheyeDataset(layout, "splits/train.txt", size=(size, size), cache_dir=cache_dir)
+    return collate([dataset[i] for i in range(batch)])
 
 
 def make_module(config: str) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
@@ -69,7 +67,7 @@ def step(module, optimizer, batch) -> None:
 
 def memory_child(config: str, root: Path, size: int, batch: int) -> None:
     torch.set_num_threads(2)
-    data = make_batch(root, size, batch)
+    data = make_batch(root, size, batch, root.parent / "cache")
     module, optimizer = make_module(config)
     for _ in range(2):
         step(module, optimizer, data)
@@ -98,7 +96,7 @@ def main(argv=None) -> int:
         root = generate(
             Path(tmp) / "d", "kitti360", frames=20, size=args.size, seed=0, lidar=False, progress=False
         )
-        data = make_batch(root, args.size, args.batch)
+        data = make_batch(root, args.size, args.batch, Path(tmp) / "cache")
         modules = {name: make_module(name) for name in CONFIGS}
         for module, optimizer in modules.values():  # warm-up
             step(module, optimizer, data)

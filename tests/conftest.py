@@ -91,8 +91,18 @@ def kitti_data(tmp_path_factory):
 
 
 def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 64)):
-    """A training batch read through ``load_sample``, resized to ``size`` (the camera models with it)."""
-    from fisheyedepth.data.batch import collate
-    from fisheyedepth.data.kitti360 import load_sample
+    """A training batch read through ``FisheyeDataset``, resized to ``size`` (the camera models with it)."""
+    import tempfile
 
-    return collate([load_sample(root, TRAIN_SEQ, f, c, size=size) for f in frames for c in cameras])
+    from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+
+    layout = Kitti360Layout(root)
+    dataset = FisheyeDataset(
+        layout,
+        [{"sequence": TRAIN_SEQ}],
+        size=size,
+        ground_truth="distance",
+        cache_dir=tempfile.mkdtemp(prefix="fd-cache-"),
+    )
+    index = {(layout.frames(it.sequence)[it.row].key, it.camera): i for i, it in enumerate(dataset.items)}
+    return collate([dataset[index[(f, c)]] for f in frames for c in cameras])

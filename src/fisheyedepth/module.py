@@ -73,6 +73,7 @@ class FisheyeDepthModule(L.LightningModule):
         self.test_metrics = DepthMetrics(eval_min, eval_max)
         self.test_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
         self.skipped_batches = 0
+        self.skipped_frames: list[str] = []
 
     # ------------------------------------------------------------------------------- geometry
     def warp_camera(self, camera: CameraModel) -> CameraModel:
@@ -144,7 +145,26 @@ class FisheyeDepthModule(L.LightningModule):
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     # ------------------------------------------------------------------------------- steps
+    def _count_skipped(self, batch: dict[str, Any]) -> bool:
+        """Record frames the dataset could not read (``skip_bad_frames``); True when nothing is left."""
+        reasons = batch.get("skipped_frames", [])
+        self.skipped_frames.extend(reasons)
+        return "image" not in batch
+
+    def on_train_epoch_end(self) -> None:
+        if self.skipped_frames:
+            shown = "; ".join(self.skipped_frames[:3])
+            warnings.warn(
+                f"{len(self.skipped_frames)} frames skipped this epoch (skip_bad_frames): {shown}",
+                stacklevel=1,
+            )
+            if self._trainer is not None:
+                self.log("train/skipped_frames", float(len(self.skipped_frames)))
+            self.skipped_frames.clear()
+
     def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        if self._count_skipped(batch):
+            return None
         # a non-finite batch must not poison BatchNorm's running statistics either: keep them to restore
         saved = {name: b.clone() for name, b in self.named_buffers() if "running_" in name}
         outputs = self(batch.get("image_aug", batch["image"]), batch["camera"])
@@ -176,7 +196,9 @@ class FisheyeDepthModule(L.LightningModule):
 
     def _evaluate(
         self, batch: dict[str, Any], stage: str, metrics: DepthMetrics, scaled: DepthMetrics
-    ) -> Tensor:
+    ) -> Tensor | None:
+        if self._count_skipped(batch):
+            return None
         outputs = self(batch["image"], batch["camera"])
         loss, _ = self.losses(batch, outputs)
         batch_size = len(batch["camera"])
@@ -190,7 +212,7 @@ class FisheyeDepthModule(L.LightningModule):
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
         loss = self._evaluate(batch, "val", self.val_metrics, self.val_metrics_scaled)
-        if batch_idx == 0:
+        if batch_idx == 0 and loss is not None:
             with torch.no_grad():
                 self.log_panel("val", batch, self(batch["image"], batch["camera"])["distance"][0])
         return loss
@@ -198,7 +220,9 @@ class FisheyeDepthModule(L.LightningModule):
     def test_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
         return self._evaluate(batch, "test", self.test_metrics, self.test_metrics_scaled)
 
-    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor:
+    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
+        if self._count_skipped(batch):
+            return None
         return self(batch["image"], batch["camera"])["distance"][0]
 
     def _log_metrics(self, stage: str, metrics: DepthMetrics, scaled: DepthMetrics) -> None:

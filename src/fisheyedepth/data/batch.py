@@ -29,12 +29,20 @@ CAMERA_KEYS = ("camera", "source_camera")
 
 
 def collate(samples: list[dict[str, Any]]) -> dict[str, Any]:
-    """Stack tensors; keep cameras (and any non-tensor value) as lists."""
+    """Stack tensors; keep cameras (and any non-tensor value) as lists.
+
+    Samples the dataset could not build (``{"skipped": reason}``, with ``skip_bad_frames``) are left out
+    and their reasons listed under ``skipped_frames``, so the training loop can count and report them.
+    """
+    skipped = [s["skipped"] for s in samples if "skipped" in s]
+    samples = [s for s in samples if "skipped" not in s]
+    out: dict[str, Any] = {"skipped_frames": skipped} if skipped else {}
+    if not samples:
+        return out
     keys = samples[0].keys()
     for i, s in enumerate(samples):
         if s.keys() != keys:
             raise ValueError(f"sample {i} has keys {sorted(s)}, sample 0 has {sorted(keys)}")
-    out: dict[str, Any] = {}
     for key in keys:
         values = [s[key] for s in samples]
         out[key] = torch.stack(values) if isinstance(values[0], torch.Tensor) else values

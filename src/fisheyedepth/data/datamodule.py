@@ -1,0 +1,139 @@
+"""``FisheyeDataModule``: all configured cameras of a KITTI-360 or robot-rig dataset, sampled jointly."""
+
+from __future__ import annotations
+
+import os
+import random
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+
+from .augment import Augment
+from .batch import collate
+from .dataset import FisheyeDataset
+from .layouts import Kitti360Layout, RigLayout
+
+LAYOUTS = {"kitti360": Kitti360Layout, "rig": RigLayout}
+
+
+def seed_worker(worker_id: int) -> None:
+    """Deterministic per-worker seeding: numpy and ``random`` follow torch's per-worker seed."""
+    seed = torch.initial_seed() % 2**32
+    np.random.seed(seed)  # noqa: NPY002  (seeds the legacy global state third-party code may draw from)
+    random.seed(seed)
+
+
+class FisheyeDataModule(L.LightningDataModule):
+    """Every sample carries its own camera model, extrinsic-derived relative poses and body mask; a batch
+    mixes cameras (and camera models) freely.
+
+    Args:
+        root: dataset folder; ``layout``: "kitti360" (also the synthetic world) or "rig".
+        splits: ``{"train": spec, "val": spec, "test": spec}``, each a split file, a list of
+            ``{sequence, start, stop, stride, cameras}`` entries, or "all" (see ``parse_split``).
+        size: training resolution ``(width, height)``; None keeps the native size.
+        augment: training augmentation (flip and colour jitter); None disables it.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        layout: str = "kitti360",
+        splits: dict[str, Any] | None = None,
+        cameras: list[str] | None = None,
+        masks: dict[str, str] | None = None,
+        size: tuple[int, int] | None = None,
+        offsets: tuple[int, ...] = (-1, 1),
+        min_translation: float = 0.03,
+        max_translation: float = 3.0,
+        augment: Augment | dict | None = None,
+        ground_truth: str = "auto",
+        skip_bad_frames: bool = False,
+        batch_size: int = 8,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        cache_dir: str | os.PathLike | None = None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown layout {layout!r}; one of {sorted(LAYOUTS)}")
+        self.root, self.layout_name, self.cameras, self.masks = root, layout, cameras, masks
+        self.splits = splits or {
+            "train": "splits/train.txt",
+            "val": "splits/val.txt",
+            "test": "splits/test.txt",
+        }
+        self.size = tuple(size) if size is not None else None
+        self.offsets, self.min_translation, self.max_translation = (
+            tuple(offsets),
+            min_translation,
+            max_translation,
+        )
+        self.augment = Augment(**augment) if isinstance(augment, dict) else augment
+        self.ground_truth, self.skip_bad_frames = ground_truth, skip_bad_frames
+        self.batch_size, self.num_workers, self.pin_memory = batch_size, num_workers, pin_memory
+        self.cache_dir, self.seed = cache_dir, seed
+        self.datasets: dict[str, FisheyeDataset] = {}
+        self._layout = None
+
+    @property
+    def layout(self):
+        if self._layout is None:
+            self._layout = LAYOUTS[self.layout_name](self.root, self.cameras, self.masks)
+        return self._layout
+
+    def dataset(self, split: str) -> FisheyeDataset:
+        if split not in self.datasets:
+            if split not in self.splits:
+                raise KeyError(f"no {split!r} split configured (have {sorted(self.splits)})")
+            self.datasets[split] = FisheyeDataset(
+                self.layout,
+                self.splits[split],
+                self.cameras,
+                self.size,
+                self.offsets,
+                self.min_translation,
+                self.max_translation,
+                self.augment if split == "train" else None,
+                self.ground_truth,
+                self.skip_bad_frames,
+                self.cache_dir,
+            )
+        return self.datasets[split]
+
+    def setup(self, stage: str | None = None) -> None:
+        wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
+        for split in wanted.get(stage, tuple(self.splits)):
+            if split in self.splits:
+                self.dataset(split)
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        generator = torch.Generator().manual_seed(self.seed)
+        return DataLoader(
+            self.dataset(split),
+            batch_size=self.batch_size,
+            shuffle=shuffle,
+            num_workers=self.num_workers,
+            collate_fn=collate,
+            pin_memory=self.pin_memory,
+            worker_init_fn=seed_worker,
+            generator=generator,
+            persistent_workers=self.num_workers > 0,
+            drop_last=shuffle and len(self.dataset(split)) > self.batch_size,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)

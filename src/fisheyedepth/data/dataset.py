@@ -1,0 +1,279 @@
+"""``FisheyeDataset``: samples from any layout (KITTI-360 or robot rig), built one way for both.
+
+Neighbouring frames are neighbouring pose rows (KITTI-360's frame indices are sparse) or neighbouring
+images (rig). A target is dropped when a neighbour is missing, or when the translation to a neighbour is
+below ``min_translation`` (standing still: no parallax) or above ``max_translation`` (a jump); the
+counts are logged. Images are resized to the training size through a disk cache, and the camera model
+is resized with them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import logging
+import os
+import random
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from ..geometry import relative_pose
+from .augment import Augment, colour_jitter, flip_sample
+from .layouts import Frame, Kitti360Layout
+
+log = logging.getLogger(__name__)
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "fisheyedepth"
+
+
+def read_checked(path: Path, expect: tuple[int, int], flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """Read an image; a clear error naming the file when it is missing, corrupt or of the wrong size."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: image not found")
+    image = cv2.imread(str(path), flags)
+    if image is None:
+        raise ValueError(f"{path}: not a readable image (corrupt or not an image)")
+    if image.shape[1::-1] != tuple(expect):
+        w, h = image.shape[1::-1]
+        raise ValueError(f"{path}: image is {w}x{h} but its calibration says {expect[0]}x{expect[1]}")
+    return image
+
+
+class ImageCache:
+    """Resized copies of images, keyed by source path, size and modification time; written atomically,
+    so concurrent DataLoader workers never read half a file."""
+
+    _announced: set[str] = set()
+
+    def __init__(self, cache_dir: str | os.PathLike | None = None):
+        self.dir = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+
+    def read(self, path: Path, size: tuple[int, int], expect: tuple[int, int]) -> np.ndarray:
+        """``path`` (which must be ``expect`` = (width, height)) resized to ``size``, cached."""
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: image not found")
+        stat = path.stat()
+        ident = f"{path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{expect[0]}x{expect[1]}"
+        key = hashlib.sha1(ident.encode()).hexdigest()[:20]
+        cached = self.dir / "resized" / f"{size[0]}x{size[1]}" / f"{key}.png"
+        image = cv2.imread(str(cached), cv2.IMREAD_COLOR) if cached.is_file() else None
+        if image is not None:
+            return image
+        resized = cv2.resize(read_checked(path, expect), size, interpolation=cv2.INTER_AREA)
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        if str(self.dir) not in ImageCache._announced:
+            ImageCache._announced.add(str(self.dir))
+            log.info("resized images are cached in %s", self.dir / "resized")
+        tmp = cached.with_name(f".{cached.stem}.{os.getpid()}.tmp.png")
+        cv2.imwrite(str(tmp), resized)
+        os.replace(tmp, cached)
+        return resized
+
+
+@dataclasses.dataclass(frozen=True)
+class Item:
+    sequence: str
+    camera: str
+    row: int  # index of the target in layout.frames(sequence, camera)
+
+
+def parse_split(spec, layout) -> list[tuple[str, set[int] | None, int, list[str] | None]]:
+    """A split is a file of ``<sequence> <frame_key> [camera]`` lines, or a list of entries
+    ``{sequence, start?, stop?, stride?, cameras?}`` (rows of the sequence, Python slice semantics), or
+    ``"all"``. Returns (sequence, frame keys or None, stride, cameras or None) per entry."""
+    if spec == "all":
+        return [(s, None, 1, None) for s in layout.sequences()]
+    if isinstance(spec, str | os.PathLike):
+        path = Path(spec) if Path(spec).is_absolute() or Path(spec).is_file() else layout.root / spec
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: split file not found")
+        per_seq: dict[tuple[str, str | None], set[int]] = {}
+        for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+            fields = line.split()
+            if not fields:
+                continue
+            if len(fields) not in (2, 3) or not fields[1].isdigit():
+                raise ValueError(f"{path}:{lineno}: expected '<sequence> <frame> [camera]'")
+            per_seq.setdefault((fields[0], fields[2] if len(fields) == 3 else None), set()).add(
+                int(fields[1])
+            )
+        return [(s, keys, 1, None if c is None else [c]) for (s, c), keys in per_seq.items()]
+    out = []
+    for entry in spec:
+        entry = dict(entry)
+        rows = slice(entry.get("start"), entry.get("stop"))
+        out.append((entry["sequence"], rows, int(entry.get("stride", 1)), entry.get("cameras")))
+    return out
+
+
+class FisheyeDataset(Dataset):
+    def __init__(
+        self,
+        layout,
+        split="all",
+        cameras: list[str] | None = None,
+        size: tuple[int, int] | None = None,
+        offsets: tuple[int, ...] = (-1, 1),
+        min_translation: float = 0.03,
+        max_translation: float = 3.0,
+        augment: Augment | None = None,
+        ground_truth: str = "auto",
+        skip_bad_frames: bool = False,
+        cache_dir: str | os.PathLike | None = None,
+        lidar_occlusion: float | None = 0.1,
+    ):
+        """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
+        "auto" (whichever exists), or "none"."""
+        self.layout, self.size, self.offsets = layout, size, tuple(offsets)
+        self.augment, self.skip_bad_frames = augment, skip_bad_frames
+        self.cache = ImageCache(cache_dir)
+        self.cameras = cameras or list(layout.cameras)
+        unknown = set(self.cameras) - set(layout.cameras)
+        if unknown:
+            raise KeyError(
+                f"{layout.root}: no camera {sorted(unknown)}; the layout has {sorted(layout.cameras)}"
+            )
+        self.ground_truth = ground_truth
+        self.lidar = None
+        if ground_truth in ("lidar", "auto") and isinstance(layout, Kitti360Layout):
+            from .lidar import LidarGroundTruth
+
+            self.lidar = LidarGroundTruth(layout, self.cache.dir, lidar_occlusion)
+        self.dropped = {
+            "no neighbour": 0,
+            "below min_translation": 0,
+            "above max_translation": 0,
+            "no pose": 0,
+        }
+        self.items: list[Item] = []
+        for sequence, keys, stride, cams in parse_split(split, layout):
+            for cam in cams or self.cameras:
+                if cam not in self.cameras:
+                    continue
+                frames = layout.frames(sequence, cam)
+                rows = self._rows(frames, keys, layout, sequence)
+                for row in rows[::stride]:
+                    reason = self._check(frames, row, min_translation, max_translation)
+                    if reason:
+                        self.dropped[reason] += 1
+                    else:
+                        self.items.append(Item(sequence, cam, row))
+        if any(self.dropped.values()):
+            log.info(
+                "%s: %d samples kept, dropped: %s",
+                layout.root,
+                len(self.items),
+                ", ".join(f"{n} {k}" for k, n in self.dropped.items() if n),
+            )
+        self._posesets: dict[tuple[str, str], list[Frame]] = {}
+
+    def _rows(self, frames: list[Frame], keys, layout, sequence) -> list[int]:
+        if keys is None:
+            return list(range(len(frames)))
+        if isinstance(keys, slice):
+            return list(range(len(frames)))[keys]
+        index = {f.key: i for i, f in enumerate(frames)}
+        missing = sorted(k for k in keys if k not in index)
+        if missing:
+            if not self.skip_bad_frames:
+                raise KeyError(f"{layout.root}: sequence {sequence} has no pose for frame(s) {missing[:5]}")
+            self.dropped["no pose"] += len(missing)
+        return sorted(index[k] for k in keys if k in index)
+
+    def _check(self, frames: list[Frame], row: int, lo: float, hi: float) -> str | None:
+        if not all(0 <= row + offset < len(frames) for offset in self.offsets):
+            return "no neighbour"
+        for offset in self.offsets:
+            step = np.linalg.norm(frames[row + offset].pose[:3, 3] - frames[row].pose[:3, 3])
+            if step < lo:
+                return "below min_translation"
+            if step > hi:
+                return "above max_translation"
+        return None
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def _image(self, path: Path, camera, native) -> torch.Tensor:
+        size, expect = (camera.width, camera.height), (native.width, native.height)
+        bgr = read_checked(path, expect) if size == expect else self.cache.read(path, size, expect)
+        return torch.from_numpy(np.ascontiguousarray(bgr[..., ::-1])).permute(2, 0, 1).float() / 255.0
+
+    def build(self, item: Item) -> dict[str, Any]:
+        spec = self.layout.cameras[item.camera]
+        native = spec.camera
+        camera = (
+            native.resize(*self.size) if self.size and self.size != (native.width, native.height) else native
+        )
+        frames = self.layout.frames(item.sequence, item.camera)
+        target = frames[item.row]
+        E = torch.from_numpy(spec.cam_to_body)
+        path = self.layout.image(item.sequence, item.camera, target)
+        sample: dict[str, Any] = {"camera": camera, "image": self._image(path, camera, native)}
+        sources, poses = [], []
+        for offset in self.offsets:
+            other = frames[item.row + offset]
+            sources.append(self._image(self.layout.image(item.sequence, item.camera, other), camera, native))
+            poses.append(relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E))
+        sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
+        size = (camera.width, camera.height)
+        if spec.mask is not None:
+            mask = cv2.imread(str(spec.mask), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise ValueError(f"{spec.mask}: not a readable mask image")
+            if mask.shape[1::-1] != size:
+                mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+            sample["mask"] = torch.from_numpy((mask > 127).astype(np.float32))[None]
+        else:
+            sample["mask"] = torch.ones(1, camera.height, camera.width)
+        gt = self._ground_truth(item, camera, target)
+        if gt is not None:
+            sample["distance"] = gt
+        if not all(torch.isfinite(v).all() for v in sample.values() if isinstance(v, torch.Tensor)):
+            raise ValueError(f"{path}: sample has non-finite values")
+        return sample
+
+    def _ground_truth(self, item: Item, camera, frame: Frame) -> torch.Tensor | None:
+        if self.ground_truth in ("distance", "auto"):
+            path = self.layout.distance(item.sequence, item.camera, frame)
+            if path is not None:
+                d = np.load(path)
+                if d.shape[1::-1] != (camera.width, camera.height):
+                    d = cv2.resize(d, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+                return torch.from_numpy(d.astype(np.float32))[None]
+            if self.ground_truth == "distance":
+                raise FileNotFoundError(
+                    f"no ground-truth distance map for {item.sequence}/{item.camera}/{frame.key}"
+                )
+        if self.lidar is not None and self.ground_truth in ("lidar", "auto"):
+            out = self.lidar(item.sequence, item.camera, camera, frame)
+            if out is not None:
+                return torch.from_numpy(out[0])[None]
+        return None
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        item = self.items[index]
+        try:
+            sample = self.build(item)
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            if not self.skip_bad_frames:
+                raise
+            return {"skipped": f"{item.sequence}/{item.camera}/row {item.row}: {exc}"}
+        if self.augment is not None:
+            aug = self.augment
+            flip = random.random() < aug.flip
+            if flip:
+                sample = flip_sample(sample)
+            sample["flipped"] = torch.tensor(flip)
+            frames = torch.cat((sample["image"][None], sample["sources"]))
+            jittered = colour_jitter(frames, aug.brightness, aug.contrast, aug.saturation, aug.hue)
+            sample["image_aug"], sample["sources_aug"] = jittered[0], jittered[1:]
+        return sample

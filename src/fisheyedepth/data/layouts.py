@@ -1,0 +1,263 @@
+"""Where frames, poses, cameras and masks live on disk: the KITTI-360 layout and the robot-rig layout.
+
+A layout answers a few questions for the dataset, which builds every sample the same way for both:
+which cameras exist (model, camera-to-body extrinsic, optional body mask), which frames a sequence has
+in time order (with body-to-world poses), and where each frame's image (and ground truth) lies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera
+from .kitti360_files import read_cam_to_pose, read_poses
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSpec:
+    name: str
+    camera: CameraModel  # at the native image size
+    cam_to_body: np.ndarray  # 4x4
+    mask: Path | None = None  # body mask image (255 / nonzero = usable), native size
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    key: int  # frame index (KITTI-360) or timestamp in ns (rig)
+    pose: np.ndarray  # 4x4 body to world
+
+
+class Kitti360Layout:
+    """The official KITTI-360 layout (and the synthetic world's)."""
+
+    name = "kitti360"
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        cameras: list[str] | None = None,
+        masks: dict[str, str | os.PathLike] | None = None,
+        keep_tangential: bool = False,
+    ):
+        self.root = Path(root)
+        calib = self.root / "calibration"
+        extrinsics = read_cam_to_pose(_existing(calib / "calib_cam_to_pose.txt", "calibration file"))
+        if (
+            cameras is None
+        ):  # every camera with a calibration yaml and an extrinsic (image_02/03 for KITTI-360)
+            cameras = sorted(p.stem for p in calib.glob("image_0*.yaml") if p.stem in extrinsics)
+            if not cameras:
+                raise FileNotFoundError(f"{calib}: no image_0X.yaml with a line in calib_cam_to_pose.txt")
+        self.cameras: dict[str, CameraSpec] = {}
+        for name in cameras:
+            if name not in extrinsics:
+                raise KeyError(f"{calib / 'calib_cam_to_pose.txt'}: no line for camera {name!r}")
+            camera = load_camera(_existing(calib / f"{name}.yaml", "calibration file"), keep_tangential)
+            mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
+            if masks and name in masks:
+                _existing(mask, "body mask")
+            self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
+        self._frames: dict[str, list[Frame]] = {}
+
+    def sequences(self) -> list[str]:
+        return sorted(p.name for p in (self.root / "data_poses").iterdir() if (p / "poses.txt").is_file())
+
+    def frames(self, sequence: str, camera: str | None = None) -> list[Frame]:
+        """The sequence's frames in ``poses.txt`` row order (the same for every camera)."""
+        if sequence not in self._frames:
+            poses = read_poses(_existing(self.root / "data_poses" / sequence / "poses.txt", "pose file"))
+            self._frames[sequence] = [Frame(k, poses[k]) for k in sorted(poses)]
+        return self._frames[sequence]
+
+    def image(self, sequence: str, camera: str, frame: Frame) -> Path:
+        return self.root / "data_2d_raw" / sequence / camera / "data_rgb" / f"{frame.key:010d}.png"
+
+    def distance(self, sequence: str, camera: str, frame: Frame) -> Path | None:
+        path = self.root / "data_2d_distance" / sequence / camera / f"{frame.key:010d}.npy"
+        return path if path.is_file() else None
+
+    def lidar(self, sequence: str, frame: Frame) -> Path:
+        return self.root / "data_3d_raw" / sequence / "velodyne_points" / "data" / f"{frame.key:010d}.bin"
+
+
+class RigLayout:
+    """A robot's own recording (docs/data-format.md, "Robot rig layout").
+
+    ``root/rig.yaml`` lists the cameras; ``root/<sequence>/images/<camera>/<timestamp_ns>.png`` hold the
+    images and ``root/<sequence>/poses.txt`` the body poses as ``timestamp_ns tx ty tz qx qy qz qw``.
+    Poses are interpolated to each image's timestamp (linear translation, slerp rotation); images outside
+    the pose time range are reported and left out, never extrapolated.
+    """
+
+    name = "rig"
+
+    def __init__(
+        self,
+        root: str | os.PathLike,
+        cameras: list[str] | None = None,
+        masks: dict[str, str | os.PathLike] | None = None,
+    ):
+        self.root = Path(root)
+        rig_file = _existing(self.root / "rig.yaml", "rig description")
+        try:
+            rig = yaml.safe_load(rig_file.read_text())
+        except yaml.YAMLError as exc:
+            raise CalibrationError(rig_file, None, f"not valid YAML: {exc}") from None
+        entries = rig.get("cameras") if isinstance(rig, dict) else None
+        if not isinstance(entries, list) or not entries:
+            raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
+        self.cameras = {}
+        for i, entry in enumerate(entries):
+            where = f"cameras[{i}]"
+            if not isinstance(entry, dict) or "name" not in entry:
+                raise CalibrationError(rig_file, f"{where}.name", "missing")
+            name = str(entry["name"])
+            if cameras is not None and name not in cameras:
+                continue
+            if "calibration" in entry:
+                camera = load_camera(self.root / entry["calibration"])
+            elif "model" in entry:
+                camera = camera_from_mapping(dict(entry["model"]), f"{rig_file} ({where}.model)")
+            else:
+                raise CalibrationError(rig_file, f"{where}.model", "missing (or give 'calibration: FILE')")
+            if "cam_to_body" not in entry:
+                raise CalibrationError(rig_file, f"{where}.cam_to_body", "missing")
+            extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
+            mask = masks.get(name) if masks else entry.get("mask")
+            mask = None if mask is None else _existing(self.root / mask, "body mask")
+            self.cameras[name] = CameraSpec(name, camera, extrinsic, mask)
+        if cameras is not None and set(cameras) - set(self.cameras):
+            raise CalibrationError(
+                rig_file, "cameras", f"no camera named {sorted(set(cameras) - set(self.cameras))}"
+            )
+        self._frames: dict[tuple[str, str], list[Frame]] = {}
+        self.outside: dict[tuple[str, str], list[int]] = {}
+
+    def sequences(self) -> list[str]:
+        return sorted(p.name for p in self.root.iterdir() if (p / "poses.txt").is_file())
+
+    def _poses(self, sequence: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        path = _existing(self.root / sequence / "poses.txt", "pose file")
+        rows = []
+        for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+            fields = line.split()
+            if not fields or fields[0].startswith("#"):
+                continue
+            try:
+                values = [float(x) for x in fields]
+            except ValueError:
+                raise ValueError(f"{path}:{lineno}: expected 'timestamp_ns tx ty tz qx qy qz qw'") from None
+            if len(values) != 8 or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{path}:{lineno}: expected 8 finite numbers, got {len(values)}")
+            rows.append(values)
+        if len(rows) < 2:
+            raise ValueError(f"{path}: needs at least two poses to interpolate")
+        a = np.array(rows)
+        order = np.argsort(a[:, 0], kind="stable")
+        a = a[order]
+        if np.any(np.diff(a[:, 0]) <= 0):
+            raise ValueError(f"{path}: timestamps must be distinct")
+        q = a[:, 4:8] / np.linalg.norm(a[:, 4:8], axis=1, keepdims=True)
+        return a[:, 0].astype(np.int64), a[:, 1:4], q
+
+    def frames(self, sequence: str, camera: str) -> list[Frame]:
+        key = (sequence, camera)
+        if key not in self._frames:
+            times, trans, quats = self._poses(sequence)
+            folder = self.root / sequence / "images" / camera
+            stamps = sorted(int(p.stem) for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem))
+            if not stamps:
+                raise FileNotFoundError(f"{folder}: no images named <timestamp_ns>.png")
+            inside = [t for t in stamps if times[0] <= t <= times[-1]]
+            self.outside[key] = [t for t in stamps if not times[0] <= t <= times[-1]]
+            if self.outside[key]:
+                log.warning(
+                    "%s: %d images of %s lie outside the pose time range and are left out",
+                    self.root / sequence,
+                    len(self.outside[key]),
+                    camera,
+                )
+            self._frames[key] = [Frame(t, interpolate_pose(times, trans, quats, t)) for t in inside]
+        return self._frames[key]
+
+    def image(self, sequence: str, camera: str, frame: Frame) -> Path:
+        return self.root / sequence / "images" / camera / f"{frame.key}.png"
+
+    def distance(self, sequence: str, camera: str, frame: Frame) -> Path | None:
+        path = self.root / sequence / "distance" / camera / f"{frame.key}.npy"
+        return path if path.is_file() else None
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
+    """Spherical linear interpolation of unit quaternions (shortest arc)."""
+    dot = float(np.dot(q0, q1))
+    if dot < 0:
+        q1, dot = -q1, -dot
+    if dot > 0.9995:
+        q = q0 + u * (q1 - q0)
+        return q / np.linalg.norm(q)
+    theta = math.acos(dot)
+    return (math.sin((1 - u) * theta) * q0 + math.sin(u * theta) * q1) / math.sin(theta)
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t: int) -> np.ndarray:
+    """Body-to-world pose at ``t`` (inside ``times``): linear in translation, slerp in rotation."""
+    i = int(np.searchsorted(times, t, side="right")) - 1
+    i = min(max(i, 0), len(times) - 2)
+    u = (t - times[i]) / (times[i + 1] - times[i])
+    T = np.eye(4)
+    T[:3, :3] = quaternion_matrix(slerp(quats[i], quats[i + 1], float(u)))
+    T[:3, 3] = (1 - u) * trans[i] + u * trans[i + 1]
+    return T
+
+
+def _transform(value, path: Path, key: str) -> np.ndarray:
+    """A 4x4 / 3x4 matrix (nested lists) or ``{translation: [3], quaternion_xyzw: [4]}``."""
+    try:
+        if isinstance(value, dict):
+            T = np.eye(4)
+            T[:3, :3] = quaternion_matrix(
+                np.asarray(value["quaternion_xyzw"], float) / np.linalg.norm(value["quaternion_xyzw"])
+            )
+            T[:3, 3] = np.asarray(value["translation"], float)
+        else:
+            m = np.asarray(value, dtype=float)
+            T = np.eye(4)
+            T[: m.shape[0]] = m
+            if m.shape not in ((3, 4), (4, 4)):
+                raise ValueError
+    except (KeyError, ValueError, TypeError):
+        raise CalibrationError(
+            path, key, "expected a 3x4/4x4 matrix or {translation, quaternion_xyzw}"
+        ) from None
+    R = T[:3, :3]
+    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
+    return T
+
+
+def _existing(path: Path, what: str) -> Path:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: {what} not found")
+    return path

@@ -1,0 +1,357 @@
+"""Data layer: KITTI-360 and rig layouts, the dataset and DataModule, flip consistency, LiDAR ground truth,
+bad input."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from fisheyedepth.cameras import RayCache, load_camera
+from fisheyedepth.data import (
+    Augment,
+    FisheyeDataModule,
+    FisheyeDataset,
+    ImageCache,
+    Kitti360Layout,
+    RigLayout,
+    collate,
+    flip_sample,
+)
+from fisheyedepth.data.kitti360_files import read_cam_to_pose, read_poses
+from fisheyedepth.data.lidar import LidarGroundTruth
+from fisheyedepth.geometry import sample as grid_sample_image
+from fisheyedepth.geometry import warp_to_source
+from fisheyedepth.module import FisheyeDepthModule
+
+from conftest import TRAIN_SEQ
+
+
+@pytest.fixture
+def cache(tmp_path):
+    return tmp_path / "cache"
+
+
+def photometric_l1(s: dict, j: int = 0) -> float:
+    """Mean |warped source j - target| over valid pixels, warping with the sample's own GT and geometry."""
+    rays, valid = RayCache().get(s["camera"])
+    usable = valid & (s["distance"][0] > 0) & (s["mask"][0] > 0.5)  # the target's own body mask too
+    warp = warp_to_source(
+        rays[None], usable[None], s["distance"][None], s["poses"][j][None], s["camera"], s["mask"][None]
+    )
+    warped = grid_sample_image(s["sources"][j][None], warp.grid)[0]
+    return (warped - s["image"]).abs().mean(0)[warp.valid[0]].mean().item()
+
+
+def test_datamodule_batches(kitti_data, cache):
+    dm = FisheyeDataModule(kitti_data, size=(128, 128), batch_size=4, augment=Augment(), cache_dir=cache)
+    dm.setup("fit")
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["image"].shape == (4, 3, 128, 128) and batch["sources"].shape == (4, 2, 3, 128, 128)
+    assert batch["poses"].shape == (4, 2, 4, 4) and batch["mask"].shape == (4, 1, 128, 128)
+    assert batch["image_aug"].shape == batch["image"].shape and batch["distance"].shape == (4, 1, 128, 128)
+    assert all(c.width == 128 for c in batch["camera"])
+    assert len(dm.dataset("train")) == 2 * (12 - 2 * 3 - 2)  # both cameras, minus frames without neighbours
+    assert dm.dataset("train").dropped["no neighbour"] == 4
+    cams = {dm.dataset("val").items[i].camera for i in range(len(dm.dataset("val")))}
+    assert cams == {"image_02", "image_03"}
+    assert (cache / "resized" / "128x128").is_dir()
+    for key in ("image", "sources", "poses", "mask", "distance", "image_aug"):
+        assert torch.isfinite(batch[key]).all()
+
+
+def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
+    from fisheyedepth.data.synthetic import generate
+
+    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+    dm = FisheyeDataModule(
+        root, size=(64, 64), batch_size=8, splits={"train": "splits/train.txt"}, cache_dir=cache
+    )
+    batch = next(iter(dm.train_dataloader()))
+    models = {type(c).__name__ for c in batch["camera"]}
+    assert models == {"MeiCamera", "KannalaBrandtCamera"}
+    module = FisheyeDepthModule(scales=(0,))
+    loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+    assert torch.isfinite(loss)
+
+
+def test_relative_pose_equals_the_files(kitti_data, cache):
+    layout = Kitti360Layout(kitti_data)
+    ds = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], cache_dir=cache)
+    poses = read_poses(kitti_data / "data_poses" / TRAIN_SEQ / "poses.txt")
+    E = read_cam_to_pose(kitti_data / "calibration" / "calib_cam_to_pose.txt")
+    for i in (0, 3, len(ds) - 1):
+        item = ds.items[i]
+        frames = sorted(poses)
+        t, prev, nxt = frames[item.row], frames[item.row - 1], frames[item.row + 1]
+        s = ds[i]
+        for j, other in enumerate((prev, nxt)):
+            expected = np.linalg.inv(E[item.camera]) @ np.linalg.inv(poses[other]) @ poses[t] @ E[item.camera]
+            assert np.allclose(s["poses"][j].numpy(), expected, atol=1e-5)
+
+
+def test_flip_is_geometrically_consistent(kitti_data, cache):
+    ds = FisheyeDataset(
+        Kitti360Layout(kitti_data), [{"sequence": TRAIN_SEQ}], size=(128, 128), cache_dir=cache
+    )
+    for i in (1, 4):
+        s = ds[i]
+        f = flip_sample(s)
+        assert torch.equal(f["image"], s["image"].flip(-1)) and f["camera"] == s["camera"].flip()
+        for j in (0, 1):
+            original, flipped = photometric_l1(s, j), photometric_l1(f, j)
+            assert flipped == pytest.approx(original, rel=0.03, abs=1e-3)
+            assert original < 0.03
+        # and a wrong flip (image flipped, geometry not) is clearly worse
+        wrong = dict(f, poses=s["poses"], camera=s["camera"])
+        assert photometric_l1(wrong) > 2 * photometric_l1(f)
+
+
+def test_colour_jitter_only_on_the_network_input(kitti_data, cache):
+    ds = FisheyeDataset(
+        Kitti360Layout(kitti_data),
+        [{"sequence": TRAIN_SEQ}],
+        size=(64, 64),
+        augment=Augment(flip=0.0, brightness=0.5),
+        cache_dir=cache,
+    )
+    plain = FisheyeDataset(
+        Kitti360Layout(kitti_data), [{"sequence": TRAIN_SEQ}], size=(64, 64), cache_dir=cache
+    )
+    torch.manual_seed(1)
+    s, p = ds[2], plain[2]
+    assert torch.equal(s["image"], p["image"]) and torch.equal(s["sources"], p["sources"])
+    assert not torch.allclose(s["image_aug"], s["image"])
+    assert (s["image_aug"] >= 0).all() and (s["image_aug"] <= 1).all()
+
+
+def test_worker_seeding_is_deterministic(kitti_data, cache):
+    def first_batch():
+        dm = FisheyeDataModule(
+            kitti_data,
+            size=(64, 64),
+            batch_size=4,
+            num_workers=2,
+            augment=Augment(),
+            cache_dir=cache,
+            seed=7,
+            splits={"train": "splits/train.txt"},
+        )
+        return next(iter(dm.train_dataloader()))
+
+    a, b = first_batch(), first_batch()
+    assert torch.equal(a["flipped"], b["flipped"]) and torch.equal(a["image_aug"], b["image_aug"])
+
+
+def test_translation_bounds_drop_samples(kitti_data, cache):
+    layout = Kitti360Layout(kitti_data)
+    none = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], min_translation=5.0, cache_dir=cache)
+    assert len(none) == 0 and none.dropped["below min_translation"] == 2 * 4
+    jumpy = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], max_translation=0.1, cache_dir=cache)
+    assert len(jumpy) == 0 and jumpy.dropped["above max_translation"] == 2 * 4
+
+
+def test_lidar_ground_truth(kitti_data, cache):
+    layout = Kitti360Layout(kitti_data)
+    gt = LidarGroundTruth(layout, cache, occlusion=0.1)
+    cam = layout.cameras["image_02"].camera
+    frame = layout.frames(TRAIN_SEQ)[3]
+    d, z = gt(TRAIN_SEQ, "image_02", cam, frame)
+    files = list((cache / "lidar" / TRAIN_SEQ).glob("image_02_256x256*.npz"))
+    assert len(files) == 1  # the whole sequence, cached once
+    rendered = np.load(layout.distance(TRAIN_SEQ, "image_02", frame))
+    both = (d > 0) & (rendered > 0)
+    assert both.sum() > 500
+    assert np.median(np.abs(d[both] - rendered[both]) / rendered[both]) < 0.01
+    rays, valid = RayCache().get(cam)
+    has = (d > 0) & valid.numpy()
+    assert has.sum() > 0.99 * (d > 0).sum()
+    # z / distance is the cosine of incidence: that of the pixel's ray, up to the point's sub-pixel offset
+    assert np.abs(z[has] / d[has] - rays[..., 2].numpy()[has]).max() < 0.03
+    assert (z[has] < 0).sum() > 0  # points beyond 90 degrees of incidence are kept
+    again = LidarGroundTruth(layout, cache, occlusion=0.1)(TRAIN_SEQ, "image_02", cam, frame)
+    assert np.array_equal(again[0], d)
+    unfiltered, _ = LidarGroundTruth(layout, cache, occlusion=None)(TRAIN_SEQ, "image_02", cam, frame)
+    assert (unfiltered > 0).sum() >= (d > 0).sum()
+    ds = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], ground_truth="lidar", cache_dir=cache)
+    assert (ds[0]["distance"] > 0).float().mean() < 0.3  # sparse, not the dense rendered map
+
+
+def quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    w = np.sqrt(max(0.0, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    return np.array(
+        [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
+    )
+
+
+def write_rig(src, dst, keep_every=1, early_images=0):
+    """Re-express a synthetic KITTI-layout dataset as a robot-rig recording (timestamps in ns); keep every
+    ``keep_every``-th pose only, and add ``early_images`` images before the first pose."""
+    layout = Kitti360Layout(src)
+    frames = layout.frames(TRAIN_SEQ)
+    stamp = {f.key: 10_000_000_000 + 100_000_000 * f.key for f in frames}
+    cams = []
+    (dst / "masks").mkdir(parents=True)
+    for name, spec in layout.cameras.items():
+        folder = dst / "drive" / "images" / name
+        folder.mkdir(parents=True)
+        for f in frames:
+            shutil.copy(layout.image(TRAIN_SEQ, name, f), folder / f"{stamp[f.key]}.png")
+        for k in range(early_images):
+            shutil.copy(
+                layout.image(TRAIN_SEQ, name, frames[0]),
+                folder / f"{stamp[frames[0].key] - 10**9 * (k + 1)}.png",
+            )
+        shutil.copy(spec.mask, dst / "masks" / f"{name}.png")
+        cams.append(
+            {
+                "name": name,
+                "model": spec.camera.to_dict(),
+                "cam_to_body": spec.cam_to_body[:3].tolist(),
+                "mask": f"masks/{name}.png",
+            }
+        )
+    (dst / "rig.yaml").write_text(yaml.safe_dump({"cameras": cams}))
+    kept = frames[::keep_every] if frames[-1] in frames[::keep_every] else [*frames[::keep_every], frames[-1]]
+    rows = []
+    for f in kept:
+        q = quaternion_xyzw(f.pose[:3, :3])
+        rows.append(" ".join(str(v) for v in [stamp[f.key], *f.pose[:3, 3], *q]))
+    (dst / "drive" / "poses.txt").write_text("# timestamp_ns tx ty tz qx qy qz qw\n" + "\n".join(rows) + "\n")
+    return layout, stamp
+
+
+def test_rig_layout_reads_a_robot_recording(kitti_data, tmp_path, cache):
+    kitti, stamp = write_rig(kitti_data, tmp_path / "rig", early_images=2)
+    rig = RigLayout(tmp_path / "rig")
+    assert sorted(rig.cameras) == ["image_02", "image_03"] and rig.sequences() == ["drive"]
+    frames = rig.frames("drive", "image_02")
+    assert len(frames) == len(kitti.frames(TRAIN_SEQ))  # the two early images are reported, not invented
+    assert len(rig.outside[("drive", "image_02")]) == 2
+    for f_rig, f_kitti in zip(frames, kitti.frames(TRAIN_SEQ), strict=True):
+        assert np.allclose(f_rig.pose, f_kitti.pose, atol=1e-6)
+    ds_rig = FisheyeDataset(rig, [{"sequence": "drive"}], size=(64, 64), cache_dir=cache)
+    ds_kitti = FisheyeDataset(kitti, [{"sequence": TRAIN_SEQ}], size=(64, 64), cache_dir=cache)
+    a, b = ds_rig[2], ds_kitti[2]
+    assert (
+        a["camera"] == b["camera"]
+        and torch.equal(a["image"], b["image"])
+        and torch.equal(a["mask"], b["mask"])
+    )
+    assert torch.allclose(a["poses"], b["poses"], atol=1e-5)
+
+
+def test_rig_poses_are_interpolated_with_slerp(kitti_data, tmp_path):
+    kitti, _ = write_rig(kitti_data, tmp_path / "rig", keep_every=2)
+    rig = RigLayout(tmp_path / "rig")
+    errors_t, errors_r = [], []
+    for f_rig, f_kitti in zip(rig.frames("drive", "image_02"), kitti.frames(TRAIN_SEQ), strict=True):
+        errors_t.append(np.linalg.norm(f_rig.pose[:3, 3] - f_kitti.pose[:3, 3]))
+        R = f_rig.pose[:3, :3].T @ f_kitti.pose[:3, :3]
+        errors_r.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+        assert np.allclose(f_rig.pose[:3, :3] @ f_rig.pose[:3, :3].T, np.eye(3), atol=1e-9)
+    assert max(errors_t) < 0.05 and max(errors_r) < 0.5  # a smooth drive: halfway poses are close
+    assert max(errors_t) > 0  # and they really were interpolated
+
+
+def test_bad_rig_description_names_file_and_key(kitti_data, tmp_path):
+    write_rig(kitti_data, tmp_path / "rig")
+    rig_yaml = tmp_path / "rig" / "rig.yaml"
+    data = yaml.safe_load(rig_yaml.read_text())
+    del data["cameras"][1]["cam_to_body"]
+    rig_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match=r"rig.yaml: key 'cameras\[1\].cam_to_body'"):
+        RigLayout(tmp_path / "rig")
+    data["cameras"][1]["cam_to_body"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+    rig_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match="not a rigid transform"):
+        RigLayout(tmp_path / "rig")
+
+
+@pytest.fixture
+def broken(kitti_data, tmp_path):
+    root = tmp_path / "broken"
+    shutil.copytree(kitti_data, root, ignore=shutil.ignore_patterns("data_3d_raw"))
+    return root
+
+
+def image_path(root, frame, cam="image_02"):
+    return root / "data_2d_raw" / TRAIN_SEQ / cam / "data_rgb" / f"{frame:010d}.png"
+
+
+@pytest.mark.parametrize("damage", ["missing", "corrupt", "wrong_size"])
+def test_bad_images_name_the_file_or_are_skipped_and_counted(broken, cache, damage):
+    path = image_path(broken, 3)
+    if damage == "missing":
+        path.unlink()
+    elif damage == "corrupt":
+        path.write_bytes(b"\x89PNG not really")
+    else:
+        cv2.imwrite(str(path), np.zeros((100, 120, 3), np.uint8))
+    for size in (None, (64, 64)):
+        ds = FisheyeDataset(Kitti360Layout(broken), [{"sequence": TRAIN_SEQ}], size=size, cache_dir=cache)
+        with pytest.raises((FileNotFoundError, ValueError), match=str(path)):
+            [ds[i] for i in range(len(ds))]
+    ds = FisheyeDataset(
+        Kitti360Layout(broken),
+        [{"sequence": TRAIN_SEQ}],
+        size=(64, 64),
+        skip_bad_frames=True,
+        cache_dir=cache,
+    )
+    batch = collate([ds[i] for i in range(len(ds))])
+    # frame 3 is the target of one sample and a neighbour of two others, for the damaged camera
+    assert len(batch["skipped_frames"]) == 3 and all(str(path) in r for r in batch["skipped_frames"])
+    assert batch["image"].shape[0] == len(ds) - 3 and torch.isfinite(batch["image"]).all()
+    module = FisheyeDepthModule(scales=(0,))
+    module._count_skipped(batch)
+    with pytest.warns(UserWarning, match="3 frames skipped"):
+        module.on_train_epoch_end()
+
+
+def test_missing_calibration_and_poses_name_the_file(broken, cache):
+    (broken / "calibration" / "image_03.yaml").unlink()
+    with pytest.raises(FileNotFoundError, match="image_03.yaml"):
+        Kitti360Layout(broken, cameras=["image_02", "image_03"])
+    assert list(Kitti360Layout(broken).cameras) == ["image_02"]  # auto-detection: only what is calibrated
+    (broken / "splits" / "odd.txt").write_text(f"{TRAIN_SEQ} 3\n{TRAIN_SEQ} 999\n")
+    with pytest.raises(KeyError, match="no pose for frame"):
+        FisheyeDataset(Kitti360Layout(broken), "splits/odd.txt", cache_dir=cache)
+    ds = FisheyeDataset(Kitti360Layout(broken), "splits/odd.txt", skip_bad_frames=True, cache_dir=cache)
+    assert ds.dropped["no pose"] == 1 and len(ds) == 1
+    (broken / "data_poses" / TRAIN_SEQ / "poses.txt").unlink()
+    with pytest.raises(FileNotFoundError, match="poses.txt"):
+        FisheyeDataset(Kitti360Layout(broken), [{"sequence": TRAIN_SEQ}], cache_dir=cache)
+
+
+def test_image_cache_is_keyed_by_content_and_size(kitti_data, tmp_path):
+    src = tmp_path / "img.png"
+    shutil.copy(image_path(kitti_data, 2), src)
+    cache = ImageCache(tmp_path / "c")
+    a = cache.read(src, (64, 64), (256, 256))
+    files = list((tmp_path / "c" / "resized" / "64x64").glob("*.png"))
+    assert len(files) == 1 and a.shape == (64, 64, 3)
+    assert np.array_equal(cache.read(src, (64, 64), (256, 256)), a)
+    cv2.imwrite(str(src), np.zeros((256, 256, 3), np.uint8))
+    assert cache.read(src, (64, 64), (256, 256)).max() == 0  # a changed source is not served stale
+    with pytest.raises(ValueError, match="calibration says 300x300"):
+        cache.read(src, (64, 64), (300, 300))
+
+
+def test_real_kitti360_frame_loads(realdata):
+    root = realdata / "kitti360_frame"
+    cam = load_camera(root / "image_02.yaml")
+    lidar = cv2.imread(str(root / "image_02_lidar_distance.png"), cv2.IMREAD_UNCHANGED)
+    mask = cv2.imread(str(root / "image_02_body_mask.png"), cv2.IMREAD_GRAYSCALE)
+    assert lidar.shape == mask.shape == (cam.height, cam.width)
+    rays, valid = RayCache().get(cam)
+    body = mask == 0
+    assert 0.15 < body.mean() < 0.35
+    assert body[-50:].mean() > 0.9 and body[:600].mean() == 0  # the car is at the bottom
+    # the LiDAR returns avoid the body and lie on pixels that have a ray
+    has = lidar > 0
+    assert (has & body).sum() < 0.01 * has.sum() and valid.numpy()[has].all()
