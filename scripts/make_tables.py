@@ -1,0 +1,160 @@
+#!/usr/bin/env python
+"""Collect results.json files into the paper's Table 1 and Table 2 (Markdown, and LaTeX with --latex).
+
+    python scripts/make_tables.py outputs/ multirun/ [--protocol full] [--latex] [--out tables.md]
+
+Each argument is a results.json file or a folder searched recursively. Rows are matched by experiment
+name; with several runs of one experiment (seeds) the metrics are averaged and the count is shown.
+Real-scale methods are scored unscaled; scale-less ones (PoseNet) median-scaled, and DNet with its
+camera-height scale recovery. The paper's KITTI-360 numbers are printed alongside for reference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+METRICS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
+PAPER = {
+    "table1_monodepth2": (0.602, 1.804, 1.788, 0.563, 0.426, 0.685, 0.835),
+    "table1_dnet": (0.558, 1.746, 1.802, 0.560, 0.443, 0.691, 0.838),
+    "table1_fsnet": (0.464, 1.117, 1.125, 0.339, 0.613, 0.768, 0.868),
+    "table1_fsnet_rs": (0.435, 1.012, 0.937, 0.309, 0.633, 0.792, 0.871),
+    "table1_fisheyedepth": (0.106, 0.407, 0.927, 0.170, 0.920, 0.975, 0.989),
+    "ablation_baseline": (0.602, 1.804, 1.788, 0.563, 0.426, 0.685, 0.835),
+    "ablation_fft_only": (0.205, 0.547, 1.066, 0.266, 0.726, 0.903, 0.971),
+    "ablation_fft_rs": (0.115, 0.672, 1.163, 0.173, 0.912, 0.972, 0.987),
+    "ablation_fft_mc": (0.126, 0.647, 1.150, 0.180, 0.893, 0.969, 0.987),
+    "ablation_full": (0.106, 0.407, 0.927, 0.170, 0.920, 0.975, 0.989),
+}
+TABLE1 = [
+    ("table1_monodepth2", "Monodepth2"),
+    ("table1_dnet", "DNet"),
+    ("table1_fsnet", "FSNet"),
+    ("table1_fsnet_rs", "FSNet (real scale)"),
+    ("table1_fisheyedepth", "FisheyeDepth"),
+]
+TABLE2 = [
+    ("ablation_baseline", "Monodepth2 baseline"),
+    ("ablation_fft_only", "FFT"),
+    ("ablation_fft_rs", "FFT + RS"),
+    ("ablation_fft_mc", "FFT + MC"),
+    ("ablation_full", "FFT + RS + MC"),
+]
+
+
+def find(paths: list[str]) -> list[Path]:
+    out = []
+    for p in map(Path, paths):
+        out += [p] if p.is_file() else sorted(p.rglob("results.json"))
+    return out
+
+
+def scaling_for(record: dict) -> str:
+    if record["experiment"] == "table1_dnet":
+        return "dnet"
+    return "none" if record["model"]["real_scale"] else "median"
+
+
+def collect(files: list[Path], protocol: str) -> dict[str, dict]:
+    runs: dict[str, list] = defaultdict(list)
+    for f in files:
+        record = json.loads(f.read_text())
+        res = record["results"].get(protocol)
+        if res is None:
+            continue
+        scaling = scaling_for(record)
+        if scaling not in res:
+            continue
+        runs[record["experiment"]].append((scaling, res[scaling], res.get(f"{scaling}_by_angle", {})))
+    rows = {}
+    for name, entries in runs.items():
+        mean = {m: sum(e[1][m] for e in entries) / len(entries) for m in METRICS}
+        angle = {}
+        for b in entries[0][2]:
+            vals = [e[2][b]["abs_rel"] for e in entries if e[2].get(b, {}).get("images")]
+            angle[b] = sum(vals) / len(vals) if vals else float("nan")
+        rows[name] = {
+            "scaling": entries[0][0],
+            "runs": len(entries),
+            "metrics": mean,
+            "abs_rel_by_angle": angle,
+        }
+    return rows
+
+
+def markdown(title: str, spec, rows: dict) -> str:
+    head = (
+        "| method | scaling | runs | "
+        + " | ".join(METRICS)
+        + " | abs_rel by incidence 0-30/30-60/60-90/>90 | paper abs_rel / a1 |"
+    )
+    lines = [f"### {title}", "", head, "|" + "---|" * (len(METRICS) + 5)]
+    for key, label in spec:
+        paper = PAPER[key]
+        if key not in rows:
+            lines.append(
+                f"| {label} | - | 0 | "
+                + " | ".join("-" for _ in METRICS)
+                + f" | - | {paper[0]:.3f} / {paper[4]:.3f} |"
+            )
+            continue
+        r = rows[key]
+        angles = "/".join(f"{v:.3f}" for v in r["abs_rel_by_angle"].values())
+        lines.append(
+            f"| {label} | {r['scaling']} | {r['runs']} | "
+            + " | ".join(f"{r['metrics'][m]:.3f}" for m in METRICS)
+            + f" | {angles} | {paper[0]:.3f} / {paper[4]:.3f} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def latex(title: str, spec, rows: dict) -> str:
+    lines = [
+        f"% {title}",
+        "\\begin{tabular}{l" + "c" * len(METRICS) + "}",
+        "\\hline",
+        "Method & Abs Rel & Sq Rel & RMSE & RMSE$_{\\log}$ & "
+        "$\\delta<1.25$ & $\\delta<1.25^2$ & $\\delta<1.25^3$ \\\\",
+        "\\hline",
+    ]
+    for key, label in spec:
+        if key in rows:
+            lines.append(
+                f"{label} & " + " & ".join(f"{rows[key]['metrics'][m]:.3f}" for m in METRICS) + " \\\\"
+            )
+    lines += ["\\hline", "\\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("runs", nargs="+", help="results.json files or folders")
+    parser.add_argument("--protocol", default="full")
+    parser.add_argument("--latex", action="store_true")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    files = find(args.runs)
+    if not files:
+        print(f"no results.json under {args.runs}", file=sys.stderr)
+        return 2
+    rows = collect(files, args.protocol)
+    text = f"Protocol: {args.protocol}; {len(files)} results files.\n\n"
+    text += markdown("Table 1", TABLE1, rows) + "\n" + markdown("Table 2 (ablation)", TABLE2, rows)
+    if args.latex:
+        text += "\n```latex\n" + latex("Table 1", TABLE1, rows) + latex("Table 2", TABLE2, rows) + "```\n"
+    print(text)
+    if args.out:
+        from fisheyedepth.utils import atomic_write_text
+
+        atomic_write_text(args.out, text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,172 @@
+"""Evaluation at the ground truth's native resolution, under named protocols, with an angle breakdown.
+
+The network runs at its training resolution (the image and camera model resized alike); its distance is
+upsampled to the ground truth's resolution in inverse-distance space, as the reference does. Metrics
+are reported unscaled (real scale), per-image median-scaled, and optionally with DNet-style scale
+recovery from the known camera height. The breakdown by angle of incidence (0-30, 30-60, 60-90, beyond
+90 degrees) shows where fisheye geometry matters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import torch
+from torch import Tensor
+from torch.nn import functional as F
+
+from .cameras import CameraModel, RayCache
+from .metrics import DepthMetrics
+from .viz import panel
+
+ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
+
+
+@dataclasses.dataclass(frozen=True)
+class Protocol:
+    """Which pixels are scored and on which quantity.
+
+    ``quantity``: "distance" (Euclidean, along the ray) or "z" (depth along the optical axis).
+    ``z_range``: keep ground truth whose z lies in this open interval (None: no z condition).
+    ``max_range``: keep ground truth whose Euclidean distance is below this (None: no limit).
+    ``cap``: (min, max) for ground truth validity and prediction clamping.
+    """
+
+    name: str
+    quantity: str = "distance"
+    z_range: tuple[float, float] | None = None
+    max_range: float | None = None
+    cap: tuple[float, float] = (1e-3, 80.0)
+
+
+PROTOCOLS = {
+    # the reference implementation's KITTI-360 protocol: GT z in (0.3, 60) m and range < 8 m, capped at 80
+    "kitti360": Protocol("kitti360", "distance", (0.3, 60.0), 8.0),
+    "kitti360_z": Protocol("kitti360_z", "z", (0.3, 60.0), 8.0),
+    # everything with ground truth up to 80 m, including the periphery beyond 90 degrees
+    "full": Protocol("full", "distance", None, None),
+    "full_z": Protocol("full_z", "z", (1e-3, 80.0), None),
+}
+
+
+def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:
+    """Resize ``[B, 1, h, w]`` distance to ``size`` (H, W) bilinearly in inverse-distance space."""
+    if distance.shape[-2:] == size:
+        return distance
+    inv = F.interpolate(1.0 / distance.clamp_min(1e-6), size=size, mode="bilinear", align_corners=False)
+    return 1.0 / inv.clamp_min(1e-9)
+
+
+def dnet_scale(distance: Tensor, rays: Tensor, camera_height: float, up=(0.0, -1.0, 0.0)) -> float:
+    """DNet's dense geometrical constraint: fit the ground from surface normals of the predicted points
+    and rescale so the camera sits ``camera_height`` above it. ``distance [H, W]``, ``rays [H, W, 3]``."""
+    X = rays * distance[..., None]
+    du, dv = X[1:-1, 2:] - X[1:-1, :-2], X[2:, 1:-1] - X[:-2, 1:-1]
+    n = F.normalize(torch.linalg.cross(du, dv), dim=-1)
+    upv = torch.tensor(up, dtype=X.dtype, device=X.device)
+    n = torch.where(((n @ upv) < 0)[..., None], -n, n)
+    centre = X[1:-1, 1:-1]
+    ground = ((n @ upv) > math.cos(math.radians(15))) & ((centre @ upv) < 0) & (distance[1:-1, 1:-1] > 0)
+    if int(ground.sum()) < 20:
+        return 1.0
+    height = (-(centre[ground] * n[ground]).sum(-1)).median()  # distance of the camera above each patch
+    return float(camera_height / height.clamp_min(1e-6))
+
+
+class Evaluator:
+    """Accumulates metrics over a split; ``scalings`` among "none", "median", "dnet"."""
+
+    def __init__(self, protocol: Protocol, scalings=("none", "median"), camera_height: float | None = None):
+        self.protocol, self.scalings, self.camera_height = protocol, tuple(scalings), camera_height
+        lo, hi = protocol.cap
+        self.metrics = {s: DepthMetrics(lo, hi, median_scaling=(s == "median")) for s in self.scalings}
+        self.by_angle = {
+            (s, b): DepthMetrics(lo, hi, median_scaling=(s == "median"))
+            for s in self.scalings
+            for b in ANGLE_BINS
+        }
+        self.rays = RayCache()
+
+    def update(self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel) -> None:
+        """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels."""
+        rays, valid = self.rays.get(camera, pred.device, pred.dtype)
+        p = self.protocol
+        gt_z = gt * rays[..., 2]
+        keep = mask.bool() & valid & (gt > 0)
+        if p.z_range is not None:
+            keep &= (gt_z > p.z_range[0]) & (gt_z < p.z_range[1])
+        if p.max_range is not None:
+            keep &= gt < p.max_range
+        angle = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
+        for scaling in self.scalings:
+            q = pred
+            if scaling == "dnet":
+                if self.camera_height is None:
+                    raise ValueError("dnet scaling needs camera_height")
+                q = pred * dnet_scale(pred, rays, self.camera_height)
+            if p.quantity == "z":
+                q, g = q * rays[..., 2], gt_z
+            else:
+                g = gt
+            self.metrics[scaling].update(q[None], g[None], keep[None])
+            for lo, hi in ANGLE_BINS:
+                self.by_angle[(scaling, (lo, hi))].update(
+                    q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]
+                )
+
+    def compute(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"protocol": dataclasses.asdict(self.protocol)}
+        for scaling in self.scalings:
+            m = self.metrics[scaling]
+            out[scaling] = {k: float(v) for k, v in m.compute().items()} | {"images": int(m.images)}
+            out[f"{scaling}_by_angle"] = {
+                f"{lo}-{hi}": (
+                    {k: float(v) for k, v in self.by_angle[(scaling, (lo, hi))].compute().items()}
+                    | {"images": int(self.by_angle[(scaling, (lo, hi))].images)}
+                )
+                for lo, hi in ANGLE_BINS
+            }
+        return out
+
+
+@torch.no_grad()
+def evaluate(
+    module,
+    loader,
+    train_size: tuple[int, int] | None,
+    protocols: list[str],
+    scalings=("none", "median"),
+    camera_height: float | None = None,
+    pictures: Path | None = None,
+    n_pictures: int = 4,
+) -> dict[str, Any]:
+    """Run ``module`` over a loader of native-resolution samples with ground truth ``distance``."""
+    module.eval()
+    evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height) for name in protocols}
+    written = 0
+    for batch in loader:
+        if "image" not in batch:
+            continue
+        if "distance" not in batch:
+            raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
+        image, cameras = batch["image"].to(module.device), batch["camera"]
+        H, W = image.shape[-2:]
+        if train_size is not None and (W, H) != tuple(train_size):
+            image = F.interpolate(image, size=(train_size[1], train_size[0]), mode="area")
+            cameras = [c.resize(*train_size) for c in cameras]
+        pred = upsample_inverse(module(image, cameras)["distance"][0], (H, W))
+        gt, mask = batch["distance"].to(pred), batch["mask"].to(pred) > 0.5
+        for i, cam in enumerate(batch["camera"]):
+            for ev in evaluators.values():
+                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam)
+            if pictures is not None and written < n_pictures:
+                pictures.mkdir(parents=True, exist_ok=True)
+                scored = batch["distance"][i] * (batch["mask"][i] > 0.5)  # no error shown on the ego body
+                pic = panel(batch["image"][i], pred[i].cpu(), scored, 0.5, 80.0)
+                cv2.imwrite(str(pictures / f"test_{written:03d}.png"), pic[..., ::-1])
+                written += 1
+    return {name: ev.compute() for name, ev in evaluators.items()}

@@ -1,0 +1,221 @@
+"""Hydra configs and entry points: every experiment composes; train.py smoke runs, a sweep, eval.py on the
+checkpoint, resuming, wandb offline, the tables; a CPU DDP run with two processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+TINY = [
+    "data.generate.frames=12",
+    "data.generate.size=64",
+    "data.generate.supersample=1",
+    "data.generate.workers=0",
+    "data.datamodule.size=[64,64]",
+    "data.datamodule.batch_size=2",
+    "data.datamodule.num_workers=0",
+    "model.scales=[0,1]",
+    "eval.pictures=2",
+    "trainer.log_every_n_steps=1",
+]
+
+
+def compose_train(overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_every_experiment_composes(experiment):
+    cfg = compose_train([f"+experiment={experiment}"])
+    assert cfg.experiment_name == experiment
+    m = cfg.model
+    expected = {
+        "ablation_baseline": (False, False, False),
+        "ablation_fft_only": (True, False, False),
+        "ablation_fft_rs": (True, True, False),
+        "ablation_fft_mc": (True, False, True),
+        "ablation_full": (True, True, True),
+        "table1_monodepth2": (False, False, False),
+        "table1_dnet": (False, False, False),
+        "table1_fsnet": (False, False, True),
+        "table1_fsnet_rs": (False, True, True),
+        "table1_fisheyedepth": (True, True, True),
+    }[experiment]
+    assert (m.fisheye_projection, m.real_scale, m.multi_channel) == expected
+    if experiment.startswith("table1_fsnet"):
+        assert m.attention is False
+    if experiment == "table1_dnet":
+        assert "dnet" in cfg.eval.scalings
+
+
+@pytest.mark.parametrize(
+    "group,option",
+    [
+        ("data", "kitti360"),
+        ("data", "rig"),
+        ("trainer", "gpu"),
+        ("trainer", "ddp"),
+        ("logger", "wandb"),
+        ("logger", "none"),
+        ("model", "monodepth2"),
+    ],
+)
+def test_config_groups_compose(group, option):
+    cfg = compose_train([f"{group}={option}"])
+    assert cfg[group] is not None or option == "none"
+    assert "experiment" not in cfg  # the experiment group is not in the defaults list
+
+
+def run(script, *args, env=None, cwd=None, timeout=600):
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=cwd or ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    return tmp_path_factory.mktemp("entry")
+
+
+@pytest.mark.parametrize("experiment", ["ablation_full", "ablation_baseline"])
+def test_fast_dev_run_through_train_py(workdir, experiment):
+    out = workdir / f"fdr_{experiment}"
+    run(
+        "train.py",
+        f"+experiment={experiment}",
+        "trainer.fast_dev_run=true",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={out}",
+        *TINY,
+    )
+    assert (
+        workdir / "data" / "synthetic_kitti360_64_seed0_f12" / "synthetic.json"
+    ).is_file()  # generated once
+    assert (out / ".hydra" / "config.yaml").is_file()
+
+
+def test_train_eval_resume_tables(workdir):
+    first = workdir / "run1"
+    run(
+        "train.py",
+        "+experiment=ablation_full",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=3",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={first}",
+        *TINY,
+    )
+    record = json.loads((first / "results.json").read_text())
+    assert record["experiment"] == "ablation_full" and record["model"]["real_scale"] is True
+    for protocol in ("full", "kitti360"):
+        assert {"none", "median", "none_by_angle"} <= set(record["results"][protocol])
+    assert set(record["results"]["full"]["none_by_angle"]) == {"0-30", "30-60", "60-90", "90-180"}
+    assert (
+        0 < record["results"]["full"]["none"]["abs_rel"] < 50
+        and record["results"]["full"]["none"]["images"] > 0
+    )
+    assert len(list((first / "predictions").glob("*.png"))) == 2
+    assert (first / "checkpoints" / "last.ckpt").is_file()
+    assert list((first / "logs").rglob("metrics.csv"))
+
+    evaluated = workdir / "eval1"
+    run(
+        "eval.py",
+        f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={evaluated}",
+        *[o for o in TINY if o.startswith("data.") or o.startswith("eval.")],
+    )
+    again = json.loads((evaluated / "results.json").read_text())
+    assert again["checkpoint"].endswith("last.ckpt") and again["results"]["full"]["none"]["images"] > 0
+
+    resumed = workdir / "run2"
+    run(
+        "train.py",
+        "+experiment=ablation_full",
+        "trainer.max_epochs=2",
+        "trainer.limit_train_batches=3",
+        f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={resumed}",
+        *TINY,
+    )
+    after = json.loads((resumed / "results.json").read_text())
+    assert after["global_step"] == 2 * record["global_step"]  # one more epoch on top of the first
+    assert after["resumed_from"].endswith("last.ckpt")
+
+    tables = run("scripts/make_tables.py", str(first), str(resumed), "--latex").stdout
+    assert "FFT + RS + MC" in tables and "| 2 |" in tables and "\\begin{tabular}" in tables
+
+
+def test_two_job_sweep_gets_two_output_folders(workdir):
+    sweep = workdir / "sweep"
+    run(
+        "train.py",
+        "-m",
+        "+experiment=ablation_full,ablation_fft_only",
+        "trainer.fast_dev_run=true",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.sweep.dir={sweep}",
+        *TINY,
+    )
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and (p / ".hydra").is_dir())
+    assert len(jobs) == 2
+    names = {(j / ".hydra" / "overrides.yaml").read_text().count("ablation_full") for j in jobs}
+    assert names == {0, 1}
+
+
+def test_wandb_offline_without_an_account(workdir):
+    out = workdir / "wandb_run"
+    run(
+        "train.py",
+        "logger=wandb",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=1",
+        "trainer.limit_val_batches=1",
+        "test=false",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={out}",
+        *TINY,
+        env={"WANDB_MODE": "offline", "WANDB_SILENT": "true"},
+    )  # (fast_dev_run would mute the logger)
+    runs = list(out.rglob("offline-run-*"))
+    assert runs and list(runs[0].rglob("*.wandb"))
+
+
+def test_cpu_ddp_with_two_gloo_processes(workdir):
+    out = workdir / "ddp"
+    proc = run(
+        "train.py",
+        "trainer=ddp",
+        "trainer.accelerator=cpu",
+        "trainer.devices=2",
+        "trainer.sync_batchnorm=false",
+        "trainer.max_epochs=1",
+        "trainer.limit_train_batches=2",
+        "trainer.limit_val_batches=1",
+        "test=false",
+        "logger=none",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={out}",
+        *TINY,
+        timeout=900,
+    )
+    text = proc.stdout + proc.stderr
+    assert "distributed_backend=gloo" in text and "All distributed processes registered" in text
