@@ -14,20 +14,21 @@ install: $(STAMP)
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet -c constraints.txt "$(TORCH_SPEC)"
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,export]"
 	touch $(STAMP)
 
 test: install
 	$(PY) -m pytest
 
 lint: install
-	$(PY) -m ruff check --no-cache src tests scripts train.py eval.py
-	$(PY) -m ruff format --no-cache --check src tests scripts train.py eval.py
+	$(PY) -m ruff check --no-cache src tests scripts train.py eval.py predict.py export.py
+	$(PY) -m ruff format --no-cache --check src tests scripts train.py eval.py predict.py export.py
 
 bench: install
 	$(PY) scripts/bench_geometry.py
 	$(PY) scripts/bench_synthetic.py
 	$(PY) scripts/bench_training.py
+	$(PY) scripts/bench_inference.py
 
 # The main job: render the default synthetic dataset if missing, train the full model (CPU budget),
 # evaluate it on the test split, print the metric table, write colourised distance maps.

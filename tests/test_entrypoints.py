@@ -219,3 +219,10 @@ def test_cpu_ddp_with_two_gloo_processes(workdir):
     )
     text = proc.stdout + proc.stderr
     assert "distributed_backend=gloo" in text and "All distributed processes registered" in text
+
+
+def test_slurm_launcher_config_composes_when_the_plugin_is_installed():
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="optional: hydra-submitit-launcher")
+    cfg = compose_train(["hydra/launcher=slurm", "+experiment=ablation_full"])
+    assert cfg.hydra.launcher.gpus_per_node == 1
+    assert (ROOT / "conf" / "hydra" / "launcher" / "slurm.yaml").is_file()

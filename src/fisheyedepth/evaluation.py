@@ -167,6 +167,6 @@ def evaluate(
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch["distance"][i] * (batch["mask"][i] > 0.5)  # no error shown on the ego body
                 pic = panel(batch["image"][i], pred[i].cpu(), scored, 0.5, 80.0)
-                cv2.imwrite(str(pictures / f"test_{written:03d}.png"), pic[..., ::-1])
+                cv2.imwrite(str(pictures / f"panel_{written:03d}.png"), pic[..., ::-1])
                 written += 1
     return {name: ev.compute() for name, ev in evaluators.items()}

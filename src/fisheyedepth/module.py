@@ -54,9 +54,11 @@ class FisheyeDepthModule(L.LightningModule):
         eval_min: float = 1e-3,
         eval_max: float = 80.0,
         log_images_every: int = 200,
+        input_size: tuple[int, int] | None = None,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s); None picks
-        the reference's 1e-5 for the binned head and Monodepth2's 1e-3 for the sigmoid head."""
+        the reference's 1e-5 for the binned head and Monodepth2's 1e-3 for the sigmoid head.
+        ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference."""
         super().__init__()
         self.save_hyperparameters()
         self.scales = tuple(scales)

@@ -1,0 +1,16 @@
+#!/usr/bin/env python
+"""Metric distance for images or a video: ``python predict.py ckpt_path=... input=... camera=...``."""
+
+import hydra
+from omegaconf import DictConfig
+
+from fisheyedepth.entrypoints import predict
+
+
+@hydra.main(config_path="conf", config_name="predict", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    predict(cfg)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""Inference: metric distance for any image of a calibrated camera, its outputs, and an exportable graph.
+
+``DistancePredictor`` resizes images (and the camera model) to the network's input size, runs the network
+with the camera's ``depth_scale`` and returns distance at the image's own resolution (upsampled in
+inverse-distance space). ``ExportableNet`` freezes one input size and camera into a plain
+``image -> distance`` module for TorchScript and ONNX.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from .cameras import CameraModel, RayCache
+from .evaluation import upsample_inverse
+from .models import depth_scale_for
+from .utils import atomic_write_bytes
+from .viz import colourise
+
+PNG_SCALES = {"mm": 1000.0, "256": 256.0}  # uint16 PNG value per metre
+
+
+class ExportableNet(nn.Module):
+    """``image [B, 3, H, W]`` (float RGB in [0, 1], the fixed export size) -> ``distance [B, 1, H, W]``."""
+
+    def __init__(self, depth_net: nn.Module, depth_scale: float = 1.0):
+        super().__init__()
+        self.depth_net = depth_net
+        self.depth_scale = float(depth_scale)
+
+    def forward(self, image: Tensor) -> Tensor:
+        return self.depth_net(image, self.depth_scale)["distance"][0]
+
+
+class DistancePredictor:
+    def __init__(self, module, camera: CameraModel, input_size: tuple[int, int] | None = None, device="cpu"):
+        self.module = module.eval().to(device)
+        self.device = torch.device(device)
+        size = input_size or module.hparams.get("input_size") or (camera.width, camera.height)
+        self.input_size = (int(size[0]), int(size[1]))
+        self.camera = camera
+        self.net_camera = camera.resize(*self.input_size)
+        self.depth_scale = depth_scale_for([self.net_camera], module.hparams.get("base_focal"))
+
+    @torch.no_grad()
+    def __call__(self, images: Tensor) -> Tensor:
+        """``[B, 3, H, W]`` float RGB at the camera's size -> distance ``[B, 1, H, W]`` in metres."""
+        H, W = images.shape[-2:]
+        if (W, H) != (self.camera.width, self.camera.height):
+            raise ValueError(f"images are {W}x{H}, the camera is {self.camera.width}x{self.camera.height}")
+        x = images.to(self.device)
+        if (W, H) != self.input_size:
+            x = F.interpolate(x, size=self.input_size[::-1], mode="area")
+        out = self.module.depth_net(x, self.depth_scale.to(x).expand(x.shape[0]))["distance"][0]
+        return upsample_inverse(out, (H, W))
+
+    def exportable(self) -> ExportableNet:
+        return ExportableNet(self.module.depth_net, float(self.depth_scale[0])).eval()
+
+
+def distance_png(distance: np.ndarray, scale: str = "mm") -> np.ndarray:
+    """uint16 PNG values: millimetres (``"mm"``, up to 65.535 m) or metres * 256 (``"256"``, KITTI style);
+    0 = no value."""
+    factor = PNG_SCALES[scale]
+    return np.clip(np.round(distance * factor), 0, 65535).astype(np.uint16)
+
+
+def colour_bar(image: np.ndarray, vmin: float, vmax: float, height: int | None = None) -> np.ndarray:
+    """Append a labelled log-scale colour bar (near = warm) to the right of a colourised image."""
+    h = height or image.shape[0]
+    ramp = np.exp(np.linspace(np.log(vmin), np.log(vmax), h))[:, None].repeat(24, 1)
+    bar = colourise(ramp, vmin, vmax)
+    panel = np.full((h, 70, 3), 255, np.uint8)
+    panel[:, :24] = bar
+    for frac in (0.0, 0.5, 1.0):
+        y = int(frac * (h - 1))
+        value = float(ramp[y, 0])
+        cv2.putText(
+            panel,
+            f"{value:.0f}m" if value >= 10 else f"{value:.1f}m",
+            (26, min(max(y + 4, 10), h - 3)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.35,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
+    return np.concatenate((image, panel), axis=1)
+
+
+def point_cloud(
+    distance: Tensor, camera: CameraModel, rgb: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """3-D points (camera frame, metres) of every pixel with a ray and a positive distance, and colours."""
+    rays, valid = RayCache().get(camera, dtype=torch.float64)
+    d = distance.double().reshape(camera.height, camera.width)
+    keep = valid & (d > 0)
+    points = (rays * d[..., None])[keep].numpy().astype(np.float32)
+    colours = rgb[keep.numpy()] if rgb is not None else np.full((len(points), 3), 200, np.uint8)
+    return points, colours
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, colours: np.ndarray) -> None:
+    """Binary little-endian PLY with float xyz and uchar rgb, written atomically."""
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\n"
+        "property float x\nproperty float y\nproperty float z\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    ).encode()
+    rec = np.empty(len(points), dtype=[("p", "<f4", 3), ("c", "u1", 3)])
+    rec["p"], rec["c"] = points, colours
+    atomic_write_bytes(path, header + rec.tobytes())
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    rec = np.frombuffer(data[end:], dtype=[("p", "<f4", 3), ("c", "u1", 3)])
+    return rec["p"].copy(), rec["c"].copy()

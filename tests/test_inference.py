@@ -1,0 +1,210 @@
+"""Inference and deployment: predict.py outputs and units, point clouds, exports with parity, refusals."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from fisheyedepth.cameras import load_camera
+from fisheyedepth.entrypoints import export, load_module
+from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud, read_ply, write_ply
+from fisheyedepth.module import FisheyeDepthModule
+
+from conftest import TRAIN_SEQ, tiny_batch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def checkpoint(kitti_data, tmp_path_factory):
+    """A full model trained for a handful of steps at 64x64, saved like Lightning saves it."""
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64))
+    batch = tiny_batch(kitti_data)
+    opt = torch.optim.Adam(module.parameters(), 1e-3)
+    for _ in range(3):
+        loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+    return path
+
+
+def frames_folder(kitti_data, dst, n=3, corrupt=True):
+    dst.mkdir(parents=True)
+    src = kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb"
+    for p in sorted(src.glob("*.png"))[:n]:
+        shutil.copy(p, dst / p.name)
+    if corrupt:
+        (dst / "broken.png").write_bytes(b"not an image")
+    return dst
+
+
+def run(script, *args):
+    return subprocess.run(
+        [sys.executable, str(ROOT / script), *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def test_predict_writes_every_promised_file(kitti_data, checkpoint, tmp_path):
+    images = frames_folder(kitti_data, tmp_path / "in")
+    calib = kitti_data / "calibration" / "image_02.yaml"
+    out = tmp_path / "out"
+    args = [
+        f"ckpt_path={checkpoint}",
+        f"input={images}",
+        f"camera={calib}",
+        f"output={out}",
+        "z_depth=true",
+        "point_cloud=true",
+        "batch_size=2",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    ]
+    proc = run("predict.py", *args)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert (
+        summary["frames"] == 3 and summary["skipped"] == 1 and summary["unreadable"][0].endswith("broken.png")
+    )
+    assert "broken.png" in proc.stdout + proc.stderr
+    camera = load_camera(calib)
+    for stem in sorted(p.stem for p in images.glob("0*.png")):
+        d = np.load(out / f"{stem}_distance.npy")
+        assert d.shape == (256, 256) and d.dtype == np.float32 and (d > 0).all() and np.isfinite(d).all()
+        png = cv2.imread(str(out / f"{stem}_distance.png"), cv2.IMREAD_UNCHANGED)
+        assert png.dtype == np.uint16 and np.abs(png / 1000.0 - np.clip(d, 0, 65.535)).max() <= 0.0005 + 1e-6
+        z = np.load(out / f"{stem}_z.npy")
+        rays = camera.unproject(
+            torch.from_numpy(np.stack(np.meshgrid(np.arange(256.0), np.arange(256.0)), -1))
+        )[0]
+        assert np.allclose(z, d * rays[..., 2].numpy(), atol=1e-4)
+        colour = cv2.imread(str(out / f"{stem}_colour.png"))
+        assert colour.shape[0] == 256 and colour.shape[1] > 256  # with its colour bar
+        points, rgb = read_ply(out / f"{stem}.ply")
+        assert len(points) > 0.8 * 256 * 256 and rgb.dtype == np.uint8
+    again = run("predict.py", *args)
+    assert again.returncode != 0 and "overwrite=true" in again.stdout + again.stderr
+    assert run("predict.py", *args, "overwrite=true").returncode == 0
+
+
+def test_predict_reads_videos_and_other_sizes(kitti_data, checkpoint, tmp_path):
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (128, 128))
+    src = kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb"
+    for p in sorted(src.glob("*.png"))[:3]:
+        writer.write(cv2.resize(cv2.imread(str(p)), (128, 128), interpolation=cv2.INTER_AREA))
+    writer.release()
+    out = tmp_path / "vid"
+    proc = run(
+        "predict.py",
+        f"ckpt_path={checkpoint}",
+        f"input={video}",
+        f"camera={kitti_data / 'calibration' / 'image_02.yaml'}",
+        f"output={out}",
+        f"hydra.run.dir={tmp_path / 'hydra'}",
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert sorted(p.name for p in out.glob("*_distance.npy")) == [
+        f"frame_00000{i}_distance.npy" for i in range(3)
+    ]
+    assert np.load(out / "frame_000000_distance.npy").shape == (128, 128)  # the camera model was resized
+
+
+def test_point_cloud_lies_where_the_distance_says(kitti_data, tmp_path):
+    """A stub "network" that returns the ground-truth distance: the cloud must reproduce the scene."""
+    camera = load_camera(kitti_data / "calibration" / "image_02.yaml")
+    gt = torch.from_numpy(np.load(kitti_data / "data_2d_distance" / TRAIN_SEQ / "image_02" / f"{3:010d}.npy"))
+    points, colours = point_cloud(gt, camera)
+    write_ply(tmp_path / "c.ply", points, colours)
+    back, _ = read_ply(tmp_path / "c.ply")
+    assert np.allclose(back, points)
+    assert np.allclose(np.sort(np.linalg.norm(back, axis=1)), np.sort(gt[gt > 0].numpy()), rtol=1e-5)
+    uv, ok = camera.project(torch.from_numpy(back).double())
+    assert bool(ok.all())
+    assert torch.allclose(uv, uv.round(), atol=1e-3)  # each point sits on its pixel's ray
+    # and the ground: points 1.6-2 m below the (level) side camera, as in the synthetic rig
+    below = back[:, 1] > 1.0
+    assert 1.6 < np.median(back[below, 1]) < 2.0
+
+
+@pytest.mark.parametrize("fmt", ["torchscript", "onnx"])
+def test_export_parity_and_refusal(checkpoint, tmp_path, fmt):
+    if fmt == "onnx":
+        pytest.importorskip("onnxruntime")
+    cfg = OmegaConf.create(
+        {
+            "ckpt_path": str(checkpoint),
+            "format": fmt,
+            "size": [64, 64],
+            "camera": None,
+            "output": str(tmp_path / f"model.{fmt}"),
+            "overwrite": False,
+            "paths": {"output_dir": str(tmp_path)},
+        }
+    )
+    record = export(cfg)
+    assert Path(record["path"]).is_file() and record["max_relative_difference"] < 1e-4
+    with pytest.raises(FileExistsError, match="overwrite=true"):
+        export(cfg)
+
+
+def test_predictor_and_png_units(checkpoint, kitti_data):
+    module = load_module(checkpoint)
+    camera = load_camera(kitti_data / "calibration" / "image_02.yaml")
+    predictor = DistancePredictor(module, camera)
+    assert predictor.input_size == (64, 64)  # from the checkpoint
+    out = predictor(torch.rand(2, 3, 256, 256))
+    assert out.shape == (2, 1, 256, 256) and (out > 0).all()
+    with pytest.raises(ValueError, match="images are 100x100"):
+        predictor(torch.rand(1, 3, 100, 100))
+    d = np.array([0.0, 1.2345, 70.0], np.float32)
+    assert distance_png(d, "mm").tolist() == [0, 1234, 65535] or distance_png(d, "mm").tolist() == [
+        0,
+        1235,
+        65535,
+    ]
+    assert distance_png(d, "256").tolist() == [0, 316, 17920]
+
+
+def test_visualize_writes_panels_and_the_angle_plot(kitti_data, checkpoint, tmp_path):
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "visualize.py"),
+            "--ckpt",
+            str(checkpoint),
+            "--ckpt",
+            str(checkpoint),
+            "--data",
+            str(kitti_data),
+            "--out",
+            str(tmp_path / "viz"),
+            "--panels",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    plot = cv2.imread(str(tmp_path / "viz" / "abs_rel_by_angle.png"))
+    assert plot is not None and plot.shape[0] > 200
+    assert len(list((tmp_path / "viz").glob("panel_*.png"))) == 2
