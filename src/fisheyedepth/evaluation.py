@@ -21,6 +21,7 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache
 from .metrics import DepthMetrics
+from .models import depth_scale_for
 from .viz import panel
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
@@ -158,7 +159,8 @@ def evaluate(
         if train_size is not None and (W, H) != tuple(train_size):
             image = F.interpolate(image, size=(train_size[1], train_size[0]), mode="area")
             cameras = [c.resize(*train_size) for c in cameras]
-        pred = upsample_inverse(module(image, cameras)["distance"][0], (H, W))
+        scale = depth_scale_for(cameras, module.hparams.get("base_focal")).to(image)
+        pred = upsample_inverse(module.depth_net(image, scale, scales=(0,))["distance"][0], (H, W))
         gt, mask = batch["distance"].to(pred), batch["mask"].to(pred) > 0.5
         for i, cam in enumerate(batch["camera"]):
             for ev in evaluators.values():

@@ -35,7 +35,7 @@ class ExportableNet(nn.Module):
         self.depth_scale = float(depth_scale)
 
     def forward(self, image: Tensor) -> Tensor:
-        return self.depth_net(image, self.depth_scale)["distance"][0]
+        return self.depth_net(image, self.depth_scale, scales=(0,))["distance"][0]
 
 
 class DistancePredictor:
@@ -57,7 +57,7 @@ class DistancePredictor:
         x = images.to(self.device)
         if (W, H) != self.input_size:
             x = F.interpolate(x, size=self.input_size[::-1], mode="area")
-        out = self.module.depth_net(x, self.depth_scale.to(x).expand(x.shape[0]))["distance"][0]
+        out = self.module.depth_net(x, self.depth_scale.to(x).expand(x.shape[0]), scales=(0,))["distance"][0]
         return upsample_inverse(out, (H, W))
 
     def exportable(self) -> ExportableNet:

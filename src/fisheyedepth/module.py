@@ -225,7 +225,8 @@ class FisheyeDepthModule(L.LightningModule):
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
         if self._count_skipped(batch):
             return None
-        return self(batch["image"], batch["camera"])["distance"][0]
+        scale = depth_scale_for(batch["camera"], self.hparams.base_focal).to(batch["image"])
+        return self.depth_net(batch["image"], scale, scales=(0,))["distance"][0]
 
     def _log_metrics(self, stage: str, metrics: DepthMetrics, scaled: DepthMetrics) -> None:
         if int(metrics.images) == 0:

@@ -86,11 +86,16 @@ class DepthNet(nn.Module):
         else:
             self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s]) for s in scales})
 
-    def forward(self, image: Tensor, depth_scale: Tensor | float = 1.0) -> dict[str, dict[int, Tensor]]:
-        """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}``."""
+    def forward(
+        self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
+    ) -> dict[str, dict[int, Tensor]]:
+        """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}`` for ``scales`` (default:
+        all; inference needs only scale 0, and skips the other heads)."""
         features = self.decoder(self.encoder(image))
         distance, disp = {}, {}
         for s, x in features.items():
+            if scales is not None and s not in scales:
+                continue
             y = self.heads[str(s)](x)
             if self.multi_channel:
                 distance[s], disp[s] = gather_output(
