@@ -15,9 +15,11 @@ import re
 from pathlib import Path
 
 import numpy as np
+import torch
 import yaml
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera
+from ..geometry import quaternion_to_matrix
 from .kitti360_files import read_cam_to_pose, read_poses
 
 log = logging.getLogger(__name__)
@@ -211,14 +213,8 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Unit quaternion (x, y, z, w) to a rotation matrix: ``geometry.quaternion_to_matrix`` for numpy."""
+    return quaternion_to_matrix(torch.from_numpy(np.asarray(q, dtype=np.float64))).numpy()
 
 
 def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t: int) -> np.ndarray:
