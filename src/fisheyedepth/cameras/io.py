@@ -38,11 +38,11 @@ class CalibrationError(ValueError):
         self.reason = reason
 
 
-class _OpenCVLoader(yaml.SafeLoader):
+class _SafeOpenCVLoader(yaml.SafeLoader):
     """Safe loader that also accepts OpenCV's ``!!opencv-matrix`` tag (read as a plain mapping)."""
 
 
-_OpenCVLoader.add_constructor(
+_SafeOpenCVLoader.add_constructor(
     "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
 )
 
@@ -130,7 +130,7 @@ def load_camera(path: str | os.PathLike, keep_tangential: bool = False) -> Camer
     if opencv:  # PyYAML rejects OpenCV's '%YAML:1.0' directive; drop it
         text = text.split("\n", 1)[1] if "\n" in text else ""
     try:
-        tree = yaml.load(text, Loader=_OpenCVLoader)
+        tree = yaml.load(text, Loader=_SafeOpenCVLoader)
     except yaml.YAMLError as exc:
         raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
     if not isinstance(tree, dict):
