@@ -242,10 +242,10 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
             vis = colour_bar(colourise(d_np, cfg.vmin, cfg.vmax), cfg.vmin, cfg.vmax)
             cv2.imwrite(str(out / f"{name}_colour.png"), vis[..., ::-1])
             if cfg.z_depth:
-                rays, _ = predictors[(w, h)].module.rays.get(cam)
+                rays, _ = module.rays.get(cam)
                 np.save(out / f"{name}_z.npy", (d * rays[..., 2]).numpy().astype(np.float32))
             if cfg.point_cloud:
-                write_ply(out / f"{name}.ply", *point_cloud(d, cam, colour))
+                write_ply(out / f"{name}.ply", *point_cloud(d, cam, colour, module.rays))
             done += 1
         batch.clear()
 

@@ -81,7 +81,13 @@ def dnet_scale(distance: Tensor, rays: Tensor, camera_height: float, up=(0.0, -1
 class Evaluator:
     """Accumulates metrics over a split; ``scalings`` among "none", "median", "dnet"."""
 
-    def __init__(self, protocol: Protocol, scalings=("none", "median"), camera_height: float | None = None):
+    def __init__(
+        self,
+        protocol: Protocol,
+        scalings=("none", "median"),
+        camera_height: float | None = None,
+        rays: RayCache | None = None,
+    ):
         self.protocol, self.scalings, self.camera_height = protocol, tuple(scalings), camera_height
         lo, hi = protocol.cap
         self.metrics = {s: DepthMetrics(lo, hi, median_scaling=(s == "median")) for s in self.scalings}
@@ -90,7 +96,7 @@ class Evaluator:
             for s in self.scalings
             for b in ANGLE_BINS
         }
-        self.rays = RayCache()
+        self.rays = rays if rays is not None else RayCache()
 
     def update(self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel) -> None:
         """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels."""
@@ -147,7 +153,8 @@ def evaluate(
 ) -> dict[str, Any]:
     """Run ``module`` over a loader of native-resolution samples with ground truth ``distance``."""
     module.eval()
-    evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height) for name in protocols}
+    rays = RayCache()  # one per run, shared by the protocols
+    evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
     written = 0
     for batch in loader:
         if "image" not in batch:

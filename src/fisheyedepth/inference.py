@@ -95,10 +95,11 @@ def colour_bar(image: np.ndarray, vmin: float, vmax: float, height: int | None =
 
 
 def point_cloud(
-    distance: Tensor, camera: CameraModel, rgb: np.ndarray | None = None
+    distance: Tensor, camera: CameraModel, rgb: np.ndarray | None = None, rays: RayCache | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """3-D points (camera frame, metres) of every pixel with a ray and a positive distance, and colours."""
-    rays, valid = RayCache().get(camera, dtype=torch.float64)
+    """3-D points (camera frame, metres) of every pixel with a ray and a positive distance, and colours.
+    Pass the caller's ``rays`` cache when converting many frames of one camera."""
+    rays, valid = (rays or RayCache()).get(camera, dtype=torch.float64)
     d = distance.double().reshape(camera.height, camera.width)
     keep = valid & (d > 0)
     points = (rays * d[..., None])[keep].numpy().astype(np.float32)

@@ -198,7 +198,7 @@ class FisheyeDepthModule(L.LightningModule):
 
     def _evaluate(
         self, batch: dict[str, Any], stage: str, metrics: DepthMetrics, scaled: DepthMetrics
-    ) -> Tensor | None:
+    ) -> tuple[Tensor, dict[str, dict[int, Tensor]]] | None:
         if self._count_skipped(batch):
             return None
         outputs = self(batch["image"], batch["camera"])
@@ -210,17 +210,20 @@ class FisheyeDepthModule(L.LightningModule):
             valid = batch["mask"] > 0.5
             metrics.update(pred, gt, valid)
             scaled.update(pred, gt, valid)
+        return loss, outputs
+
+    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        result = self._evaluate(batch, "val", self.val_metrics, self.val_metrics_scaled)
+        if result is None:
+            return None
+        loss, outputs = result
+        if batch_idx == 0:
+            self.log_panel("val", batch, outputs["distance"][0])
         return loss
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
-        loss = self._evaluate(batch, "val", self.val_metrics, self.val_metrics_scaled)
-        if batch_idx == 0 and loss is not None:
-            with torch.no_grad():
-                self.log_panel("val", batch, self(batch["image"], batch["camera"])["distance"][0])
-        return loss
-
-    def test_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor:
-        return self._evaluate(batch, "test", self.test_metrics, self.test_metrics_scaled)
+    def test_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+        result = self._evaluate(batch, "test", self.test_metrics, self.test_metrics_scaled)
+        return None if result is None else result[0]
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
         if self._count_skipped(batch):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import torch
@@ -45,9 +46,9 @@ def colour_jitter(
     grey = (out * _GREY.to(out)[:, None, None]).sum(-3, keepdim=True)
     out = grey + draw(saturation) * (out - grey)
     if hue:
-        angle = (2 * torch.rand((), generator=generator).item() - 1) * hue * 2 * torch.pi
+        angle = (2 * torch.rand((), generator=generator).item() - 1) * hue * 2 * math.pi
         yiq = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]]).to(out)
-        c, s = torch.cos(torch.tensor(angle)).item(), torch.sin(torch.tensor(angle)).item()
+        c, s = math.cos(angle), math.sin(angle)
         rot = torch.tensor([[1.0, 0, 0], [0, c, -s], [0, s, c]]).to(out)
         m = torch.linalg.inv(yiq) @ rot @ yiq
         out = torch.einsum("ij,...jhw->...ihw", m, out)
@@ -58,7 +59,7 @@ def flip_sample(sample: dict[str, Any]) -> dict[str, Any]:
     """Mirror a sample left-right: images, masks and ground truth flip, the camera model flips
     (``u0 -> W - 1 - u0``, and what the model needs), and relative poses mirror (``M T M``)."""
     out = dict(sample)
-    for key in ("image", "image_aug", "sources", "sources_aug", "mask", "source_mask", "distance", "depth"):
+    for key in ("image", "image_aug", "sources", "sources_aug", "mask", "source_mask", "distance"):
         if key in out:
             out[key] = out[key].flip(-1)
     out["camera"] = sample["camera"].flip()
