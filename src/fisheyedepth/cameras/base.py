@@ -103,6 +103,13 @@ class CameraModel:
         """Pixels per radian at the principal point (the focal of the best pinhole near the centre)."""
         return getattr(self, self._fu), getattr(self, self._fv)
 
+    def pixel_coverage(self, samples: int = 33) -> float:
+        """Fraction of the image with a ray in the model, from a ``samples x samples`` grid of pixels."""
+        u = torch.linspace(0, self.width - 1, samples, dtype=torch.float64)
+        v = torch.linspace(0, self.height - 1, samples, dtype=torch.float64)
+        uv = torch.stack(torch.meshgrid(u, v, indexing="xy"), dim=-1)
+        return float(self.unproject(uv)[1].double().mean())
+
     @property
     def principal_point(self) -> tuple[float, float]:
         return getattr(self, self._cu), getattr(self, self._cv)

@@ -18,6 +18,7 @@ Every problem raises :class:`CalibrationError` naming the file and the key.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,25 @@ class _SafeOpenCVLoader(yaml.SafeLoader):
 _SafeOpenCVLoader.add_constructor(
     "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
 )
+# YAML 1.1 reads ``1e-3`` (no dot) as a string; OpenCV, YAML 1.2 and every calibration tool read a
+# number. Resolve such scalars as floats too.
+_SafeOpenCVLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+# A calibration whose model gives a ray to fewer pixels than this is refused (an impossible distortion
+# coefficient, a wrong unit): a real fisheye covers most of its image (KITTI-360's image_02: 87 %).
+MIN_PIXEL_COVERAGE = 0.05
+
+
+def load_yaml(text: str, path) -> Any:
+    """Parse calibration YAML safely (no Python tags), with OpenCV's conventions; errors name ``path``."""
+    try:
+        return yaml.load(text, Loader=_SafeOpenCVLoader)
+    except yaml.YAMLError as exc:
+        raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
 
 
 def _get(tree: dict, dotted: str, path) -> Any:
@@ -109,11 +129,21 @@ def camera_from_mapping(data: dict[str, Any], path="<mapping>") -> CameraModel:
     data = dict(data)
     source_keys = data.pop("_source_keys", {})
     try:
-        return CameraModel.from_dict(data)
+        camera = CameraModel.from_dict(data)
     except CameraParameterError as exc:
         raise CalibrationError(path, source_keys.get(exc.key, exc.key), exc.reason) from None
     except TypeError as exc:  # a value of the wrong kind reached a constructor
         raise CalibrationError(path, None, str(exc)) from None
+    coverage = camera.pixel_coverage()
+    if coverage < MIN_PIXEL_COVERAGE:
+        raise CalibrationError(
+            path,
+            None,
+            f"only {coverage:.1%} of the {camera.width}x{camera.height} image has a ray in this "
+            f"{camera.model_name} model (at least {MIN_PIXEL_COVERAGE:.0%} expected): an impossible "
+            "distortion or focal value?",
+        )
+    return camera
 
 
 def load_camera(path: str | os.PathLike, keep_tangential: bool = False) -> CameraModel:
@@ -123,16 +153,17 @@ def load_camera(path: str | os.PathLike, keep_tangential: bool = False) -> Camer
     """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise CalibrationError(path, None, f"cannot read calibration file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(
+            path, None, f"not a text file (byte {exc.start} is not UTF-8): not a calibration YAML"
+        ) from None
     opencv = text.lstrip().startswith("%YAML")
     if opencv:  # PyYAML rejects OpenCV's '%YAML:1.0' directive; drop it
         text = text.split("\n", 1)[1] if "\n" in text else ""
-    try:
-        tree = yaml.load(text, Loader=_SafeOpenCVLoader)
-    except yaml.YAMLError as exc:
-        raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
+    tree = load_yaml(text, path)
     if not isinstance(tree, dict):
         raise CalibrationError(path, None, "expected a mapping of calibration keys")
     data = _opencv_to_dict(tree, path, keep_tangential) if opencv else dict(tree)
