@@ -317,7 +317,11 @@ def test_missing_calibration_and_poses_name_the_file(broken, cache):
     (broken / "calibration" / "image_03.yaml").unlink()
     with pytest.raises(FileNotFoundError, match="image_03.yaml"):
         Kitti360Layout(broken, cameras=["image_02", "image_03"])
-    assert list(Kitti360Layout(broken).cameras) == ["image_02"]  # auto-detection: only what is calibrated
+    with pytest.raises(FileNotFoundError, match="image_03.yaml"):  # discovery: its images are there
+        Kitti360Layout(broken)
+    for folder in (broken / "data_2d_raw").glob("*/image_03"):
+        shutil.rmtree(folder)
+    assert list(Kitti360Layout(broken).cameras) == ["image_02"]  # no yaml and no images: not a camera
     (broken / "splits" / "odd.txt").write_text(f"{TRAIN_SEQ} 3\n{TRAIN_SEQ} 999\n")
     with pytest.raises(KeyError, match="no pose for frame"):
         FisheyeDataset(Kitti360Layout(broken), "splits/odd.txt", cache_dir=cache)

@@ -5,6 +5,10 @@ images (rig). A target is dropped when a neighbour is missing, or when the trans
 below ``min_translation`` (standing still: no parallax) or above ``max_translation`` (a jump); the
 counts are logged. Images are resized to the training size through a disk cache, and the camera model
 is resized with them.
+
+Surprises are reported once, not once per frame: a grayscale camera folder (its images are replicated
+to three channels), a training size whose aspect ratio differs from a camera's (its images are
+stretched).
 """
 
 from __future__ import annotations
@@ -23,10 +27,52 @@ import torch
 from torch.utils.data import Dataset
 
 from ..geometry import relative_pose
+from ..images import ImageError, read_image
 from .augment import Augment, colour_jitter, flip_sample
 from .layouts import Frame, Kitti360Layout
 
 log = logging.getLogger(__name__)
+
+# A training size whose aspect ratio differs from a camera's by more than this stretches its images.
+ASPECT_TOLERANCE = 0.01
+
+_reported: set[tuple] = set()
+
+
+def warn_once(key: tuple, message: str, *args) -> None:
+    """``log.warning`` the first time ``key`` is seen in this process."""
+    if key not in _reported:
+        _reported.add(key)
+        log.warning(message, *args)
+
+
+def report_grayscale(path: Path) -> None:
+    warn_once(
+        ("grayscale", str(path.parent)),
+        "%s: grayscale image (1 channel), replicated to 3 channels for the network; further grayscale "
+        "images in %s are not reported",
+        path,
+        path.parent,
+    )
+
+
+def report_aspect(root, name: str, native: tuple[int, int], size: tuple[int, int]) -> None:
+    """Warn (once per camera and size) when resizing to ``size`` stretches the camera's images."""
+    native_ratio, ratio = native[0] / native[1], size[0] / size[1]
+    if abs(ratio / native_ratio - 1) <= ASPECT_TOLERANCE:
+        return
+    warn_once(
+        ("aspect", str(root), name, native, size),
+        "%s: camera %s is %dx%d (aspect %.3f) but the training size is %dx%d (aspect %.3f): its images "
+        "and camera model are stretched %s",
+        root,
+        name,
+        *native,
+        native_ratio,
+        *size,
+        ratio,
+        "horizontally" if ratio > native_ratio else "vertically",
+    )
 
 
 def default_cache_dir() -> Path:
@@ -34,17 +80,16 @@ def default_cache_dir() -> Path:
     return Path(base) / "fisheyedepth"
 
 
-def read_checked(path: Path, expect: tuple[int, int], flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
-    """Read an image; a clear error naming the file when it is missing, corrupt or of the wrong size."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: image not found")
-    image = cv2.imread(str(path), flags)
-    if image is None:
-        raise ValueError(f"{path}: not a readable image (corrupt or not an image)")
-    if image.shape[1::-1] != tuple(expect):
-        w, h = image.shape[1::-1]
+def read_checked(path: Path, expect: tuple[int, int]) -> np.ndarray:
+    """Read an image as 8-bit BGR; a clear error naming the file when it is missing, empty, truncated,
+    corrupt or of the wrong size. A grayscale image is reported (once per folder) and replicated."""
+    image = read_image(path)
+    if image.grayscale:
+        report_grayscale(path)
+    w, h = image.bgr.shape[1::-1]
+    if (w, h) != tuple(expect):
         raise ValueError(f"{path}: image is {w}x{h} but its calibration says {expect[0]}x{expect[1]}")
-    return image
+    return image.bgr
 
 
 class ImageCache:
@@ -64,16 +109,19 @@ class ImageCache:
         ident = f"{path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{expect[0]}x{expect[1]}"
         key = hashlib.sha1(ident.encode()).hexdigest()[:20]
         cached = self.dir / "resized" / f"{size[0]}x{size[1]}" / f"{key}.png"
-        image = cv2.imread(str(cached), cv2.IMREAD_COLOR) if cached.is_file() else None
-        if image is not None:
-            return image
+        if cached.is_file():
+            try:
+                return read_image(cached).bgr
+            except ImageError as exc:
+                log.warning("%s; resizing %s again", exc, path)
         resized = cv2.resize(read_checked(path, expect), size, interpolation=cv2.INTER_AREA)
         cached.parent.mkdir(parents=True, exist_ok=True)
         if str(self.dir) not in ImageCache._announced:
             ImageCache._announced.add(str(self.dir))
             log.info("resized images are cached in %s", self.dir / "resized")
         tmp = cached.with_name(f".{cached.stem}.{os.getpid()}.tmp.png")
-        cv2.imwrite(str(tmp), resized)
+        if not cv2.imwrite(str(tmp), resized):
+            raise OSError(f"{tmp}: could not write the resized image (disk full or not writable?)")
         os.replace(tmp, cached)
         return resized
 
@@ -141,6 +189,10 @@ class FisheyeDataset(Dataset):
             raise KeyError(
                 f"{layout.root}: no camera {sorted(unknown)}; the layout has {sorted(layout.cameras)}"
             )
+        if size is not None:
+            for name in self.cameras:
+                native = layout.cameras[name].camera
+                report_aspect(layout.root, name, (native.width, native.height), tuple(size))
         self.ground_truth = ground_truth
         self.lidar = None
         if ground_truth in ("lidar", "auto") and isinstance(layout, Kitti360Layout):
@@ -174,6 +226,24 @@ class FisheyeDataset(Dataset):
                 ", ".join(f"{n} {k}" for k, n in self.dropped.items() if n),
             )
         self._posesets: dict[tuple[str, str], list[Frame]] = {}
+        self._probe_grayscale()
+
+    def _probe_grayscale(self) -> None:
+        """Read one image per (sequence, camera) now, so a grayscale camera is reported even when every
+        later read comes from the resize cache. Unreadable images are left to the sample that reads them."""
+        seen: set[tuple[str, str]] = set()
+        for item in self.items:
+            if (item.sequence, item.camera) in seen:
+                continue
+            seen.add((item.sequence, item.camera))
+            frame = self.layout.frames(item.sequence, item.camera)[item.row]
+            path = self.layout.image(item.sequence, item.camera, frame)
+            try:
+                image = read_image(path)
+            except (FileNotFoundError, ValueError):
+                continue
+            if image.grayscale:
+                report_grayscale(path)
 
     def _rows(self, frames: list[Frame], keys, layout, sequence) -> list[int]:
         if keys is None:
@@ -226,9 +296,7 @@ class FisheyeDataset(Dataset):
         sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
         size = (camera.width, camera.height)
         if spec.mask is not None:
-            mask = cv2.imread(str(spec.mask), cv2.IMREAD_GRAYSCALE)
-            if mask is None:
-                raise ValueError(f"{spec.mask}: not a readable mask image")
+            mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
             if mask.shape[1::-1] != size:
                 mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
             sample["mask"] = torch.from_numpy((mask > 127).astype(np.float32))[None]

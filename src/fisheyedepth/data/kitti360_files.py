@@ -1,6 +1,7 @@
 """Readers for KITTI-360's text and binary files (poses, extrinsics, Velodyne scans).
 
-Every malformed line raises a ``ValueError`` naming the file and the line.
+Every malformed line raises a ``ValueError`` naming the file and the line: numbers that are missing or
+not finite, a rotation that is not rigid (scaled, sheared or mirrored), a frame or camera given twice.
 """
 
 from __future__ import annotations
@@ -21,9 +22,30 @@ def _numbers(path: Path, lineno: int, fields: list[str], count: int) -> np.ndarr
     return values
 
 
+# KITTI-360 writes its rotations with about 1e-9 precision; a scaled or sheared block is far off this.
+RIGID_TOLERANCE = 1e-4
+
+
 def _pose(values: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3] = values.reshape(3, 4)
+    return T
+
+
+def _rigid_pose(path: Path, lineno: int, values: np.ndarray, what: str) -> np.ndarray:
+    """A 3x4 row-major pose whose rotation block must be orthonormal with det +1."""
+    T = _pose(values)
+    R = T[:3, :3]
+    error = float(np.abs(R @ R.T - np.eye(3)).max())
+    if error >= RIGID_TOLERANCE:
+        raise ValueError(
+            f"{path}:{lineno}: {what}: rotation is not orthonormal (|R R^T - I| = {error:.2g}, "
+            f"tolerance {RIGID_TOLERANCE:g}): scaled or sheared"
+        )
+    if np.linalg.det(R) <= 0:
+        raise ValueError(
+            f"{path}:{lineno}: {what}: rotation has det {np.linalg.det(R):.3g}, not +1 (mirrored)"
+        )
     return T
 
 
@@ -31,6 +53,7 @@ def read_poses(path: str | os.PathLike) -> dict[int, np.ndarray]:
     """``data_poses/<seq>/poses.txt``: ``frame_index`` + 12 numbers (pose frame -> world) per line."""
     path = Path(path)
     poses: dict[int, np.ndarray] = {}
+    lines: dict[int, int] = {}
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         fields = line.split()
         if not fields:
@@ -40,7 +63,11 @@ def read_poses(path: str | os.PathLike) -> dict[int, np.ndarray]:
             raise ValueError(
                 f"{path}:{lineno}: frame index must be a non-negative integer, got {fields[0]!r}"
             )
-        poses[int(values[0])] = _pose(values[1:])
+        frame = int(values[0])
+        if frame in lines:
+            raise ValueError(f"{path}:{lineno}: frame {frame} already has a pose on line {lines[frame]}")
+        lines[frame] = lineno
+        poses[frame] = _rigid_pose(path, lineno, values[1:], f"frame {frame}")
     return poses
 
 
@@ -48,20 +75,25 @@ def read_cam_to_pose(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """``calibration/calib_cam_to_pose.txt``: ``image_0X: 12 numbers`` (camera -> pose frame)."""
     path = Path(path)
     out = {}
+    lines: dict[str, int] = {}
     for lineno, line in enumerate(path.read_text().splitlines(), start=1):
         if not line.strip():
             continue
         name, sep, rest = line.partition(":")
-        if not sep:
+        name = name.strip()
+        if not sep or not name:
             raise ValueError(f"{path}:{lineno}: expected 'image_0X: 12 numbers'")
-        out[name.strip()] = _pose(_numbers(path, lineno, rest.split(), 12))
+        if name in lines:
+            raise ValueError(f"{path}:{lineno}: camera {name!r} already given on line {lines[name]}")
+        lines[name] = lineno
+        out[name] = _rigid_pose(path, lineno, _numbers(path, lineno, rest.split(), 12), f"camera {name!r}")
     return out
 
 
 def read_cam_to_velo(path: str | os.PathLike) -> np.ndarray:
     """``calibration/calib_cam_to_velo.txt``: 12 numbers, camera 0 -> Velodyne."""
     path = Path(path)
-    return _pose(_numbers(path, 1, path.read_text().split(), 12))
+    return _rigid_pose(path, 1, _numbers(path, 1, path.read_text().split(), 12), "camera 0 to Velodyne")
 
 
 def read_velodyne(path: str | os.PathLike) -> np.ndarray:

@@ -16,9 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
-from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera
+from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
 from ..geometry import quaternion_to_matrix
 from .kitti360_files import read_cam_to_pose, read_poses
 
@@ -53,23 +52,37 @@ class Kitti360Layout:
     ):
         self.root = Path(root)
         calib = self.root / "calibration"
-        extrinsics = read_cam_to_pose(_existing(calib / "calib_cam_to_pose.txt", "calibration file"))
-        if (
-            cameras is None
-        ):  # every camera with a calibration yaml and an extrinsic (image_02/03 for KITTI-360)
-            cameras = sorted(p.stem for p in calib.glob("image_0*.yaml") if p.stem in extrinsics)
-            if not cameras:
-                raise FileNotFoundError(f"{calib}: no image_0X.yaml with a line in calib_cam_to_pose.txt")
+        extrinsics_file = _existing(calib / "calib_cam_to_pose.txt", "calibration file")
+        extrinsics = read_cam_to_pose(extrinsics_file)
+        if cameras is None:
+            cameras = self.discover_cameras()
         self.cameras: dict[str, CameraSpec] = {}
         for name in cameras:
             if name not in extrinsics:
-                raise KeyError(f"{calib / 'calib_cam_to_pose.txt'}: no line for camera {name!r}")
-            camera = load_camera(_existing(calib / f"{name}.yaml", "calibration file"), keep_tangential)
+                raise KeyError(f"{extrinsics_file}: no line for camera {name!r}")
+            calibration = _existing(calib / f"{name}.yaml", f"calibration file of camera {name!r}")
+            camera = load_camera(calibration, keep_tangential)
             mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
             if masks and name in masks:
                 _existing(mask, "body mask")
             self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
         self._frames: dict[str, list[Frame]] = {}
+
+    def discover_cameras(self) -> list[str]:
+        """The fisheye cameras of the dataset: every ``calibration/image_0X.yaml`` and every image folder
+        ``data_2d_raw/<seq>/<camera>/data_rgb``. Each must have both a calibration yaml and a line in
+        ``calib_cam_to_pose.txt``, checked by the caller, so a camera never vanishes without a word.
+        KITTI-360's perspective cameras (``image_00/01``: ``data_rect`` folders, no yaml) are not fisheyes
+        and are not demanded."""
+        calibrated = {p.stem for p in (self.root / "calibration").glob("image_0*.yaml")}
+        recorded = {p.parent.name for p in (self.root / "data_2d_raw").glob("*/*/data_rgb") if p.is_dir()}
+        cameras = sorted(calibrated | recorded)
+        if not cameras:
+            raise FileNotFoundError(
+                f"{self.root}: no camera found (no calibration/image_0X.yaml, "
+                "no data_2d_raw/<sequence>/<camera>/data_rgb folder)"
+            )
+        return cameras
 
     def sequences(self) -> list[str]:
         return sorted(p.name for p in (self.root / "data_poses").iterdir() if (p / "poses.txt").is_file())
@@ -112,9 +125,10 @@ class RigLayout:
         self.root = Path(root)
         rig_file = _existing(self.root / "rig.yaml", "rig description")
         try:
-            rig = yaml.safe_load(rig_file.read_text())
-        except yaml.YAMLError as exc:
-            raise CalibrationError(rig_file, None, f"not valid YAML: {exc}") from None
+            text = rig_file.read_text(encoding="utf-8")
+        except UnicodeDecodeError:
+            raise CalibrationError(rig_file, None, "not a text file (not UTF-8)") from None
+        rig = load_yaml(text, rig_file)  # safe, and reads 1e-3 as a number like OpenCV does
         entries = rig.get("cameras") if isinstance(rig, dict) else None
         if not isinstance(entries, list) or not entries:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
@@ -150,27 +164,33 @@ class RigLayout:
 
     def _poses(self, sequence: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         path = _existing(self.root / sequence / "poses.txt", "pose file")
-        rows = []
+        stamps, rows = [], []
+        lines: dict[int, int] = {}
         for lineno, line in enumerate(path.read_text().splitlines(), start=1):
             fields = line.split()
             if not fields or fields[0].startswith("#"):
                 continue
             try:
-                values = [float(x) for x in fields]
+                stamp, values = _timestamp(fields[0]), [float(x) for x in fields[1:]]
             except ValueError:
                 raise ValueError(f"{path}:{lineno}: expected 'timestamp_ns tx ty tz qx qy qz qw'") from None
-            if len(values) != 8 or not all(math.isfinite(v) for v in values):
-                raise ValueError(f"{path}:{lineno}: expected 8 finite numbers, got {len(values)}")
+            if len(values) != 7 or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{path}:{lineno}: expected 8 finite numbers, got {len(values) + 1}")
+            if not np.linalg.norm(values[3:]) > 0:
+                raise ValueError(f"{path}:{lineno}: quaternion is zero")
+            if stamp in lines:
+                raise ValueError(
+                    f"{path}:{lineno}: timestamp {stamp} already has a pose on line {lines[stamp]}"
+                )
+            lines[stamp] = lineno
+            stamps.append(stamp)
             rows.append(values)
         if len(rows) < 2:
             raise ValueError(f"{path}: needs at least two poses to interpolate")
-        a = np.array(rows)
-        order = np.argsort(a[:, 0], kind="stable")
-        a = a[order]
-        if np.any(np.diff(a[:, 0]) <= 0):
-            raise ValueError(f"{path}: timestamps must be distinct")
-        q = a[:, 4:8] / np.linalg.norm(a[:, 4:8], axis=1, keepdims=True)
-        return a[:, 0].astype(np.int64), a[:, 1:4], q
+        order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
+        times, a = np.array(stamps, dtype=np.int64)[order], np.array(rows)[order]
+        q = a[:, 3:7] / np.linalg.norm(a[:, 3:7], axis=1, keepdims=True)
+        return times, a[:, :3], q
 
     def frames(self, sequence: str, camera: str) -> list[Frame]:
         key = (sequence, camera)
@@ -251,6 +271,17 @@ def _transform(value, path: Path, key: str) -> np.ndarray:
     if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
         raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
     return T
+
+
+def _timestamp(field: str) -> int:
+    """A nanosecond timestamp, parsed exactly: as a float, today's ~1.7e18 ns would lose 8 bits."""
+    try:
+        return int(field)
+    except ValueError:
+        value = float(field)  # "1.5e9" and the like; a ValueError here is the caller's to report
+        if not math.isfinite(value) or value != int(value):
+            raise ValueError(field) from None
+        return int(value)
 
 
 def _existing(path: Path, what: str) -> Path:
