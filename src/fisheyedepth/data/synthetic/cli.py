@@ -4,9 +4,23 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from .rig import RIGS
-from .writer import generate
+from .writer import Terminated, generate, made_by_generator
+
+
+def _announce_replacement(out: Path) -> None:
+    """``--overwrite`` is explicit, but say what it is about to replace."""
+    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return
+    if not out.is_dir():
+        what = "a file, NOT a dataset made by fisheyedepth"
+    elif made_by_generator(out):
+        what = "a synthetic dataset made by fisheyedepth"
+    else:
+        what = f"NOT a dataset made by fisheyedepth: its {sum(1 for _ in out.iterdir())} entries are deleted"
+    print(f"--overwrite: {out} ({what}) is replaced once rendering finishes", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -24,6 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
+    if a.overwrite:
+        _announce_replacement(Path(a.out))
     try:
         out = generate(
             a.out,
@@ -40,6 +56,10 @@ def main(argv: list[str] | None = None) -> int:
     except (FileExistsError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except (Terminated, KeyboardInterrupt) as exc:
+        why = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+        print(f"error: {why}; the workers were stopped and the partial dataset removed", file=sys.stderr)
+        return 143 if isinstance(exc, Terminated) else 130
     print(f"wrote {out}")
     return 0
 

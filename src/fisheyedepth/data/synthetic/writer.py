@@ -1,15 +1,29 @@
 """Writing a synthetic dataset in the KITTI-360 layout (see docs/data-format.md).
 
 The dataset is written into a hidden temporary folder beside ``out`` and renamed into place only when
-complete, so an interrupted run never looks like a dataset; ``synthetic.json`` is written last.
+complete, so an interrupted run never looks like a dataset; ``synthetic.json`` is written last. The first
+file written is the marker ``.fisheyedepth-synthetic``: a folder that holds it was started by this generator
+and may be rendered again, anything else is somebody's data and is never replaced by ``ensure_dataset``.
+
+SIGTERM while rendering (as SIGINT) stops the worker processes, removes the temporary folder and raises
+``Terminated`` (``SystemExit(143)``); workers also die with the rendering process on Linux even if it is
+killed outright, and the next run removes the temporary folder such a run left behind.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import shutil
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -29,6 +43,29 @@ from .world import make_trajectory, make_world
 SPLITS = ("train", "val", "test")
 SEQUENCES = {split: f"2013_05_28_drive_{i:04d}_sync" for i, split in enumerate(SPLITS)}
 GAP = 10  # trajectory frames left out between two splits, so no two splits share a segment
+MARKER = ".fisheyedepth-synthetic"  # the first file of every dataset this generator starts
+MARKER_TEXT = (
+    "Rendered by fisheyedepth's synthetic generator (fisheyedepth.data.synthetic.generate).\n"
+    "This folder may be deleted and rendered again; see docs/data-format.md.\n"
+)
+OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written
+CHECKED = ("rig", "frames", "size", "seed", "supersample")  # must match a finished dataset's synthetic.json
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+class NotASyntheticDataset(FileExistsError):
+    """A folder that fisheyedepth did not render (no ``synthetic.json``, no marker): it is never replaced."""
+
+
+class DatasetMismatch(ValueError):
+    """A finished synthetic dataset rendered with other generation parameters than the ones asked for."""
+
+
+class Terminated(SystemExit):
+    """SIGTERM arrived while rendering; exits with status 143 (128 + SIGTERM) like an untrapped SIGTERM."""
+
+    def __init__(self) -> None:
+        super().__init__(128 + int(signal.SIGTERM))
 
 
 @dataclass(frozen=True)
@@ -105,8 +142,21 @@ class _Worker:
 _WORKER: _Worker | None = None
 
 
-def _init_worker(*args) -> None:
+def _die_with_parent(parent: int) -> None:
+    """Linux: the kernel sends this worker SIGTERM when the rendering process dies, even of SIGKILL."""
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError):  # best effort: no libc, no prctl
+            pass
+    if os.getppid() != parent:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def _init_worker(parent: int, *args) -> None:
     global _WORKER
+    _die_with_parent(parent)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the parent stops us
     torch.set_num_threads(1)
     _WORKER = _Worker(*args)
 
@@ -143,6 +193,133 @@ def _write_layout(
         (root / "splits" / f"{split}.txt").write_text("".join(lines))
 
 
+@contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """While the block runs, SIGTERM raises ``Terminated`` in the main thread so that the cleanup runs as on
+    Ctrl-C; a second SIGTERM during that cleanup is ignored. The previous handler comes back afterwards.
+    A no-op off the main thread, and where SIGTERM is ignored or handled outside Python."""
+    previous = signal.getsignal(signal.SIGTERM)
+    if threading.current_thread() is not threading.main_thread() or previous in (signal.SIG_IGN, None):
+        yield
+        return
+    fired = False
+
+    def handler(signum, frame) -> None:
+        nonlocal fired
+        if not fired:
+            fired = True
+            raise Terminated
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _stop_pool(pool: ProcessPoolExecutor, timeout: float = 5.0) -> None:
+    """Stop the workers now: queued jobs are cancelled, running ones are not waited for."""
+    processes = list((pool._processes or {}).values())  # private, but the only handle on the workers
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        if process.is_alive():
+            process.terminate()
+    deadline = time.monotonic() + timeout
+    for process in processes:
+        process.join(max(0.0, deadline - time.monotonic()))
+        if process.is_alive():
+            process.kill()
+            process.join(1.0)
+
+
+def _render(jobs: list[Job], worker: _Worker, workers: int, initargs: tuple, bar: tqdm) -> None:
+    if workers <= 1:
+        for job in jobs:
+            worker(job)
+            bar.update()
+        return
+    pool = ProcessPoolExecutor(
+        workers,
+        mp_context=get_context("spawn"),
+        initializer=_init_worker,
+        initargs=(os.getpid(), *initargs),
+    )
+    try:
+        for future in as_completed([pool.submit(_run_job, job) for job in jobs]):
+            future.result()
+            bar.update()
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    pool.shutdown()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # somebody else's process
+        return True
+    return True
+
+
+def _left_by_dead_run(folder: Path, pid: int) -> bool:
+    """A temporary folder whose rendering run (on this machine) is gone; another machine's is kept."""
+    try:
+        host = (folder / OWNER).read_text().split()[0]
+    except (OSError, IndexError):
+        host = None  # killed before the owner file was written, or just before the rename
+    return (host is None or host == socket.gethostname()) and not _alive(pid)
+
+
+def _remove_stale(out: Path) -> None:
+    """Remove the hidden ``.<name>.partial-<pid>`` / ``.<name>.old-<pid>`` folders of ``out`` left behind by
+    an earlier run that was killed (SIGKILL, power loss): only those whose process is no longer alive."""
+    if not out.parent.is_dir():
+        return
+    for entry in out.parent.iterdir():
+        for kind in ("partial", "old"):
+            prefix = f".{out.name}.{kind}-"
+            pid = entry.name[len(prefix) :]
+            if entry.name.startswith(prefix) and pid.isdigit() and int(pid) != os.getpid():
+                if entry.is_dir() and _left_by_dead_run(entry, int(pid)):
+                    shutil.rmtree(entry, ignore_errors=True)
+
+
+def _move_into_place(tmp: Path, out: Path) -> None:
+    if not out.exists():
+        tmp.rename(out)
+        return
+    old = out.parent / f".{out.name}.old-{os.getpid()}"
+    out.rename(old)
+    tmp.rename(out)
+    if old.is_dir():
+        shutil.rmtree(old, ignore_errors=True)
+    else:  # the CLI's --overwrite of a file
+        old.unlink(missing_ok=True)
+
+
+def _metadata(rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict, lidar: bool) -> dict:
+    """``synthetic.json``: ``params`` are the generation parameters (seed, rig, size, supersample, frames)."""
+    return {
+        "generator": f"fisheyedepth {__version__}",
+        **params,
+        "cameras": {name: cam.to_dict() for name, cam in rig.cameras.items()},
+        "sequences": {
+            split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])} for split in SPLITS
+        },
+        "world": {
+            "pitch": world.pitch,
+            "sun": world.sun.tolist(),
+            "boxes": len(world.boxes),
+            "cylinders": len(world.cylinders),
+            "spheres": len(world.spheres),
+        },
+        "lidar": lidar,
+    }
+
+
 def generate(
     out: str | os.PathLike,
     rig: str = "kitti360",
@@ -155,7 +332,12 @@ def generate(
     overwrite: bool = False,
     progress: bool = True,
 ) -> Path:
-    """Render ``frames`` frames of every camera of ``rig`` (plus LiDAR) into ``out``. Returns ``out``."""
+    """Render ``frames`` frames of every camera of ``rig`` (plus LiDAR) into ``out``. Returns ``out``.
+
+    ``overwrite`` replaces whatever ``out`` holds once the new dataset is complete (the CLI's explicit
+    ``--overwrite``); ``ensure_dataset`` is the careful variant that replaces only what this generator made.
+    SIGTERM or Ctrl-C stops the workers, removes the temporary folder and re-raises (``Terminated``).
+    """
     out = Path(out)
     if rig not in RIGS:
         raise ValueError(f"unknown rig {rig!r}; one of {RIGS}")
@@ -169,63 +351,109 @@ def generate(
     jobs = [Job(SEQUENCES[s], i - a, poses[i]) for s, (a, b) in ranges.items() for i in range(a, b)]
 
     out.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale(out)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
-    try:
-        worker = _Worker(tmp, seed, rig, size, supersample, lidar)
-        masks = {name: r.body_mask for name, r in worker.cameras.items()}
-        _write_layout(tmp, worker.rig, masks, jobs, lidar)
-        bar = tqdm(total=len(jobs), desc=f"rendering {rig} {size}px", unit="frame", disable=not progress)
-        if workers > 1:
-            ctx = get_context("spawn")
-            args = (tmp, seed, rig, size, supersample, lidar)
-            with ProcessPoolExecutor(
-                workers, mp_context=ctx, initializer=_init_worker, initargs=args
-            ) as pool:
-                for future in as_completed([pool.submit(_run_job, job) for job in jobs]):
-                    future.result()
-                    bar.update()
-        else:
-            for job in jobs:
-                worker(job)
-                bar.update()
-        bar.close()
-        meta = {
-            "generator": f"fisheyedepth {__version__}",
-            "seed": seed,
-            "rig": rig,
-            "size": size,
-            "supersample": supersample,
-            "frames": frames,
-            "cameras": {name: cam.to_dict() for name, cam in worker.rig.cameras.items()},
-            "sequences": {
-                split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])}
-                for split in SPLITS
-            },
-            "world": {
-                "pitch": world.pitch,
-                "sun": world.sun.tolist(),
-                "boxes": len(world.boxes),
-                "cylinders": len(world.cylinders),
-                "spheres": len(world.spheres),
-            },
-            "lidar": lidar,
-        }
-        (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
-        if out.exists():
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    with _sigterm_raises():
+        try:
+            tmp.mkdir()
+            (tmp / MARKER).write_text(MARKER_TEXT)
+            (tmp / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+            worker = _Worker(tmp, seed, rig, size, supersample, lidar)
+            masks = {name: r.body_mask for name, r in worker.cameras.items()}
+            _write_layout(tmp, worker.rig, masks, jobs, lidar)
+            desc = f"rendering {rig} {size}px"
+            with tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress) as bar:
+                _render(jobs, worker, workers, (tmp, seed, rig, size, supersample, lidar), bar)
+            params = {"seed": seed, "rig": rig, "size": size, "supersample": supersample, "frames": frames}
+            meta = _metadata(worker.rig, world, ranges, params, lidar)
+            (tmp / OWNER).unlink()
+            (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
+            _move_into_place(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
     return out
 
 
 def is_complete(root: str | os.PathLike) -> bool:
     """A finished dataset has its ``synthetic.json`` (written last, before the atomic rename)."""
     return (Path(root) / "synthetic.json").is_file()
+
+
+def made_by_generator(root: str | os.PathLike) -> bool:
+    """``root`` was started by this generator: it holds the marker, or (older datasets) a fisheyedepth
+    ``synthetic.json``. Such a folder may be rendered again; nothing else is ever replaced unasked."""
+    root = Path(root)
+    return (root / MARKER).is_file() or _generator_of(root).startswith("fisheyedepth")
+
+
+def _generator_of(root: Path) -> str:
+    try:
+        meta = json.loads((root / "synthetic.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    return str(meta.get("generator", "")) if isinstance(meta, dict) else ""
+
+
+def _is_empty_dir(root: Path) -> bool:
+    return root.is_dir() and not any(root.iterdir())
+
+
+def _refusal(root: Path) -> NotASyntheticDataset:
+    what = "a file" if not root.is_dir() else f"a folder without synthetic.json or {MARKER}"
+    return NotASyntheticDataset(
+        f"{root} is not a synthetic dataset made by fisheyedepth ({what}), so it was left untouched. "
+        "To train on your own data, choose its layout: data=kitti360 (KITTI-360 layout) or data=rig "
+        f"(robot recording), e.g. `python train.py data=rig data.datamodule.root={root}`. To render the "
+        "synthetic dataset, point data.datamodule.root at an absent or empty folder."
+    )
+
+
+def _check_parameters(root: Path, asked: dict) -> None:
+    """A finished dataset is used only if it was rendered with the parameters asked for."""
+    path = root / "synthetic.json"
+    try:
+        meta = json.loads(path.read_text())
+    except ValueError as exc:
+        raise DatasetMismatch(f"{path} is not valid JSON ({exc}); delete {root} to render it again") from exc
+    if not isinstance(meta, dict) or not str(meta.get("generator", "")).startswith("fisheyedepth"):
+        raise _refusal(root)
+    differ = [f"{k} {meta[k]!r} (asked {asked[k]!r})" for k in CHECKED if k in meta and meta[k] != asked[k]]
+    if differ:
+        raise DatasetMismatch(
+            f"{root} holds a synthetic dataset rendered with other parameters than asked: "
+            f"{', '.join(differ)}. Ask for the same ones (data.generate.*), point data.datamodule.root at "
+            f"another folder, or delete {root} to render it again."
+        )
+
+
+def ensure_dataset(
+    root: str | os.PathLike,
+    rig: str = "kitti360",
+    frames: int = 200,
+    size: int = 256,
+    seed: int = 0,
+    supersample: int = 2,
+    workers: int = 0,
+    lidar: bool = True,
+    progress: bool = True,
+) -> Path:
+    """The synthetic dataset at ``root``, rendered on first use (what ``train.py`` calls). Returns ``root``.
+
+    A finished dataset is used as it is, if it was rendered with the same rig, frames, size, seed and
+    supersample (``DatasetMismatch`` otherwise). An absent or empty ``root`` is rendered; a folder that this
+    generator started but that has no ``synthetic.json`` is rendered again. Anything else raises
+    ``NotASyntheticDataset`` (a ``FileExistsError``) and is left untouched.
+    """
+    root = Path(root)
+    asked = {"rig": rig, "frames": frames, "size": size, "seed": seed, "supersample": supersample}
+    if is_complete(root):
+        _check_parameters(root, asked)
+        return root
+    if root.exists() and not _is_empty_dir(root) and not made_by_generator(root):
+        raise _refusal(root)
+    return generate(
+        root, rig, frames, size, seed, supersample, workers, lidar, overwrite=root.exists(), progress=progress
+    )
