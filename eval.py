@@ -4,12 +4,12 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import eval_checkpoint
+from fisheyedepth.entrypoints import eval_checkpoint, run_command
 
 
 @hydra.main(config_path="conf", config_name="eval", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    eval_checkpoint(cfg)
+    run_command(eval_checkpoint, cfg)
 
 
 if __name__ == "__main__":

@@ -4,12 +4,12 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import export
+from fisheyedepth.entrypoints import export, run_command
 
 
 @hydra.main(config_path="conf", config_name="export", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    export(cfg)
+    run_command(export, cfg)
 
 
 if __name__ == "__main__":

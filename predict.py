@@ -4,12 +4,12 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import predict
+from fisheyedepth.entrypoints import predict, run_command
 
 
 @hydra.main(config_path="conf", config_name="predict", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    predict(cfg)
+    run_command(predict, cfg)
 
 
 if __name__ == "__main__":

@@ -8,12 +8,12 @@ output folder. Sweeps: ``python train.py -m +experiment=ablation_full,ablation_f
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import train
+from fisheyedepth.entrypoints import run_command, train
 
 
 @hydra.main(config_path="conf", config_name="train", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    train(cfg)
+    run_command(train, cfg)
 
 
 if __name__ == "__main__":

@@ -49,7 +49,7 @@ TABLE2 = [
 def find(paths: list[str]) -> list[Path]:
     out = []
     for p in map(Path, paths):
-        out += [p] if p.is_file() else sorted(p.rglob("results.json"))
+        out += [p] if p.is_file() else sorted(p.rglob("results*.json"))
     return out
 
 

@@ -106,3 +106,24 @@ def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 
     )
     index = {(layout.frames(it.sequence)[it.row].key, it.camera): i for i, it in enumerate(dataset.items)}
     return collate([dataset[index[(f, c)]] for f in frames for c in cameras])
+
+
+@pytest.fixture(scope="session")
+def checkpoint(kitti_data, tmp_path_factory):
+    """A full model trained for a handful of steps at 64x64, saved like Lightning saves it."""
+    import torch
+
+    from fisheyedepth.module import FisheyeDepthModule
+
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64))
+    batch = tiny_batch(kitti_data)
+    opt = torch.optim.Adam(module.parameters(), 1e-3)
+    for _ in range(3):
+        loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+    return path

@@ -18,28 +18,10 @@ from omegaconf import OmegaConf
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.entrypoints import export, load_module
 from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud, read_ply, write_ply
-from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ, tiny_batch
+from conftest import TRAIN_SEQ
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def checkpoint(kitti_data, tmp_path_factory):
-    """A full model trained for a handful of steps at 64x64, saved like Lightning saves it."""
-    torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64))
-    batch = tiny_batch(kitti_data)
-    opt = torch.optim.Adam(module.parameters(), 1e-3)
-    for _ in range(3):
-        loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
-    return path
 
 
 def frames_folder(kitti_data, dst, n=3, corrupt=True):
@@ -85,20 +67,26 @@ def test_predict_writes_every_promised_file(kitti_data, checkpoint, tmp_path):
     )
     assert "broken.png" in proc.stdout + proc.stderr
     camera = load_camera(calib)
+    rays, has_ray = camera.unproject(
+        torch.from_numpy(np.stack(np.meshgrid(np.arange(256.0), np.arange(256.0)), -1))
+    )
+    has_ray = has_ray.numpy()
+    assert 0.5 < has_ray.mean() < 1.0  # the synthetic kitti360 camera has corners without a ray
     for stem in sorted(p.stem for p in images.glob("0*.png")):
         d = np.load(out / f"{stem}_distance.npy")
-        assert d.shape == (256, 256) and d.dtype == np.float32 and (d > 0).all() and np.isfinite(d).all()
+        assert d.shape == (256, 256) and d.dtype == np.float32
+        assert (d[has_ray] > 0).all() and np.isfinite(d[has_ray]).all() and np.isnan(d[~has_ray]).all()
         png = cv2.imread(str(out / f"{stem}_distance.png"), cv2.IMREAD_UNCHANGED)
-        assert png.dtype == np.uint16 and np.abs(png / 1000.0 - np.clip(d, 0, 65.535)).max() <= 0.0005 + 1e-6
+        assert png.dtype == np.uint16 and (png[~has_ray] == 0).all() and (png[has_ray] > 0).all()
+        assert np.abs(png[has_ray] / 1000.0 - np.clip(d[has_ray], 0, 65.535)).max() <= 0.0005 + 1e-6
         z = np.load(out / f"{stem}_z.npy")
-        rays = camera.unproject(
-            torch.from_numpy(np.stack(np.meshgrid(np.arange(256.0), np.arange(256.0)), -1))
-        )[0]
-        assert np.allclose(z, d * rays[..., 2].numpy(), atol=1e-4)
+        assert np.isnan(z[~has_ray]).all()
+        assert np.allclose(z[has_ray], (d * rays[..., 2].numpy())[has_ray], atol=1e-4)
         colour = cv2.imread(str(out / f"{stem}_colour.png"))
         assert colour.shape[0] == 256 and colour.shape[1] > 256  # with its colour bar
+        assert (colour[:, :256][~has_ray] == 0).all()  # no ray: black
         points, rgb = read_ply(out / f"{stem}.ply")
-        assert len(points) > 0.8 * 256 * 256 and rgb.dtype == np.uint8
+        assert len(points) == has_ray.sum() and np.isfinite(points).all() and rgb.dtype == np.uint8
     again = run("predict.py", *args)
     assert again.returncode != 0 and "overwrite=true" in again.stdout + again.stderr
     assert run("predict.py", *args, "overwrite=true").returncode == 0
@@ -171,16 +159,14 @@ def test_predictor_and_png_units(checkpoint, kitti_data):
     predictor = DistancePredictor(module, camera)
     assert predictor.input_size == (64, 64)  # from the checkpoint
     out = predictor(torch.rand(2, 3, 256, 256))
-    assert out.shape == (2, 1, 256, 256) and (out > 0).all()
+    has_ray = predictor.has_ray.expand_as(out)
+    assert out.shape == (2, 1, 256, 256) and (out[has_ray] > 0).all() and out[~has_ray].isnan().all()
+    assert 0.5 < has_ray.float().mean() < 1.0
     with pytest.raises(ValueError, match="images are 100x100"):
         predictor(torch.rand(1, 3, 100, 100))
-    d = np.array([0.0, 1.2345, 70.0], np.float32)
-    assert distance_png(d, "mm").tolist() == [0, 1234, 65535] or distance_png(d, "mm").tolist() == [
-        0,
-        1235,
-        65535,
-    ]
-    assert distance_png(d, "256").tolist() == [0, 316, 17920]
+    d = np.array([0.0, 1.2345, 70.0, np.nan, 1e-4, -1.0], np.float32)
+    assert distance_png(d, "mm").tolist() in ([0, 1234, 65535, 0, 1, 0], [0, 1235, 65535, 0, 1, 0])
+    assert distance_png(d, "256").tolist() == [0, 316, 17920, 0, 1, 0]
 
 
 def test_visualize_writes_panels_and_the_angle_plot(kitti_data, checkpoint, tmp_path):

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -16,41 +18,48 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import instantiate
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 from rich.console import Console
 from rich.table import Table
 
-from .data.synthetic import generate, is_complete
+from .checkpoints import check_resumable, load_module
+from .data.synthetic import ensure_dataset, is_complete
 from .evaluation import evaluate
 from .module import FisheyeDepthModule
 from .utils import atomic_write_text
 
 log = logging.getLogger("fisheyedepth")
 
+EXIT_SIGTERM = 128 + 15  # the shell's status for a process ended by SIGTERM
+EXIT_USAGE = 2
+# Errors about the user's input (files, options): one line naming the file or option, no traceback.
+INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
+
+
+def run_command(command, cfg: DictConfig):
+    """Run an entry point; an input error prints one line (``error: <file>: <what>``) and exits 2.
+    ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead."""
+    try:
+        return command(cfg)
+    except INPUT_ERRORS as exc:
+        if os.environ.get("FISHEYEDEPTH_TRACEBACK"):
+            raise
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"error: {message}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE) from None
+
 
 def prepare_data(cfg: DictConfig) -> None:
-    """Render the synthetic dataset on first use (``data.generate``); a finished one is reused."""
+    """Render the synthetic dataset on first use (``data.generate``); a finished one is reused. A folder
+    that is not a synthetic dataset made by this project is refused and left untouched."""
     gen = cfg.data.get("generate")
     if not gen:
         return
     root = Path(cfg.data.datamodule.root)
-    if is_complete(root):
-        return
-    log.info("rendering the synthetic dataset into %s (first use)", root)
-    generate(root, **OmegaConf.to_container(gen, resolve=True), overwrite=root.exists())
-
-
-def load_module(path: str | Path) -> FisheyeDepthModule:
-    """A trained module from a Lightning checkpoint, read with ``weights_only=True``."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: checkpoint not found")
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    if "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
-        raise ValueError(f"{path}: not a FisheyeDepth checkpoint (no state_dict / hyper_parameters)")
-    module = FisheyeDepthModule(**dict(ckpt["hyper_parameters"]))
-    module.load_state_dict(ckpt["state_dict"])
-    return module
+    if not is_complete(root):
+        log.info("rendering the synthetic dataset into %s (first use)", root)
+    ensure_dataset(root, **OmegaConf.to_container(gen, resolve=True))
 
 
 def _git_commit() -> str | None:
@@ -117,7 +126,7 @@ def run_evaluation(
         "written": time.strftime("%Y-%m-%d %H:%M:%S"),
         **extra,
     }
-    path = out_dir / "results.json"
+    path = free_path(out_dir / "results.json")  # a resumed run keeps the earlier run's results
     atomic_write_text(path, json.dumps(record, indent=2) + "\n")
     print_table(results, f"{record['experiment']}: {path}")
     return record
@@ -125,17 +134,30 @@ def run_evaluation(
 
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
+    if cfg.get("ckpt_path"):
+        check_resumable(cfg.ckpt_path)
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
     module = instantiate(cfg.model, _convert_="all")
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
-    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values()]
+    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     trainer: L.Trainer = instantiate(
         cfg.trainer, logger=logger, callbacks=callbacks, default_root_dir=str(out_dir)
     )
     try:
-        trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        try:
+            trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+        except SIGTERMException:
+            # Lightning stops at a batch boundary and raises SystemExit(None), i.e. exit 0: a job
+            # scheduler, make or a shell script would take the run for finished.
+            last = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+            log.error(
+                "terminated by SIGTERM at step %d; no results.json. Resume with ckpt_path=%s",
+                trainer.global_step,
+                last if last.is_file() else "<a checkpoint of this run>",
+            )
+            raise SystemExit(EXIT_SIGTERM) from None
         record = None
         if cfg.get("test") and trainer.is_global_zero and not trainer.fast_dev_run:
             ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
@@ -169,111 +191,101 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------------------------- predict
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+def free_path(path: Path) -> Path:
+    """``path``, or ``name_1.ext``, ``name_2.ext`` ... when it exists: an earlier run's file is kept."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.stem}_{n}{path.suffix}")
+    return candidate
 
 
-def _frames(source: Path):
-    """(name, BGR image or None when unreadable) from a folder of images or a video file."""
-    import cv2
-
-    if source.is_dir():
-        for path in sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES):
-            yield path.stem, cv2.imread(str(path), cv2.IMREAD_COLOR), path
-    elif source.is_file():
-        video = cv2.VideoCapture(str(source))
-        if not video.isOpened():
-            raise ValueError(f"{source}: not a readable video")
-        i = 0
-        while True:
-            ok, frame = video.read()
-            if not ok:
-                break
-            yield f"frame_{i:06d}", frame, source
-            i += 1
-        video.release()
-    else:
-        raise FileNotFoundError(f"{source}: no such image folder or video")
+def _check_aspect(frame_path: Path, size: tuple[int, int], camera, calibration) -> None:
+    """A calibration is resized to the images only when both have one aspect ratio."""
+    (w, h), (cw, ch) = size, (camera.width, camera.height)
+    if abs(w * ch - h * cw) > 0.01 * w * ch:
+        raise ValueError(
+            f"{frame_path}: image is {w}x{h} but the calibration {calibration} is {cw}x{ch}, another "
+            "aspect ratio; resizing the camera model would stretch it (crop the images or recalibrate)"
+        )
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
-    import cv2
     import numpy as np
     from tqdm import tqdm
 
     from .cameras import load_camera
-    from .inference import DistancePredictor, colour_bar, distance_png, point_cloud, write_ply
-    from .viz import colourise
+    from .images import FrameSource
+    from .inference import DistancePredictor, PredictionWriter
 
-    source = Path(cfg.input)
     out = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir)
+    writer = PredictionWriter(
+        out, cfg.z_depth, cfg.point_cloud, str(cfg.png_scale), cfg.vmin, cfg.vmax, cfg.overwrite
+    )
+    source = FrameSource(cfg.input)  # lists the inputs without decoding any
+    writer.check_free(source.names())
     module = load_module(cfg.ckpt_path)
     camera = load_camera(cfg.camera)
     predictors: dict[tuple[int, int], DistancePredictor] = {}
-    wanted = ["_distance.npy", "_distance.png", "_colour.png"] + (["_z.npy"] if cfg.z_depth else [])
-    wanted += [".ply"] if cfg.point_cloud else []
-    frames = list(_frames(source))
-    if not cfg.overwrite:
-        clash = next(
-            (out / f"{name}{s}" for name, _, _ in frames for s in wanted if (out / f"{name}{s}").exists()),
-            None,
-        )
-        if clash is not None:
-            raise FileExistsError(f"{clash} exists; pass overwrite=true to replace outputs")
-    out.mkdir(parents=True, exist_ok=True)
-    bad: list[str] = []
+    unreadable: list[str] = []
+    grayscale: list[str] = []
     done, t0 = 0, time.perf_counter()
-    batch: list[tuple[str, np.ndarray]] = []
+    batch: list = []
 
-    def flush():
-        nonlocal done
-        if not batch:
-            return
-        h, w = batch[0][1].shape[:2]
-        cam = camera if (w, h) == (camera.width, camera.height) else camera.resize(w, h)
+    def run_batch() -> int:
+        h, w = batch[0].bgr.shape[:2]
         if (w, h) not in predictors:
+            _check_aspect(batch[0].path, (w, h), camera, cfg.camera)
+            cam = camera if (w, h) == (camera.width, camera.height) else camera.resize(w, h)
             predictors[(w, h)] = DistancePredictor(module, cam, cfg.get("size"), cfg.get("device", "cpu"))
-        rgb = np.stack([im[..., ::-1] for _, im in batch])
+        predictor = predictors[(w, h)]
+        rgb = np.stack([f.bgr[..., ::-1] for f in batch])
         images = torch.from_numpy(rgb.copy()).permute(0, 3, 1, 2).float() / 255.0
-        distance = predictors[(w, h)](images).cpu()
-        for (name, _), d, colour in zip(batch, distance[:, 0], rgb, strict=True):
-            d_np = d.numpy().astype(np.float32)
-            np.save(out / f"{name}_distance.npy", d_np)
-            cv2.imwrite(str(out / f"{name}_distance.png"), distance_png(d_np, cfg.png_scale))
-            vis = colour_bar(colourise(d_np, cfg.vmin, cfg.vmax), cfg.vmin, cfg.vmax)
-            cv2.imwrite(str(out / f"{name}_colour.png"), vis[..., ::-1])
-            if cfg.z_depth:
-                rays, _ = module.rays.get(cam)
-                np.save(out / f"{name}_z.npy", (d * rays[..., 2]).numpy().astype(np.float32))
-            if cfg.point_cloud:
-                write_ply(out / f"{name}.ply", *point_cloud(d, cam, colour, module.rays))
-            done += 1
+        distance = predictor(images).cpu()
+        for frame, d, colour in zip(batch, distance[:, 0], rgb, strict=True):
+            writer.write(frame.name, d, colour, predictor.camera)
+        n = len(batch)
         batch.clear()
+        return n
 
-    for name, image, path in tqdm(frames, desc="predicting", unit="frame"):
-        if image is None:
-            bad.append(str(path))
-            log.warning("%s: unreadable image, skipped", path)
+    for frame in tqdm(source, total=len(source) or None, desc="predicting", unit="frame"):
+        if frame.bgr is None:
+            unreadable.append(str(frame.path))
+            log.warning("%s, skipped", frame.error)
             continue
-        if batch and image.shape != batch[0][1].shape:
-            flush()
-        batch.append((name, image))
+        if frame.channels == 1:
+            grayscale.append(str(frame.path))
+            if len(grayscale) == 1:
+                log.warning(
+                    "%s: grayscale image, replicated to 3 channels (and any others: summary)", frame.path
+                )
+        if batch and frame.bgr.shape != batch[0].bgr.shape:
+            done += run_batch()
+        batch.append(frame)
         if len(batch) >= cfg.batch_size:
-            flush()
-    flush()
+            done += run_batch()
+    if batch:
+        done += run_batch()
     seconds = time.perf_counter() - t0
     summary = {
+        "input": str(source.source),
         "frames": done,
-        "skipped": len(bad),
-        "unreadable": bad,
+        "skipped": len(unreadable),
+        "unreadable": unreadable,
+        "grayscale": grayscale,
         "seconds": round(seconds, 3),
         "fps": round(done / seconds, 2) if seconds > 0 else None,
         "output": str(out),
-        "png_scale": f"uint16 = metres * {int(1000 if cfg.png_scale == 'mm' else 256)}",
+        "png_scale": f"uint16 = metres * {int(1000 if cfg.png_scale == 'mm' else 256)}, 0 = no ray",
     }
-    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    if done == 0:
+        raise ValueError(f"{source.source}: no frame could be read ({len(unreadable)} unreadable)")
+    summary_path = out / "summary.json" if cfg.overwrite else free_path(out / "summary.json")
+    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     Console(width=130).print(
-        f"{done} frames in {seconds:.1f} s ({summary['fps']} fps), {len(bad)} unreadable "
-        f"skipped{': ' + ', '.join(bad[:5]) if bad else ''}; outputs in {out}"
+        f"{done} frames in {seconds:.1f} s ({summary['fps']} fps), {len(unreadable)} unreadable "
+        f"skipped{': ' + ', '.join(unreadable[:5]) if unreadable else ''}"
+        f"{f', {len(grayscale)} grayscale' if grayscale else ''}; outputs in {out} ({summary_path.name})"
     )
     return summary
 
@@ -282,14 +294,21 @@ def predict_cli() -> None:
     """Console script ``fisheyedepth-predict`` (the same as ``python predict.py``)."""
     import hydra
 
-    hydra.main(config_path="../../conf", config_name="predict", version_base="1.3")(predict)()
+    hydra.main(config_path="../../conf", config_name="predict", version_base="1.3")(
+        lambda cfg: run_command(predict, cfg)
+    )()
 
 
 # ----------------------------------------------------------------------------------------------- export
+EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
+
+
 def export(cfg: DictConfig) -> dict[str, Any]:
     from .cameras import load_camera
     from .inference import DistancePredictor
 
+    if cfg.format not in EXPORT_FORMATS:
+        raise ValueError(f"format: {cfg.format!r} is not one of {', '.join(EXPORT_FORMATS)}")
     module = load_module(cfg.ckpt_path)
     size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
     if len(size) != 2:
@@ -303,7 +322,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
 
         camera = PinholeCamera(width=size[0], height=size[1], fx=1.0, fy=1.0, cx=0.0, cy=0.0)
     net = DistancePredictor(module, camera, size).exportable()
-    suffix = {"onnx": ".onnx", "torchscript": ".pt"}[cfg.format]
+    suffix = EXPORT_FORMATS[cfg.format]
     path = (
         Path(cfg.output)
         if cfg.get("output")

@@ -8,6 +8,7 @@ inverse-distance space). ``ExportableNet`` freezes one input size and camera int
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .cameras import CameraModel, RayCache
+from .cameras import CameraModel, RayCache, compute_rays
 from .evaluation import upsample_inverse
 from .models import depth_scale_for
 from .utils import atomic_write_bytes
@@ -47,10 +48,12 @@ class DistancePredictor:
         self.camera = camera
         self.net_camera = camera.resize(*self.input_size)
         self.depth_scale = depth_scale_for([self.net_camera], module.hparams.get("base_focal"))
+        self.has_ray = compute_rays(camera, self.device).valid  # [H, W]: pixels the model gives a ray
 
     @torch.no_grad()
     def __call__(self, images: Tensor) -> Tensor:
-        """``[B, 3, H, W]`` float RGB at the camera's size -> distance ``[B, 1, H, W]`` in metres."""
+        """``[B, 3, H, W]`` float RGB at the camera's size -> distance ``[B, 1, H, W]`` in metres; NaN at
+        pixels without a ray in the camera model (outside a fisheye's image circle)."""
         H, W = images.shape[-2:]
         if (W, H) != (self.camera.width, self.camera.height):
             raise ValueError(f"images are {W}x{H}, the camera is {self.camera.width}x{self.camera.height}")
@@ -58,7 +61,8 @@ class DistancePredictor:
         if (W, H) != self.input_size:
             x = F.interpolate(x, size=self.input_size[::-1], mode="area")
         out = self.module.depth_net(x, self.depth_scale.to(x).expand(x.shape[0]), scales=(0,))["distance"][0]
-        return upsample_inverse(out, (H, W))
+        distance = upsample_inverse(out, (H, W))
+        return distance.masked_fill(~self.has_ray, float("nan"))
 
     def exportable(self) -> ExportableNet:
         return ExportableNet(self.module.depth_net, float(self.depth_scale[0])).eval()
@@ -66,9 +70,11 @@ class DistancePredictor:
 
 def distance_png(distance: np.ndarray, scale: str = "mm") -> np.ndarray:
     """uint16 PNG values: millimetres (``"mm"``, up to 65.535 m) or metres * 256 (``"256"``, KITTI style);
-    0 = no value."""
+    0 = no value (NaN, pixels without a ray), and a positive distance is at least 1."""
     factor = PNG_SCALES[scale]
-    return np.clip(np.round(distance * factor), 0, 65535).astype(np.uint16)
+    known = np.isfinite(distance) & (distance > 0)
+    values = np.clip(np.round(np.where(known, distance, 0.0) * factor), 1, 65535)
+    return np.where(known, values, 0).astype(np.uint16)
 
 
 def colour_bar(image: np.ndarray, vmin: float, vmax: float, height: int | None = None) -> np.ndarray:
@@ -97,11 +103,12 @@ def colour_bar(image: np.ndarray, vmin: float, vmax: float, height: int | None =
 def point_cloud(
     distance: Tensor, camera: CameraModel, rgb: np.ndarray | None = None, rays: RayCache | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """3-D points (camera frame, metres) of every pixel with a ray and a positive distance, and colours.
+    """3-D points (camera frame, metres) of every pixel with a ray and a finite positive distance, and
+    colours.
     Pass the caller's ``rays`` cache when converting many frames of one camera."""
     rays, valid = (rays or RayCache()).get(camera, dtype=torch.float64)
     d = distance.double().reshape(camera.height, camera.width)
-    keep = valid & (d > 0)
+    keep = valid & torch.isfinite(d) & (d > 0)
     points = (rays * d[..., None])[keep].numpy().astype(np.float32)
     colours = rgb[keep.numpy()] if rgb is not None else np.full((len(points), 3), 200, np.uint8)
     return points, colours
@@ -125,3 +132,69 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     end = data.index(b"end_header\n") + len(b"end_header\n")
     rec = np.frombuffer(data[end:], dtype=[("p", "<f4", 3), ("c", "u1", 3)])
     return rec["p"].copy(), rec["c"].copy()
+
+
+class PredictionWriter:
+    """Writes the outputs of one frame: ``_distance.npy`` (float32 metres, NaN without a ray),
+    ``_distance.png`` (uint16, 0 without a ray), ``_colour.png``, and on request ``_z.npy`` and ``.ply``.
+    Without ``overwrite`` no existing file is replaced: a clash raises before anything of that frame
+    is written."""
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        z_depth: bool = False,
+        point_cloud: bool = False,
+        png_scale: str = "mm",
+        vmin: float = 0.5,
+        vmax: float = 80.0,
+        overwrite: bool = False,
+    ):
+        if png_scale not in PNG_SCALES:
+            raise ValueError(f"png_scale: {png_scale!r} is not one of {sorted(PNG_SCALES)}")
+        self.out, self.png_scale, self.vmin, self.vmax = Path(out), png_scale, vmin, vmax
+        self.z_depth, self.point_cloud, self.overwrite = z_depth, point_cloud, overwrite
+        self.suffixes = ["_distance.npy", "_distance.png", "_colour.png"]
+        self.suffixes += ["_z.npy"] if z_depth else []
+        self.suffixes += [".ply"] if point_cloud else []
+        self.rays = RayCache()
+
+    def outputs(self, name: str) -> list[Path]:
+        return [self.out / f"{name}{suffix}" for suffix in self.suffixes]
+
+    def check_free(self, names) -> None:
+        """Raise ``FileExistsError`` naming the first output of ``names`` that exists (unless overwrite)."""
+        if self.overwrite:
+            return
+        for name in names:
+            for path in self.outputs(name):
+                if path.exists():
+                    raise FileExistsError(f"{path} exists; pass overwrite=true to replace outputs")
+
+    def write(self, name: str, distance: Tensor, rgb: np.ndarray, camera: CameraModel) -> None:
+        """``distance`` ``[H, W]`` metres (NaN without a ray) of the image ``rgb`` ``[H, W, 3]``."""
+        self.check_free([name])
+        self.out.mkdir(parents=True, exist_ok=True)
+        d = distance.detach().float().cpu().numpy()
+        _save_npy(self.out / f"{name}_distance.npy", d)
+        _write_png(self.out / f"{name}_distance.png", distance_png(d, self.png_scale))
+        vis = colour_bar(colourise(d, self.vmin, self.vmax), self.vmin, self.vmax)
+        _write_png(self.out / f"{name}_colour.png", vis[..., ::-1])
+        if self.z_depth:
+            rays, _ = self.rays.get(camera, dtype=torch.float64)
+            _save_npy(self.out / f"{name}_z.npy", (d * rays[..., 2].numpy()).astype(np.float32))
+        if self.point_cloud:
+            write_ply(self.out / f"{name}.ply", *point_cloud(distance.cpu(), camera, rgb, self.rays))
+
+
+def _save_npy(path: Path, array: np.ndarray) -> None:
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array, dtype=np.float32))
+    atomic_write_bytes(path, buffer.getvalue())
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise OSError(f"{path}: could not encode the PNG")
+    atomic_write_bytes(path, encoded.tobytes())
