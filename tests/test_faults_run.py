@@ -134,6 +134,24 @@ def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_di
     assert (run_dir / "results_1.json").is_file()
 
 
+def test_training_never_replaces_a_users_folder(tmp_path):
+    """A user who forgot ``data=rig``: train.py must refuse the folder, not render over it."""
+    robot = tmp_path / "my_robot"
+    (robot / "seq0" / "images").mkdir(parents=True)
+    (robot / "seq0" / "poses.txt").write_text("0 0 0 0 0 0 0 1\n")
+    (robot / "rig.yaml").write_text("cameras: []\n")
+    before = {p: p.read_bytes() for p in robot.rglob("*") if p.is_file()}
+    proc = python(
+        "train.py", f"data.datamodule.root={robot}", f"hydra.run.dir={tmp_path / 'run'}", timeout=300
+    )
+    assert proc.returncode == EXIT_USAGE, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {robot} is not a synthetic dataset made by fisheyedepth")
+    assert "data=rig" in last and "data=kitti360" in last
+    assert {p: p.read_bytes() for p in robot.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["my_robot", "run"]  # no partial folder
+
+
 def current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
