@@ -59,6 +59,19 @@ def scaling_for(record: dict) -> str:
     return "none" if record["model"]["real_scale"] else "median"
 
 
+def spread_of(values: list[float]) -> float | None:
+    """Sample standard deviation over seeds (None for a single run)."""
+    if len(values) < 2:
+        return None
+    mean = sum(values) / len(values)
+    return (sum((v - mean) ** 2 for v in values) / (len(values) - 1)) ** 0.5
+
+
+def cell(r: dict, m: str) -> str:
+    sd = r.get("spread", {}).get(m)
+    return f"{r['metrics'][m]:.3f}" + ("" if sd is None else f"±{sd:.3f}")
+
+
 def collect(files: list[Path], protocol: str) -> dict[str, dict]:
     runs: dict[str, list] = defaultdict(list)
     for f in files:
@@ -73,6 +86,7 @@ def collect(files: list[Path], protocol: str) -> dict[str, dict]:
     rows = {}
     for name, entries in runs.items():
         mean = {m: sum(e[1][m] for e in entries) / len(entries) for m in METRICS}
+        spread = {m: spread_of([e[1][m] for e in entries]) for m in METRICS}
         angle = {}
         for b in entries[0][2]:
             vals = [e[2][b]["abs_rel"] for e in entries if e[2].get(b, {}).get("images")]
@@ -81,6 +95,7 @@ def collect(files: list[Path], protocol: str) -> dict[str, dict]:
             "scaling": entries[0][0],
             "runs": len(entries),
             "metrics": mean,
+            "spread": spread,
             "abs_rel_by_angle": angle,
         }
     return rows
@@ -93,6 +108,8 @@ def markdown(title: str, spec, rows: dict) -> str:
         + " | abs_rel by incidence 0-30/30-60/60-90/>90 | paper abs_rel / a1 |"
     )
     lines = [f"### {title}", "", head, "|" + "---|" * (len(METRICS) + 5)]
+    if any(r.get("spread", {}).get("abs_rel") is not None for r in rows.values()):
+        lines.insert(1, "\nMean over seeds ± their standard deviation.")
     for key, label in spec:
         paper = PAPER[key]
         if key not in rows:
@@ -106,7 +123,7 @@ def markdown(title: str, spec, rows: dict) -> str:
         angles = "/".join(f"{v:.3f}" for v in r["abs_rel_by_angle"].values())
         lines.append(
             f"| {label} | {r['scaling']} | {r['runs']} | "
-            + " | ".join(f"{r['metrics'][m]:.3f}" for m in METRICS)
+            + " | ".join(cell(r, m) for m in METRICS)
             + f" | {angles} | {paper[0]:.3f} / {paper[4]:.3f} |"
         )
     return "\n".join(lines) + "\n"

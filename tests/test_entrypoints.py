@@ -160,6 +160,14 @@ def test_train_eval_resume_tables(workdir):
     assert after["global_step"] == 2 * record["global_step"]  # one more epoch on top of the first
     assert after["resumed_from"].endswith("last.ckpt")
 
+    curves = workdir / "curves"
+    out = ["--out", f"{curves}.png", "--csv", f"{curves}.csv"]
+    run("scripts/plot_curves.py", str(first), str(resumed), *out)
+    rows = [line.split(",") for line in Path(f"{curves}.csv").read_text().splitlines()[1:]]
+    val_loss = {(r[0], int(r[2])) for r in rows if r[1] == "val/loss"}
+    assert {e for _, e in val_loss} == {0, 1} and all(float(r[3]) > 0 for r in rows if r[1] == "val/loss")
+    assert Path(f"{curves}.png").stat().st_size > 10_000
+
     tables = run("scripts/make_tables.py", str(first), str(resumed), "--latex").stdout
     assert "FFT + RS + MC" in tables and "| 2 |" in tables and "\\begin{tabular}" in tables
 

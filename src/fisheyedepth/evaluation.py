@@ -90,12 +90,11 @@ class Evaluator:
     ):
         self.protocol, self.scalings, self.camera_height = protocol, tuple(scalings), camera_height
         lo, hi = protocol.cap
-        self.metrics = {s: DepthMetrics(lo, hi, median_scaling=(s == "median")) for s in self.scalings}
-        self.by_angle = {
-            (s, b): DepthMetrics(lo, hi, median_scaling=(s == "median"))
-            for s in self.scalings
-            for b in ANGLE_BINS
-        }
+        # every scaling (median included) is applied here, one ratio per image, so that the angle bands
+        # are scored with the ratio of the whole image and add up to the headline number
+        self.metrics = {s: DepthMetrics(lo, hi) for s in self.scalings}
+        self.by_angle = {(s, b): DepthMetrics(lo, hi) for s in self.scalings for b in ANGLE_BINS}
+        self.ratios: dict[str, list[float]] = {s: [] for s in self.scalings}
         self.rays = rays if rays is not None else RayCache()
 
     def update(self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel) -> None:
@@ -110,15 +109,20 @@ class Evaluator:
             keep &= gt < p.max_range
         angle = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
         for scaling in self.scalings:
-            q = pred
-            if scaling == "dnet":
+            q, g = (pred * rays[..., 2], gt_z) if p.quantity == "z" else (pred, gt)
+            scored = keep & (g > p.cap[0]) & (g < p.cap[1])
+            if not bool(scored.any()):
+                ratio = 1.0
+            elif scaling == "median":
+                ratio = float(g[scored].median() / q[scored].median().clamp_min(1e-12))
+            elif scaling == "dnet":
                 if self.camera_height is None:
                     raise ValueError("dnet scaling needs camera_height")
-                q = pred * dnet_scale(pred, rays, self.camera_height)
-            if p.quantity == "z":
-                q, g = q * rays[..., 2], gt_z
+                ratio = dnet_scale(pred, rays, self.camera_height)
             else:
-                g = gt
+                ratio = 1.0
+            q = q * ratio
+            self.ratios[scaling].append(ratio)
             self.metrics[scaling].update(q[None], g[None], keep[None])
             for lo, hi in ANGLE_BINS:
                 self.by_angle[(scaling, (lo, hi))].update(
@@ -130,6 +134,8 @@ class Evaluator:
         for scaling in self.scalings:
             m = self.metrics[scaling]
             out[scaling] = {k: float(v) for k, v in m.compute().items()} | {"images": int(m.images)}
+            if scaling != "none" and self.ratios[scaling]:
+                out[scaling]["scale_ratio"] = float(sum(self.ratios[scaling]) / len(self.ratios[scaling]))
             out[f"{scaling}_by_angle"] = {
                 f"{lo}-{hi}": (
                     {k: float(v) for k, v in self.by_angle[(scaling, (lo, hi))].compute().items()}

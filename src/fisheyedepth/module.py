@@ -21,10 +21,12 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache, pinhole_like
-from .geometry import sample, warp_to_source
+from .cameras.pinhole import PINHOLE_FOCALS
+from .geometry import rotation_error_deg, sample, translation_direction_error_deg, warp_to_source
 from .losses import ReprojectionLoss, edge_aware_smoothness
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, depth_scale_for
+from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .viz import panel
 
 
@@ -45,7 +47,7 @@ class FisheyeDepthModule(L.LightningModule):
         scales: tuple[int, ...] = (0, 1, 2, 3),
         source_offsets: tuple[int, ...] = (-1, 1),
         automask: bool = True,
-        smoothness: float | None = None,
+        smoothness: float = 1e-3,
         lr: float = 1e-4,
         weight_decay: float = 1e-5,
         lr_step: int = 8,
@@ -55,32 +57,46 @@ class FisheyeDepthModule(L.LightningModule):
         eval_max: float = 80.0,
         log_images_every: int = 200,
         input_size: tuple[int, int] | None = None,
+        pose_translation_scale: float | None = None,
+        pinhole_focal: str = "paraxial",
     ):
-        """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s); None picks
-        the reference's 1e-5 for the binned head and Monodepth2's 1e-3 for the sigmoid head.
-        ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference."""
+        """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
+        for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
+        the head alone (the reference's 1e-5 for its binned head would be a second change).
+        ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference.
+        ``pinhole_focal``: with ``fisheye_projection`` off, the pinhole stand-in's focal length:
+        "paraxial" (the fisheye's focal at the image centre) or "calibration" (Mei's gamma as stored).
+        ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
+        ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
+        parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
+        binned one at 0.5-150 m). Monodepth2's fixed 0.01 leaves the first warps 5x to 130x too short
+        here, and the PoseNet rows learn only once the PoseNet has grown its output that much."""
         super().__init__()
+        if pinhole_focal not in PINHOLE_FOCALS:
+            raise ValueError(f"pinhole_focal: {pinhole_focal!r} is not one of {', '.join(PINHOLE_FOCALS)}")
         self.save_hyperparameters()
         self.scales = tuple(scales)
         self.source_offsets = tuple(source_offsets)
         self.depth_net = DepthNet(
             resnet, weights, multi_channel, n_bins, attention, min_distance, max_distance, self.scales
         )
-        self.pose_net = None if real_scale else PoseNet(resnet, weights)
-        self.smoothness = (1e-5 if multi_channel else 1e-3) if smoothness is None else smoothness
+        if pose_translation_scale is None:  # Monodepth2's first parallax for this head's first distance
+            pose_translation_scale = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance
+        self.pose_net = None if real_scale else PoseNet(resnet, weights, pose_translation_scale)
+        self.smoothness = smoothness
         self.reprojection = ReprojectionLoss(automask=automask)
         self.rays = RayCache()
         self.val_metrics = DepthMetrics(eval_min, eval_max)
         self.val_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
-        self.test_metrics = DepthMetrics(eval_min, eval_max)
-        self.test_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
         self.skipped_batches = 0
         self.skipped_frames: list[str] = []
 
     # ------------------------------------------------------------------------------- geometry
     def warp_camera(self, camera: CameraModel) -> CameraModel:
         """The camera model the warp uses: the real one, or its pinhole stand-in when the switch is off."""
-        return camera if self.hparams.fisheye_projection else pinhole_like(camera)
+        if self.hparams.fisheye_projection:
+            return camera
+        return pinhole_like(camera, self.hparams.pinhole_focal)
 
     def forward(self, image: Tensor, cameras: list[CameraModel]) -> dict[str, dict[int, Tensor]]:
         scale = depth_scale_for(cameras, self.hparams.base_focal).to(image)
@@ -96,6 +112,20 @@ class FisheyeDepthModule(L.LightningModule):
             self.pose_net(target, sources[:, j], offset < 0) for j, offset in enumerate(self.source_offsets)
         ]
         return torch.stack(poses, 1)
+
+    @torch.no_grad()
+    def pose_errors(self, batch: dict[str, Any]) -> dict[str, Tensor]:
+        """The PoseNet against the batch's true relative poses (odometry, or the synthetic world's exact
+        ones): mean rotation error and translation-direction error (degrees, scale-free), and the median
+        ratio of predicted to true translation length (the PoseNet's drifting scale)."""
+        predicted, true = self.relative_poses(batch).double(), batch["poses"].double()
+        moving = true[..., :3, 3].norm(dim=-1) > 1e-6
+        ratio = predicted[..., :3, 3].norm(dim=-1)[moving] / true[..., :3, 3].norm(dim=-1)[moving]
+        return {
+            "rotation_deg": rotation_error_deg(predicted, true).mean().float(),
+            "direction_deg": translation_direction_error_deg(predicted[moving], true[moving]).mean().float(),
+            "scale": ratio.median().float() if ratio.numel() else torch.tensor(float("nan")),
+        }
 
     def losses(
         self, batch: dict[str, Any], outputs: dict[str, dict[int, Tensor]]
@@ -202,9 +232,17 @@ class FisheyeDepthModule(L.LightningModule):
         if self._count_skipped(batch):
             return None
         outputs = self(batch["image"], batch["camera"])
-        loss, _ = self.losses(batch, outputs)
+        loss, logs = self.losses(batch, outputs)
         batch_size = len(batch["camera"])
         self.log(f"{stage}/loss", loss, batch_size=batch_size, sync_dist=True)
+        photometric = torch.stack([logs[f"photometric/{s}"] for s in self.scales]).mean()
+        self.log(f"{stage}/photometric", photometric, batch_size=batch_size, sync_dist=True)
+        if self.pose_net is not None and "poses" in batch:
+            self.log_dict(
+                {f"{stage}/pose/{k}": v for k, v in self.pose_errors(batch).items()},
+                batch_size=batch_size,
+                sync_dist=True,
+            )
         if "distance" in batch:
             pred, gt = outputs["distance"][0], batch["distance"]
             valid = batch["mask"] > 0.5
@@ -220,10 +258,6 @@ class FisheyeDepthModule(L.LightningModule):
         if batch_idx == 0:
             self.log_panel("val", batch, outputs["distance"][0])
         return loss
-
-    def test_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
-        result = self._evaluate(batch, "test", self.test_metrics, self.test_metrics_scaled)
-        return None if result is None else result[0]
 
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
         if self._count_skipped(batch):
@@ -243,9 +277,6 @@ class FisheyeDepthModule(L.LightningModule):
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics("val", self.val_metrics, self.val_metrics_scaled)
-
-    def on_test_epoch_end(self) -> None:
-        self._log_metrics("test", self.test_metrics, self.test_metrics_scaled)
 
     # ------------------------------------------------------------------------------- optimisation
     def configure_optimizers(self):

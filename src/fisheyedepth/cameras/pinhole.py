@@ -41,9 +41,20 @@ class PinholeCamera(CameraModel):
         return rays / safe_norm(rays, keepdim=True), torch.ones_like(u, dtype=torch.bool)
 
 
-def pinhole_like(camera: CameraModel) -> PinholeCamera:
-    """The pinhole camera a pinhole method would assume for ``camera``: same image size, principal
-    point, and the fisheye's paraxial focal length (its magnification at the image centre)."""
-    fx, fy = camera.paraxial_focal()
+PINHOLE_FOCALS = ("paraxial", "calibration")
+
+
+def pinhole_like(camera: CameraModel, focal: str = "paraxial") -> PinholeCamera:
+    """The pinhole camera a pinhole method would assume for ``camera``: same image size and principal
+    point, and as focal length either ``"paraxial"``, the fisheye's magnification at the image centre
+    (the pinhole that agrees with it near the axis), or ``"calibration"``, the focal-like parameters as
+    the calibration file stores them (Mei's gamma1/gamma2, which are (1 + xi) times the paraxial focal:
+    what a pinhole pipeline reading KITTI-360's projection_parameters as K would use)."""
+    if focal == "paraxial":
+        fx, fy = camera.paraxial_focal()
+    elif focal == "calibration":
+        fx, fy = getattr(camera, camera._fu), getattr(camera, camera._fv)
+    else:
+        raise ValueError(f"pinhole focal {focal!r}: one of {PINHOLE_FOCALS}")
     cx, cy = camera.principal_point
     return PinholeCamera(width=camera.width, height=camera.height, fx=fx, fy=fy, cx=cx, cy=cy)

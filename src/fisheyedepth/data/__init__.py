@@ -1,6 +1,6 @@
 """Data: the synthetic fisheye world, dataset layouts (KITTI-360, robot rig), the dataset and DataModule."""
 
-from .augment import Augment, colour_jitter, flip_sample
+from .augment import Augment, PoseNoise, colour_jitter, flip_sample
 from .batch import collate
 from .datamodule import FisheyeDataModule
 from .dataset import FisheyeDataset, ImageCache
@@ -8,6 +8,7 @@ from .layouts import CameraSpec, Kitti360Layout, RigLayout
 
 __all__ = [
     "Augment",
+    "PoseNoise",
     "CameraSpec",
     "FisheyeDataModule",
     "FisheyeDataset",

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from ..geometry import mirror_pose_x
+from ..geometry import axis_angle_to_matrix, mirror_pose_x
 
 
 @dataclasses.dataclass
@@ -67,3 +68,37 @@ def flip_sample(sample: dict[str, Any]) -> dict[str, Any]:
         out["source_camera"] = [c.flip() for c in sample["source_camera"]]
     out["poses"] = mirror_pose_x(sample["poses"])
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PoseNoise:
+    """Seeded odometry error applied to the relative poses at load time (any layout, every split):
+    a rotation by an angle drawn from N(0, ``rotation_deg``) about a random axis, and a translation error
+    of N(0, ``translation``) times the translation's length along each axis. The noise of a given
+    (sequence, camera, frame, neighbour) is the same every epoch, like a real odometry's error."""
+
+    rotation_deg: float = 0.0
+    translation: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.rotation_deg < 0 or self.translation < 0:
+            raise ValueError(f"pose noise must be non-negative, got {self}")
+
+    @property
+    def active(self) -> bool:
+        return self.rotation_deg > 0 or self.translation > 0
+
+    def __call__(self, T: Tensor, key: str) -> Tensor:
+        """``T`` ``[4, 4]`` (float64) with this noise; ``key`` names the pose (stable across epochs)."""
+        if not self.active:
+            return T
+        digest = hashlib.blake2b(f"{self.seed}|{key}".encode(), digest_size=8).digest()
+        gen = torch.Generator().manual_seed(int.from_bytes(digest, "little") >> 1)
+        axis = torch.nn.functional.normalize(torch.randn(3, generator=gen, dtype=torch.float64), dim=0)
+        angle = math.radians(self.rotation_deg) * torch.randn((), generator=gen, dtype=torch.float64)
+        noisy = T.clone()
+        noisy[:3, :3] = axis_angle_to_matrix(axis * angle) @ T[:3, :3]
+        error = torch.randn(3, generator=gen, dtype=torch.float64) * self.translation * T[:3, 3].norm()
+        noisy[:3, 3] = T[:3, 3] + error
+        return noisy

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from .augment import Augment
+from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset
 from .layouts import Kitti360Layout, RigLayout
@@ -36,6 +36,7 @@ class FisheyeDataModule(L.LightningDataModule):
             ``{sequence, start, stop, stride, cameras}`` entries, or "all" (see ``parse_split``).
         size: training resolution ``(width, height)``; None keeps the native size.
         augment: training augmentation (flip and colour jitter); None disables it.
+        pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
     """
 
     def __init__(
@@ -57,6 +58,7 @@ class FisheyeDataModule(L.LightningDataModule):
         pin_memory: bool = False,
         cache_dir: str | os.PathLike | None = None,
         seed: int = 0,
+        pose_noise: PoseNoise | dict | None = None,
     ):
         super().__init__()
         if layout not in LAYOUTS:
@@ -77,6 +79,7 @@ class FisheyeDataModule(L.LightningDataModule):
         self.ground_truth, self.skip_bad_frames = ground_truth, skip_bad_frames
         self.batch_size, self.num_workers, self.pin_memory = batch_size, num_workers, pin_memory
         self.cache_dir, self.seed = cache_dir, seed
+        self.pose_noise = PoseNoise(**pose_noise) if isinstance(pose_noise, dict) else pose_noise
         self.datasets: dict[str, FisheyeDataset] = {}
         self._layout = None
 
@@ -102,6 +105,7 @@ class FisheyeDataModule(L.LightningDataModule):
                 self.ground_truth,
                 self.skip_bad_frames,
                 self.cache_dir,
+                pose_noise=self.pose_noise,
             )
         return self.datasets[split]
 

@@ -28,7 +28,7 @@ from torch.utils.data import Dataset
 
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
-from .augment import Augment, colour_jitter, flip_sample
+from .augment import Augment, PoseNoise, colour_jitter, flip_sample
 from .layouts import Frame, Kitti360Layout
 
 log = logging.getLogger(__name__)
@@ -177,9 +177,12 @@ class FisheyeDataset(Dataset):
         skip_bad_frames: bool = False,
         cache_dir: str | os.PathLike | None = None,
         lidar_occlusion: float | None = 0.1,
+        pose_noise: PoseNoise | None = None,
     ):
         """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
-        "auto" (whichever exists), or "none"."""
+        "auto" (whichever exists), or "none". ``pose_noise``: seeded odometry error on the relative
+        poses (the paper's claim that the multi-channel head copes with noisy real poses)."""
+        self.pose_noise = pose_noise or PoseNoise()
         self.layout, self.size, self.offsets = layout, size, tuple(offsets)
         self.augment, self.skip_bad_frames = augment, skip_bad_frames
         self.cache = ImageCache(cache_dir)
@@ -292,7 +295,8 @@ class FisheyeDataset(Dataset):
         for offset in self.offsets:
             other = frames[item.row + offset]
             sources.append(self._image(self.layout.image(item.sequence, item.camera, other), camera, native))
-            poses.append(relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E))
+            T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E)
+            poses.append(self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{offset}"))
         sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
         size = (camera.width, camera.height)
         if spec.mask is not None:

@@ -8,7 +8,9 @@ from .se3 import (
     pose_from_3x4,
     quaternion_to_matrix,
     relative_pose,
+    rotation_error_deg,
     transform_points,
+    translation_direction_error_deg,
 )
 from .warp import (
     ALIGN_CORNERS,
@@ -35,7 +37,9 @@ __all__ = [
     "quaternion_to_matrix",
     "project_cameras",
     "relative_pose",
+    "rotation_error_deg",
     "sample",
     "transform_points",
+    "translation_direction_error_deg",
     "warp_to_source",
 ]

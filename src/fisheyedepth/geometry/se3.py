@@ -106,3 +106,18 @@ def quaternion_to_matrix(q_xyzw: Tensor) -> Tensor:
         1 - 2 * (x * x + y * y),
     )
     return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def rotation_error_deg(T_a: Tensor, T_b: Tensor) -> Tensor:
+    """Angle (degrees) of the rotation ``R_a^T R_b`` between two ``[..., 4, 4]`` poses."""
+    R = T_a[..., :3, :3].transpose(-1, -2) @ T_b[..., :3, :3]
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.acos(cos))
+
+
+def translation_direction_error_deg(T_a: Tensor, T_b: Tensor, eps: float = 1e-9) -> Tensor:
+    """Angle (degrees) between the translations of two ``[..., 4, 4]`` poses: scale-free, for a PoseNet
+    whose translation has no metric scale."""
+    a, b = T_a[..., :3, 3], T_b[..., :3, 3]
+    cos = (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1)).clamp_min(eps)
+    return torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))

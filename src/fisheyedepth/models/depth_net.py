@@ -86,6 +86,14 @@ class DepthNet(nn.Module):
         else:
             self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s]) for s in scales})
 
+    @property
+    def initial_distance(self) -> float:
+        """The distance the head predicts before training (equal logits, or a sigmoid of 0.5), metres:
+        the log-bins' mean for the binned head (26 m for 0.5-150 m), 1 m for the sigmoid head."""
+        if self.multi_channel:
+            return float(self.bins.mean())
+        return float(sigmoid_to_distance(torch.tensor(0.5), self.min_distance, self.max_distance))
+
     def forward(
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
     ) -> dict[str, dict[int, Tensor]]:

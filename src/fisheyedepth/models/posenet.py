@@ -11,10 +11,18 @@ from torch import Tensor, nn
 from ..geometry import axis_angle_to_matrix, invert_pose, make_pose
 from .resnet import ResNetEncoder
 
+# Monodepth2's PoseNet outputs 0.01 x its raw values (radians, metres) while its depth head starts at
+# 1 / (1/100 + (1/0.1 - 1/100) / 2) = 0.2 m: a first translation of about 1 mm against 0.2 m of depth.
+MONODEPTH2_TRANSLATION_PER_DISTANCE = 0.01 / 0.2
+
 
 class PoseDecoder(nn.Module):
-    def __init__(self, in_ch: int):
+    """Axis-angle (0.01 rad per raw unit, as Monodepth2) and translation (``translation_scale`` metres per
+    raw unit) from the encoder's last feature map."""
+
+    def __init__(self, in_ch: int, translation_scale: float = 0.01):
         super().__init__()
+        self.translation_scale = float(translation_scale)
         self.squeeze = nn.Conv2d(in_ch, 256, 1)
         self.conv1 = nn.Conv2d(256, 256, 3, 1, 1)
         self.conv2 = nn.Conv2d(256, 256, 3, 1, 1)
@@ -25,15 +33,21 @@ class PoseDecoder(nn.Module):
         x = self.relu(self.squeeze(feature))
         x = self.relu(self.conv1(x))
         x = self.relu(self.conv2(x))
-        x = 0.01 * self.out(x).mean((2, 3))
-        return x[:, :3], x[:, 3:]
+        x = self.out(x).mean((2, 3))
+        return 0.01 * x[:, :3], self.translation_scale * x[:, 3:]
 
 
 class PoseNet(nn.Module):
-    def __init__(self, resnet: int = 18, weights: str | os.PathLike | None = None):
+    """``translation_scale``: metres per raw output unit. Monodepth2's 0.01 suits its depth head, which
+    starts at 0.2 m; a head that starts at distance ``d`` needs ``d * MONODEPTH2_TRANSLATION_PER_DISTANCE``
+    so that the first warps have the same parallax (see ``FisheyeDepthModule``)."""
+
+    def __init__(
+        self, resnet: int = 18, weights: str | os.PathLike | None = None, translation_scale: float = 0.01
+    ):
         super().__init__()
         self.encoder = ResNetEncoder(resnet, 2, weights)
-        self.decoder = PoseDecoder(self.encoder.channels[-1])
+        self.decoder = PoseDecoder(self.encoder.channels[-1], translation_scale)
 
     def forward(self, target: Tensor, source: Tensor, source_is_earlier: bool) -> Tensor:
         """``[B, 4, 4]`` transform from the target camera to the source camera.

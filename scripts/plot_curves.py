@@ -1,0 +1,113 @@
+#!/usr/bin/env python
+"""Per-epoch validation curves of training runs: does every row learn, and has it flattened?
+
+    python scripts/plot_curves.py RUN_OR_SWEEP [...] --out curves.png [--csv curves.csv]
+
+Reads each run's ``logs/version_*/metrics.csv`` (a resumed run's versions are joined) and its
+``.hydra/config.yaml`` for the experiment name, and plots per epoch: the self-supervised validation loss
+and photometric error (what model selection uses), the PoseNet's rotation and translation-direction
+errors against the true relative poses (PoseNet rows only), and the median-scaled abs_rel against the
+ground truth (for information: never used to select). ``--csv`` writes the same numbers as a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import yaml
+
+PANELS = (
+    ("val/loss", "validation loss (self-supervised)"),
+    ("val/photometric", "validation photometric error"),
+    ("val/pose/rotation_deg", "PoseNet rotation error (deg)"),
+    ("val/pose/direction_deg", "PoseNet translation direction error (deg)"),
+    ("val/scaled/abs_rel", "abs_rel, median-scaled (GT, report only)"),
+    ("val/abs_rel", "abs_rel, unscaled (GT, report only)"),
+)
+
+
+def runs_under(paths: list[str]) -> list[Path]:
+    """Run folders (those holding ``logs/``) at or below each path."""
+    out: list[Path] = []
+    for p in map(Path, paths):
+        out += sorted({m.parents[2] for m in p.rglob("metrics.csv") if m.parent.parent.name == "logs"})
+    return out
+
+
+def run_name(run: Path) -> str:
+    config = run / ".hydra" / "config.yaml"
+    name = run.name
+    if config.is_file():
+        cfg = yaml.safe_load(config.read_text()) or {}
+        name = f"{cfg.get('experiment_name', name)} s{cfg.get('seed', '?')}"
+    return name
+
+
+def curves(run: Path) -> dict[str, dict[int, float]]:
+    """``{metric: {epoch: value}}`` of the validation metrics, over every log version of the run."""
+    out: dict[str, dict[int, float]] = defaultdict(dict)
+    for metrics in sorted((run / "logs").glob("*/metrics.csv")) + sorted((run / "logs").glob("metrics.csv")):
+        with metrics.open() as handle:
+            for row in csv.DictReader(handle):
+                if not row.get("epoch"):
+                    continue
+                for key, _ in PANELS:
+                    if row.get(key) not in (None, ""):
+                        out[key][int(float(row["epoch"]))] = float(row[key])
+    return out
+
+
+def main(argv=None) -> int:
+    formatter = argparse.RawDescriptionHelpFormatter
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=formatter)
+    parser.add_argument("runs", nargs="+", help="run folders or sweep folders")
+    parser.add_argument("--out", required=True, help="PNG to write")
+    parser.add_argument("--csv", help="also write the numbers as CSV")
+    args = parser.parse_args(argv)
+    runs = runs_under(args.runs)
+    if not runs:
+        print(f"no runs with logs/*/metrics.csv under {args.runs}", file=sys.stderr)
+        return 2
+    names = [run_name(r) for r in runs]
+    data = {
+        (f"{name} ({run.name})" if names.count(name) > 1 else name): curves(run)
+        for name, run in zip(names, runs, strict=True)
+    }
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    shown = [(k, title) for k, title in PANELS if any(k in c for c in data.values())]
+    fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3.6), squeeze=False)
+    for ax, (key, title) in zip(axes[0], shown, strict=True):
+        for name, c in data.items():
+            if key in c:
+                epochs = sorted(c[key])
+                ax.plot(epochs, [c[key][e] for e in epochs], marker="o", ms=3, label=name)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7)
+    fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out} ({len(data)} runs)")
+    if args.csv:
+        with open(args.csv, "w", newline="") as handle:
+            writer = csv.writer(handle)
+            writer.writerow(["run", "metric", "epoch", "value"])
+            for name, c in data.items():
+                for key, values in c.items():
+                    for epoch in sorted(values):
+                        writer.writerow([name, key, epoch, f"{values[epoch]:.6g}"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

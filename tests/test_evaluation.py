@@ -1,0 +1,59 @@
+"""Evaluation: one scaling ratio per image over all scored pixels, shared by the angle breakdown."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fisheyedepth.cameras import RayCache
+from fisheyedepth.evaluation import ANGLE_BINS, PROTOCOLS, Evaluator
+
+from conftest import kitti02
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A 96 x 96 KITTI-360 camera, a ground truth of 2-40 m, and its rays and angles of incidence."""
+    camera = kitti02().resize(96, 96)
+    rays, valid = RayCache().get(camera, dtype=torch.float64)
+    gen = torch.Generator().manual_seed(0)
+    gt = (2.0 + 38.0 * torch.rand(96, 96, generator=gen, dtype=torch.float64)) * valid
+    angle = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
+    return camera, gt, valid, angle
+
+
+def test_median_scaling_is_one_ratio_per_image_shared_by_the_angle_bands(scene):
+    camera, gt, valid, angle = scene
+    # the periphery beyond 60 degrees is predicted 2x too far, the centre right, and all 3x too near
+    pred = torch.where(angle >= 60, 2.0 * gt, gt) / 3.0
+    ev = Evaluator(PROTOCOLS["full"], ("none", "median"))
+    ev.update(pred, gt, valid, camera)
+    out = ev.compute()
+    scored = valid & (gt > 0)
+    ratio = float(gt[scored].median() / pred[scored].median())
+    assert out["median"]["scale_ratio"] == pytest.approx(ratio)
+    bands = out["median_by_angle"]
+    for lo, hi in ANGLE_BINS:  # each band scored with the image's ratio, not its own
+        band = scored & (angle >= lo) & (angle < hi)
+        if band.any():
+            expected = ((pred[band] * ratio - gt[band]).abs() / gt[band]).mean()
+            assert bands[f"{lo}-{hi}"]["abs_rel"] == pytest.approx(float(expected), rel=1e-6)
+    # per-band median scaling would have made both the centre and the periphery exact; one ratio does not
+    assert bands["0-30"]["abs_rel"] > 0.1 and bands["60-90"]["abs_rel"] > 0.1
+    # and the bands add up to the headline number, weighted by their pixels
+    weights = {f"{lo}-{hi}": int((scored & (angle >= lo) & (angle < hi)).sum()) for lo, hi in ANGLE_BINS}
+    total = sum(weights[k] * bands[k]["abs_rel"] for k in weights if weights[k]) / sum(weights.values())
+    assert out["median"]["abs_rel"] == pytest.approx(total, rel=1e-6)
+    assert out["none"]["abs_rel"] == pytest.approx(
+        float(((pred[scored] - gt[scored]).abs() / gt[scored]).mean()), rel=1e-6
+    )
+
+
+def test_a_right_shape_at_the_wrong_scale_is_exact_after_median_scaling(scene):
+    camera, gt, valid, _ = scene
+    ev = Evaluator(PROTOCOLS["full"], ("none", "median"))
+    ev.update(gt * 0.25, gt, valid, camera)
+    out = ev.compute()
+    assert out["none"]["abs_rel"] == pytest.approx(0.75)
+    assert out["median"]["abs_rel"] == pytest.approx(0.0, abs=1e-9) and out["median"]["a1"] == 1.0
+    assert out["median"]["scale_ratio"] == pytest.approx(4.0)
