@@ -25,6 +25,7 @@ PANELS = (
     ("val/photometric", "validation photometric error"),
     ("val/pose/rotation_deg", "PoseNet rotation error (deg)"),
     ("val/pose/direction_deg", "PoseNet translation direction error (deg)"),
+    ("val/pose/reversed", "PoseNet translations pointing backwards (fraction)"),
     ("val/scaled/abs_rel", "abs_rel, median-scaled (GT, report only)"),
     ("val/abs_rel", "abs_rel, unscaled (GT, report only)"),
 )

@@ -7,6 +7,7 @@ import torch
 
 from fisheyedepth.losses import (
     ReprojectionLoss,
+    automasked_error,
     edge_aware_smoothness,
     min_reprojection,
     photometric_error,
@@ -51,7 +52,7 @@ def test_reprojection_loss_is_normalised_by_used_pixels_only():
     valid = torch.ones(1, 2, 8, 8, dtype=torch.bool)
     mask = torch.ones(1, 8, 8, dtype=torch.bool)
     fn = ReprojectionLoss(automask=False)
-    full, frac = fn(target, warped, valid, fn.identity(sources, target), mask)
+    full, frac, _ = fn(target, warped, valid, fn.identity(sources, target), mask)
     assert frac.item() == 1.0
     assert full.item() == pytest.approx(photometric_error(good, target).mean().item(), rel=1e-5)
     # a masked half with huge errors changes neither the value nor anything but the fraction
@@ -59,13 +60,13 @@ def test_reprojection_loss_is_normalised_by_used_pixels_only():
     bad[..., 4:, :] = 10.0
     mask2 = mask.clone()
     mask2[:, 4:] = False
-    half, frac2 = fn(target, bad, valid, None, mask2)
+    half, frac2, _ = fn(target, bad, valid, None, mask2)
     assert frac2.item() == 0.5
     assert half.item() == pytest.approx(photometric_error(bad[:, 0], target)[:, :4].mean().item(), rel=1e-5)
     # invalid warps do not count either
     valid2 = valid.clone()
     valid2[..., 4:, :] = False
-    again, frac3 = fn(target, bad, valid2, None, mask)
+    again, frac3, _ = fn(target, bad, valid2, None, mask)
     assert frac3.item() == 0.5 and again.item() == pytest.approx(half.item(), rel=1e-6)
 
 
@@ -82,3 +83,27 @@ def test_edge_aware_smoothness():
     edges = image.clone()
     edges[..., ::2] = 1.0  # image gradients everywhere along x damp the x term
     assert edge_aware_smoothness(ramp, edges) < s
+
+
+def test_automasked_error_only_falls_as_warps_improve():
+    """The validation criterion: the mean of min(best warp, best unwarped source) over the usable pixels.
+    Unlike the training loss (normalised by the pixels the warps win), a better warp never raises it."""
+    rep = torch.tensor([[[[0.5, 0.5], [0.5, 0.5]]]])  # [B=1, S=1, 2, 2]
+    ident = torch.full_like(rep, 0.3)
+    valid = torch.ones_like(rep, dtype=torch.bool)
+    mask = torch.ones(1, 2, 2, dtype=torch.bool)
+    assert automasked_error(rep, valid, ident, mask).item() == pytest.approx(0.3)  # identity wins everywhere
+    better = rep.clone()
+    better[..., 0, 0] = 0.1  # one pixel now warps well: the error falls ...
+    assert automasked_error(better, valid, ident, mask).item() == pytest.approx((0.1 + 3 * 0.3) / 4)
+    # ... while the training loss, normalised by the pixels the warp wins, says 0.1 for one pixel;
+    # a second pixel that the warp wins narrowly raises the training loss but lowers the error
+    both = better.clone()
+    both[..., 0, 1] = 0.29
+    loss1, _ = min_reprojection(better, valid, ident, noise=0.0)
+    loss2, _ = min_reprojection(both, valid, ident, noise=0.0)
+    used1, used2 = (loss1 > 0).sum(), (loss2 > 0).sum()
+    assert (loss2.sum() / used2) > (loss1.sum() / used1)
+    assert automasked_error(both, valid, ident, mask) < automasked_error(better, valid, ident, mask)
+    invalid = torch.zeros_like(valid)
+    assert automasked_error(rep, invalid, None, mask).item() == 0.0  # nothing usable: 0, not NaN

@@ -22,7 +22,13 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache, pinhole_like
 from .cameras.pinhole import PINHOLE_FOCALS
-from .geometry import rotation_error_deg, sample, translation_direction_error_deg, warp_to_source
+from .geometry import (
+    invert_pose,
+    rotation_error_deg,
+    sample,
+    translation_direction_error_deg,
+    warp_to_source,
+)
 from .losses import ReprojectionLoss, edge_aware_smoothness
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, depth_scale_for
@@ -103,28 +109,42 @@ class FisheyeDepthModule(L.LightningModule):
         return self.depth_net(image, scale)
 
     def relative_poses(self, batch: dict[str, Any]) -> Tensor:
-        """``[B, S, 4, 4]`` target-to-source transforms: the batch's real-scale poses, or the PoseNet's."""
+        """``[B, S, 4, 4]`` target-to-source transforms: the batch's real-scale poses, or the PoseNet's.
+
+        With the camera-to-body extrinsic in the batch, the PoseNet predicts the motion of the body
+        (the vehicle), which every camera shares, and each camera's pose follows from its extrinsic:
+        ``E^-1 T_body E``, exactly how the real-scale poses are made from odometry. A PoseNet that
+        predicted each camera's own motion had to tell a left-looking from a right-looking camera
+        before anything else, and learned one motion for both instead (reversed for one of them)."""
         if self.pose_net is None:
             return batch["poses"].to(batch["image"].dtype)
         target = batch.get("image_aug", batch["image"])
         sources = batch.get("sources_aug", batch["sources"])
-        poses = [
-            self.pose_net(target, sources[:, j], offset < 0) for j, offset in enumerate(self.source_offsets)
-        ]
-        return torch.stack(poses, 1)
+        offsets = enumerate(self.source_offsets)
+        poses = torch.stack([self.pose_net(target, sources[:, j], o < 0) for j, o in offsets], 1)
+        if "cam_to_body" not in batch:
+            return poses
+        E = batch["cam_to_body"].to(poses)[:, None]
+        return invert_pose(E) @ poses @ E
 
     @torch.no_grad()
     def pose_errors(self, batch: dict[str, Any]) -> dict[str, Tensor]:
         """The PoseNet against the batch's true relative poses (odometry, or the synthetic world's exact
-        ones): mean rotation error and translation-direction error (degrees, scale-free), and the median
-        ratio of predicted to true translation length (the PoseNet's drifting scale)."""
+        ones): mean rotation error and translation-direction error (degrees, scale-free), the fraction
+        of translations pointing backwards, and the median ratio of predicted to true translation
+        length (the PoseNet's drifting scale)."""
         predicted, true = self.relative_poses(batch).double(), batch["poses"].double()
         moving = true[..., :3, 3].norm(dim=-1) > 1e-6
         ratio = predicted[..., :3, 3].norm(dim=-1)[moving] / true[..., :3, 3].norm(dim=-1)[moving]
+        direction = translation_direction_error_deg(predicted[moving], true[moving])
+        nan = torch.tensor(float("nan"))
         return {
             "rotation_deg": rotation_error_deg(predicted, true).mean().float(),
-            "direction_deg": translation_direction_error_deg(predicted[moving], true[moving]).mean().float(),
-            "scale": ratio.median().float() if ratio.numel() else torch.tensor(float("nan")),
+            "direction_deg": direction.mean().float() if direction.numel() else nan,
+            # a PoseNet that learned one motion for cameras facing opposite ways is right for one and
+            # reversed for the other: a mean direction error near 90 degrees, half of it reversed
+            "reversed": (direction > 90).double().mean().float() if direction.numel() else nan,
+            "scale": ratio.median().float() if ratio.numel() else nan,
         }
 
     def losses(
@@ -156,7 +176,7 @@ class FisheyeDepthModule(L.LightningModule):
                 )
                 warped.append(sample(sources[:, j], warp.grid))
                 valid.append(warp.valid)
-            photo, used = self.reprojection(
+            photo, used, measured = self.reprojection(
                 target, torch.stack(warped, 1), torch.stack(valid, 1), identity, mask
             )
             disp = outputs["disp"][s]
@@ -164,6 +184,7 @@ class FisheyeDepthModule(L.LightningModule):
             smooth = edge_aware_smoothness(disp, image_s)
             total = total + photo + self.smoothness / 2**s * smooth
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
+            logs[f"automasked/{s}"] = measured
         total = total / len(self.scales)
         logs["loss"] = total
         return total, logs
@@ -235,7 +256,8 @@ class FisheyeDepthModule(L.LightningModule):
         loss, logs = self.losses(batch, outputs)
         batch_size = len(batch["camera"])
         self.log(f"{stage}/loss", loss, batch_size=batch_size, sync_dist=True)
-        photometric = torch.stack([logs[f"photometric/{s}"] for s in self.scales]).mean()
+        # the selection criterion: Monodepth2's automasked photometric error, comparable across epochs
+        photometric = torch.stack([logs[f"automasked/{s}"] for s in self.scales]).mean()
         self.log(f"{stage}/photometric", photometric, batch_size=batch_size, sync_dist=True)
         if self.pose_net is not None and "poses" in batch:
             self.log_dict(

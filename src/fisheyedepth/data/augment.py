@@ -58,7 +58,8 @@ def colour_jitter(
 
 def flip_sample(sample: dict[str, Any]) -> dict[str, Any]:
     """Mirror a sample left-right: images, masks and ground truth flip, the camera model flips
-    (``u0 -> W - 1 - u0``, and what the model needs), and relative poses mirror (``M T M``)."""
+    (``u0 -> W - 1 - u0``, and what the model needs), relative poses mirror (``M T M``) and the
+    camera-to-body extrinsic becomes ``E M``, so ``(E M)^-1 T_body (E M)`` is the mirrored pose."""
     out = dict(sample)
     for key in ("image", "image_aug", "sources", "sources_aug", "mask", "source_mask", "distance"):
         if key in out:
@@ -67,7 +68,12 @@ def flip_sample(sample: dict[str, Any]) -> dict[str, Any]:
     if "source_camera" in out:
         out["source_camera"] = [c.flip() for c in sample["source_camera"]]
     out["poses"] = mirror_pose_x(sample["poses"])
+    if "cam_to_body" in out:  # the mirrored camera: X_body = E X = (E M)(M X), so E' = E M
+        out["cam_to_body"] = sample["cam_to_body"] * _MIRROR_COLUMNS.to(sample["cam_to_body"])
     return out
+
+
+_MIRROR_COLUMNS = torch.tensor([-1.0, 1.0, 1.0, 1.0])  # right-multiplying by diag(-1, 1, 1, 1)
 
 
 @dataclasses.dataclass(frozen=True)

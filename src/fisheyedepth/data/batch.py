@@ -8,7 +8,8 @@ A sample (and, stacked, a batch) is a dict:
 | ``image_aug`` | ``[3, H, W]`` | optional: the network's input (colour-jittered); defaults to ``image`` |
 | ``sources`` | ``[S, 3, H, W]`` | source frames (t-1, t+1, ...), un-augmented |
 | ``sources_aug`` | ``[S, 3, H, W]`` | optional: PoseNet's input; defaults to ``sources`` |
-| ``poses`` | ``[S, 4, 4]`` float64 | real-scale ``T_target_to_source`` for each source |
+| ``poses`` | ``[S, 4, 4]`` float32 | real-scale ``T_target_to_source`` for each source |
+| ``cam_to_body`` | ``[4, 4]`` float | optional: camera-to-body extrinsic ``E`` (``E M`` after a flip) |
 | ``mask`` | ``[1, H, W]`` float | target body mask, 1 = usable pixel |
 | ``source_mask`` | ``[S, 1, H, W]`` | optional: sources' body masks (default: ``mask``, same camera) |
 | ``distance`` | ``[1, H, W]`` float | optional ground-truth distance in metres, 0 = unknown |

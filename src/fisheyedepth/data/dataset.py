@@ -298,6 +298,7 @@ class FisheyeDataset(Dataset):
             T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E)
             poses.append(self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{offset}"))
         sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
+        sample["cam_to_body"] = E.float()  # lets a PoseNet predict the body's motion, like odometry
         size = (camera.width, camera.height)
         if spec.mask is not None:
             mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)

@@ -2,6 +2,13 @@
 edge-aware smoothness."""
 
 from .photometric import photometric_error, ssim
-from .selfsup import ReprojectionLoss, edge_aware_smoothness, min_reprojection
+from .selfsup import ReprojectionLoss, automasked_error, edge_aware_smoothness, min_reprojection
 
-__all__ = ["ReprojectionLoss", "edge_aware_smoothness", "min_reprojection", "photometric_error", "ssim"]
+__all__ = [
+    "ReprojectionLoss",
+    "automasked_error",
+    "edge_aware_smoothness",
+    "min_reprojection",
+    "photometric_error",
+    "ssim",
+]

@@ -33,6 +33,20 @@ def min_reprojection(
     return torch.where(used, best, torch.zeros_like(best)), used
 
 
+def automasked_error(reprojection: Tensor, valid: Tensor, identity: Tensor | None, mask: Tensor) -> Tensor:
+    """Monodepth2's photometric loss as a measurement: the mean over the target's usable pixels of the
+    per-pixel minimum over every validly warped source *and* every unwarped source (no tie-breaking
+    noise). A better warp can only lower it, so it compares epochs and checkpoints (the training loss,
+    normalised by the pixels the warps win, does not: it rises as harder pixels start to count).
+
+    ``reprojection``, ``valid``, ``identity``: ``[B, S, H, W]``; ``mask``: ``[B, H, W]``."""
+    best = torch.where(valid, reprojection, torch.full_like(reprojection, float("inf"))).min(1).values
+    if identity is not None:
+        best = torch.minimum(best, identity.min(1).values)
+    keep = mask & torch.isfinite(best)
+    return best[keep].mean() if bool(keep.any()) else best.new_zeros(())
+
+
 def edge_aware_smoothness(disp: Tensor, image: Tensor) -> Tensor:
     """Mean of ``|d disp*| exp(-|d I|)`` over x and y, with ``disp* = disp / mean(disp)`` per sample."""
     disp = disp / (disp.mean((2, 3), keepdim=True) + 1e-7)
@@ -64,7 +78,7 @@ class ReprojectionLoss:
 
     def __call__(
         self, target: Tensor, warped: Tensor, valid: Tensor, identity: Tensor | None, mask: Tensor
-    ) -> tuple[Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """
         Args:
             target: ``[B, 3, H, W]`` un-augmented target image.
@@ -72,9 +86,14 @@ class ReprojectionLoss:
             valid: ``[B, S, H, W]`` warp validity (includes the source body masks).
             identity: ``[B, S, H, W]`` from :meth:`identity`, or None.
             mask: ``[B, H, W]`` target pixels that may contribute (body mask and pixels with a ray).
-        The loss is normalised by the number of used pixels, never by a count including masked ones.
+        Returns ``(loss, used fraction, automasked error)``: the loss is normalised by the number of used
+        pixels, never by a count including masked ones; the automasked error (:func:`automasked_error`,
+        no gradient needed) is what validation compares across epochs.
         """
-        loss, used = min_reprojection(self.photometric(warped, target), valid & mask[:, None], identity)
+        errors = self.photometric(warped, target)
+        loss, used = min_reprojection(errors, valid & mask[:, None], identity)
         used = used & mask
         n = used.sum()
-        return (loss * used).sum() / n.clamp_min(1), n / used.numel()
+        with torch.no_grad():
+            measured = automasked_error(errors, valid & mask[:, None], identity, mask)
+        return (loss * used).sum() / n.clamp_min(1), n / used.numel(), measured
