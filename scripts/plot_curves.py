@@ -35,7 +35,8 @@ def runs_under(paths: list[str]) -> list[Path]:
     """Run folders (those holding ``logs/``) at or below each path."""
     out: list[Path] = []
     for p in map(Path, paths):
-        out += sorted({m.parents[2] for m in p.rglob("metrics.csv") if m.parent.parent.name == "logs"})
+        found = sorted({m.parents[2] for m in p.rglob("metrics.csv") if m.parent.parent.name == "logs"})
+        out += [r for r in found if r not in out]
     return out
 
 
@@ -68,12 +69,16 @@ def main(argv=None) -> int:
     parser.add_argument("runs", nargs="+", help="run folders or sweep folders")
     parser.add_argument("--out", required=True, help="PNG to write")
     parser.add_argument("--csv", help="also write the numbers as CSV")
+    parser.add_argument("--labels", nargs="+", help="one label per run, in order (default: experiment)")
     args = parser.parse_args(argv)
     runs = runs_under(args.runs)
     if not runs:
         print(f"no runs with logs/*/metrics.csv under {args.runs}", file=sys.stderr)
         return 2
-    names = [run_name(r) for r in runs]
+    if args.labels and len(args.labels) != len(runs):
+        print(f"--labels: {len(args.labels)} labels for {len(runs)} runs", file=sys.stderr)
+        return 2
+    names = args.labels or [run_name(r) for r in runs]
     data = {
         (f"{name} ({run.name})" if names.count(name) > 1 else name): curves(run)
         for name, run in zip(names, runs, strict=True)
@@ -85,8 +90,12 @@ def main(argv=None) -> int:
     import matplotlib.pyplot as plt
 
     shown = [(k, title) for k, title in PANELS if any(k in c for c in data.values())]
-    fig, axes = plt.subplots(1, len(shown), figsize=(4.2 * len(shown), 3.6), squeeze=False)
-    for ax, (key, title) in zip(axes[0], shown, strict=True):
+    cols = min(4, len(shown))
+    rows = -(-len(shown) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    for ax in axes.flat[len(shown) :]:
+        ax.axis("off")
+    for ax, (key, title) in zip(axes.flat, shown, strict=False):
         for name, c in data.items():
             if key in c:
                 epochs = sorted(c[key])
@@ -94,7 +103,7 @@ def main(argv=None) -> int:
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7)
+    axes.flat[0].legend(fontsize=7)
     fig.tight_layout()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
