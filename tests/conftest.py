@@ -79,6 +79,20 @@ def realdata() -> Path:
 
 TRAIN_SEQ = "2013_05_28_drive_0000_sync"
 
+# train.py overrides for smoke runs: a 12-frame 64 px world rendered in-process, 64 px training
+TINY = [
+    "data.generate.frames=12",
+    "data.generate.size=64",
+    "data.generate.supersample=1",
+    "data.generate.workers=0",
+    "data.datamodule.size=[64,64]",
+    "data.datamodule.batch_size=2",
+    "data.datamodule.num_workers=0",
+    "model.scales=[0,1]",
+    "eval.pictures=2",
+    "trainer.log_every_n_steps=1",
+]
+
 
 @pytest.fixture(scope="session")
 def kitti_data(tmp_path_factory):

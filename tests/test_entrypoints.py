@@ -12,20 +12,10 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
+from conftest import TINY
+
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
-TINY = [
-    "data.generate.frames=12",
-    "data.generate.size=64",
-    "data.generate.supersample=1",
-    "data.generate.workers=0",
-    "data.datamodule.size=[64,64]",
-    "data.datamodule.batch_size=2",
-    "data.datamodule.num_workers=0",
-    "model.scales=[0,1]",
-    "eval.pictures=2",
-    "trainer.log_every_n_steps=1",
-]
 
 
 def compose_train(overrides):

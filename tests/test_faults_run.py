@@ -34,21 +34,13 @@ from fisheyedepth.images import ImageError, read_image
 from fisheyedepth.inference import DistancePredictor
 from fisheyedepth.utils import atomic_write_text
 
-from conftest import TRAIN_SEQ
+from conftest import TINY, TRAIN_SEQ
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "data.generate.frames=12",
-    "data.generate.size=64",
-    "data.generate.supersample=1",
-    "data.generate.workers=0",
-    "data.datamodule.size=[64,64]",
-    "data.datamodule.batch_size=2",
-    "data.datamodule.num_workers=0",
-    "model.scales=[0,1]",
+TINY_RUN = [
+    *(o for o in TINY if not o.startswith("eval.")),
     "eval.pictures=1",
     "eval.protocols=[full]",
-    "trainer.log_every_n_steps=1",
     "callbacks.progress=null",
 ]
 
@@ -94,7 +86,8 @@ def data_dir(tmp_path_factory):
 
 def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_dir, tmp_path):
     run_dir = tmp_path / "run"
-    args = [f"paths.data_dir={data_dir}", f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=3", *TINY]
+    args = [f"paths.data_dir={data_dir}", f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=3"]
+    args += TINY_RUN
     proc = subprocess.Popen(
         [sys.executable, str(ROOT / "train.py"), "trainer.max_epochs=200", *args],
         cwd=ROOT,
