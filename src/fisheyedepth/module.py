@@ -177,14 +177,15 @@ class FisheyeDepthModule(L.LightningModule):
                 warped.append(sample(sources[:, j], warp.grid))
                 valid.append(warp.valid)
             photo, used, measured = self.reprojection(
-                target, torch.stack(warped, 1), torch.stack(valid, 1), identity, mask
+                target, torch.stack(warped, 1), torch.stack(valid, 1), identity, mask, not self.training
             )
             disp = outputs["disp"][s]
             image_s = F.interpolate(target, size=disp.shape[-2:], mode="area") if s else target
             smooth = edge_aware_smoothness(disp, image_s)
             total = total + photo + self.smoothness / 2**s * smooth
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
-            logs[f"automasked/{s}"] = measured
+            if measured is not None:  # validation's criterion; not computed in the training step
+                logs[f"automasked/{s}"] = measured
         total = total / len(self.scales)
         logs["loss"] = total
         return total, logs

@@ -77,8 +77,14 @@ class ReprojectionLoss:
         return self.photometric(sources, target) if self.automask else None
 
     def __call__(
-        self, target: Tensor, warped: Tensor, valid: Tensor, identity: Tensor | None, mask: Tensor
-    ) -> tuple[Tensor, Tensor, Tensor]:
+        self,
+        target: Tensor,
+        warped: Tensor,
+        valid: Tensor,
+        identity: Tensor | None,
+        mask: Tensor,
+        measure: bool = True,
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
         """
         Args:
             target: ``[B, 3, H, W]`` un-augmented target image.
@@ -88,12 +94,15 @@ class ReprojectionLoss:
             mask: ``[B, H, W]`` target pixels that may contribute (body mask and pixels with a ray).
         Returns ``(loss, used fraction, automasked error)``: the loss is normalised by the number of used
         pixels, never by a count including masked ones; the automasked error (:func:`automasked_error`,
-        no gradient needed) is what validation compares across epochs.
+        no gradient needed) is what validation compares across epochs; None without ``measure`` (the
+        training step does not need it).
         """
         errors = self.photometric(warped, target)
         loss, used = min_reprojection(errors, valid & mask[:, None], identity)
         used = used & mask
         n = used.sum()
-        with torch.no_grad():
-            measured = automasked_error(errors, valid & mask[:, None], identity, mask)
+        measured = None
+        if measure:
+            with torch.no_grad():
+                measured = automasked_error(errors, valid & mask[:, None], identity, mask)
         return (loss * used).sum() / n.clamp_min(1), n / used.numel(), measured
