@@ -84,6 +84,8 @@ def main(argv=None) -> int:
     tables_arg = " ".join(args.tables)
     seeds = " ".join(map(str, args.seeds))
     command = f"python scripts/reproduce.py --epochs {args.epochs} --tables {tables_arg} --seeds {seeds}"
+    if args.extra:
+        command += " --extra " + " ".join(args.extra)
     section = (
         "\n".join(
             [

@@ -2,9 +2,16 @@
 edge-aware smoothness."""
 
 from .photometric import photometric_error, ssim
-from .selfsup import ReprojectionLoss, automasked_error, edge_aware_smoothness, min_reprojection
+from .selfsup import (
+    INVALID_WARP_ERROR,
+    ReprojectionLoss,
+    automasked_error,
+    edge_aware_smoothness,
+    min_reprojection,
+)
 
 __all__ = [
+    "INVALID_WARP_ERROR",
     "ReprojectionLoss",
     "automasked_error",
     "edge_aware_smoothness",

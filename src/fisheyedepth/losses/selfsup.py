@@ -9,42 +9,52 @@ from torch import Tensor
 
 from .photometric import photometric_error
 
+INVALID_WARP_ERROR = 1.0
+"""What a source costs at a pixel its warp cannot reach (outside the source image, no ray, body) when
+its unwarped error is not given: the largest photometric error (0.85 + 0.15 for images in [0, 1])."""
+
 
 def min_reprojection(
-    reprojection: Tensor, valid: Tensor, identity: Tensor | None = None, noise: float = 1e-5
+    reprojection: Tensor,
+    valid: Tensor,
+    unwarped: Tensor | None = None,
+    automask: bool = True,
+    noise: float = 1e-5,
 ) -> tuple[Tensor, Tensor]:
-    """Per-pixel minimum over sources, and where it is used.
+    """Monodepth2's per-pixel minimum over the warped sources and, with auto-masking, the unwarped ones.
 
     Args:
         reprojection: ``[B, S, H, W]`` photometric error of each warped source.
-        valid: ``[B, S, H, W]`` the warp of that source is meaningful (see ``warp_to_source``).
-        identity: ``[B, S, H, W]`` error of the *unwarped* sources (auto-masking), or None.
+        valid: ``[B, S, H, W]`` the warp of that source is meaningful (see ``warp_to_source``). A pixel
+            that no source's warp reaches costs the best unwarped error there (what it costs not to warp;
+            :data:`INVALID_WARP_ERROR` without ``unwarped``), never zero: every pixel counts, so a network
+            cannot lower its loss by pushing warps out of the image.
+        unwarped: ``[B, S, H, W]`` error of the *unwarped* sources, or None.
+        automask: also take the minimum over the unwarped sources (needs ``unwarped``).
+        noise: tie-breaking noise added to the unwarped errors for auto-masking (0 to measure).
     Returns:
-        ``(loss [B, H, W], used [B, H, W] bool)``: a pixel is used when at least one source warps validly
-        to it and (with auto-masking) the best warp explains it better than every unwarped source; a small
-        noise breaks ties as in Monodepth2.
+        ``(error [B, H, W], used [B, H, W] bool)``: every pixel has an error; it depends on the distance
+        only where it is used, i.e. where a valid warp gives the minimum.
     """
-    inf = torch.full_like(reprojection, float("inf"))
-    best, _ = torch.where(valid, reprojection, inf).min(1)
-    used = torch.isfinite(best)
-    if identity is not None:
-        identity = identity + noise * torch.randn_like(identity)
-        used = used & (best < identity.min(1).values)
-    return torch.where(used, best, torch.zeros_like(best)), used
-
-
-def automasked_error(reprojection: Tensor, valid: Tensor, identity: Tensor | None, mask: Tensor) -> Tensor:
-    """Monodepth2's photometric loss as a measurement: the mean over the target's usable pixels of the
-    per-pixel minimum over every validly warped source *and* every unwarped source (no tie-breaking
-    noise). A better warp can only lower it, so it compares epochs and checkpoints (the training loss,
-    normalised by the pixels the warps win, does not: it rises as harder pixels start to count).
-
-    ``reprojection``, ``valid``, ``identity``: ``[B, S, H, W]``; ``mask``: ``[B, H, W]``."""
     best = torch.where(valid, reprojection, torch.full_like(reprojection, float("inf"))).min(1).values
-    if identity is not None:
-        best = torch.minimum(best, identity.min(1).values)
-    keep = mask & torch.isfinite(best)
-    return best[keep].mean() if bool(keep.any()) else best.new_zeros(())
+    used = torch.isfinite(best)
+    fallback = unwarped.min(1).values if unwarped is not None else torch.full_like(best, INVALID_WARP_ERROR)
+    best = torch.where(used, best, fallback)
+    if automask and unwarped is not None:
+        still = (unwarped + noise * torch.randn_like(unwarped) if noise else unwarped).min(1).values
+        used = used & (best < still)
+        best = torch.minimum(best, still)
+    return best, used
+
+
+def automasked_error(reprojection: Tensor, valid: Tensor, unwarped: Tensor | None, mask: Tensor) -> Tensor:
+    """Monodepth2's auto-masked photometric loss as a measurement: :func:`min_reprojection` without
+    tie-breaking noise, averaged over the target's usable pixels (``mask``). A better warp can only
+    lower it, so it compares epochs and checkpoints.
+
+    ``reprojection``, ``valid``, ``unwarped``: ``[B, S, H, W]``; ``mask``: ``[B, H, W]``."""
+    best, _ = min_reprojection(reprojection, valid, unwarped, automask=True, noise=0.0)
+    return best[mask].mean() if bool(mask.any()) else best.new_zeros(())
 
 
 def edge_aware_smoothness(disp: Tensor, image: Tensor) -> Tensor:
@@ -71,10 +81,10 @@ class ReprojectionLoss:
         rep = target[:, None].expand(B, S, *target.shape[1:]).reshape(B * S, *target.shape[1:])
         return photometric_error(flat, rep, self.alpha).reshape(B, S, *target.shape[2:])
 
-    def identity(self, sources: Tensor, target: Tensor) -> Tensor | None:
-        """Errors of the unwarped sources for auto-masking (None when it is off); the same at every scale,
-        so compute it once per step."""
-        return self.photometric(sources, target) if self.automask else None
+    def identity(self, sources: Tensor, target: Tensor) -> Tensor:
+        """Errors of the unwarped sources (auto-masking, and the cost of a warp that cannot reach a
+        pixel); the same at every scale, so compute it once per step."""
+        return self.photometric(sources, target)
 
     def __call__(
         self,
@@ -90,19 +100,23 @@ class ReprojectionLoss:
             target: ``[B, 3, H, W]`` un-augmented target image.
             warped: ``[B, S, 3, H, W]`` sources sampled at the warp.
             valid: ``[B, S, H, W]`` warp validity (includes the source body masks).
-            identity: ``[B, S, H, W]`` from :meth:`identity`, or None.
+            identity: ``[B, S, H, W]`` from :meth:`identity` (or None: unreachable pixels cost
+                :data:`INVALID_WARP_ERROR`).
             mask: ``[B, H, W]`` target pixels that may contribute (body mask and pixels with a ray).
-        Returns ``(loss, used fraction, automasked error)``: the loss is normalised by the number of used
-        pixels, never by a count including masked ones; the automasked error (:func:`automasked_error`,
-        no gradient needed) is what validation compares across epochs; None without ``measure`` (the
-        training step does not need it).
+        Returns ``(loss, used fraction, automasked error)``: the loss is the mean of
+        :func:`min_reprojection` over the usable pixels (``mask``): a pixel the warps do not win costs
+        its unwarped error and still counts, as in Monodepth2's mean
+        over all pixels, so discarding pixels never pays. The used fraction is of the usable pixels;
+        the automasked error (:func:`automasked_error`, no gradient) is what validation compares
+        across epochs; None without ``measure`` (the training step does not need it).
         """
         errors = self.photometric(warped, target)
-        loss, used = min_reprojection(errors, valid & mask[:, None], identity)
+        valid = valid & mask[:, None]
+        best, used = min_reprojection(errors, valid, identity, self.automask)
         used = used & mask
-        n = used.sum()
+        n = mask.sum().clamp_min(1)
         measured = None
         if measure:
             with torch.no_grad():
-                measured = automasked_error(errors, valid & mask[:, None], identity, mask)
-        return (loss * used).sum() / n.clamp_min(1), n / used.numel(), measured
+                measured = automasked_error(errors, valid, identity, mask)
+        return (best * mask).sum() / n, used.sum() / n, measured
