@@ -19,23 +19,22 @@ from pathlib import Path
 
 METRICS = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
 PAPER = {
-    "table1_monodepth2": (0.602, 1.804, 1.788, 0.563, 0.426, 0.685, 0.835),
     "table1_dnet": (0.558, 1.746, 1.802, 0.560, 0.443, 0.691, 0.838),
     "table1_fsnet": (0.464, 1.117, 1.125, 0.339, 0.613, 0.768, 0.868),
     "table1_fsnet_rs": (0.435, 1.012, 0.937, 0.309, 0.633, 0.792, 0.871),
-    "table1_fisheyedepth": (0.106, 0.407, 0.927, 0.170, 0.920, 0.975, 0.989),
     "ablation_baseline": (0.602, 1.804, 1.788, 0.563, 0.426, 0.685, 0.835),
     "ablation_fft_only": (0.205, 0.547, 1.066, 0.266, 0.726, 0.903, 0.971),
     "ablation_fft_rs": (0.115, 0.672, 1.163, 0.173, 0.912, 0.972, 0.987),
     "ablation_fft_mc": (0.126, 0.647, 1.150, 0.180, 0.893, 0.969, 0.987),
     "ablation_full": (0.106, 0.407, 0.927, 0.170, 0.920, 0.975, 0.989),
 }
+# Table 1's Monodepth2 and FisheyeDepth rows are Table 2's baseline and full model: one experiment each
 TABLE1 = [
-    ("table1_monodepth2", "Monodepth2"),
+    ("ablation_baseline", "Monodepth2"),
     ("table1_dnet", "DNet"),
     ("table1_fsnet", "FSNet"),
     ("table1_fsnet_rs", "FSNet (real scale)"),
-    ("table1_fisheyedepth", "FisheyeDepth"),
+    ("ablation_full", "FisheyeDepth"),
 ]
 TABLE2 = [
     ("ablation_baseline", "Monodepth2 baseline"),

@@ -6,6 +6,7 @@ import os
 from pathlib import Path
 
 import pytest
+import yaml
 
 from fisheyedepth.cameras import DoubleSphereCamera, KannalaBrandtCamera, MeiCamera, PinholeCamera
 from fisheyedepth.cameras.presets import (
@@ -79,19 +80,20 @@ def realdata() -> Path:
 
 TRAIN_SEQ = "2013_05_28_drive_0000_sync"
 
-# train.py overrides for smoke runs: a 12-frame 64 px world rendered in-process, 64 px training
-TINY = [
-    "data.generate.frames=12",
-    "data.generate.size=64",
-    "data.generate.supersample=1",
-    "data.generate.workers=0",
-    "data.datamodule.size=[64,64]",
-    "data.datamodule.batch_size=2",
-    "data.datamodule.num_workers=0",
-    "model.scales=[0,1]",
-    "eval.pictures=2",
-    "trainer.log_every_n_steps=1",
-]
+
+def _overrides(tree, prefix=""):
+    """``a.b=value`` overrides from a nested mapping (lists as Hydra writes them)."""
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            yield from _overrides(value, f"{prefix}{key}.")
+        else:
+            text = "[" + ",".join(map(str, value)) + "]" if isinstance(value, list) else str(value)
+            yield f"{prefix}{key}={text}"
+
+
+# train.py overrides for smoke runs, read from conf/debug/tiny.yaml (what `+debug=tiny` applies): a
+# 12-frame 64 px world rendered in-process, 64 px training. As a list, so a test can pick a subset.
+TINY = list(_overrides(yaml.safe_load((ROOT / "conf" / "debug" / "tiny.yaml").read_text())))
 
 
 @pytest.fixture(scope="session")

@@ -34,11 +34,9 @@ def test_every_experiment_composes(experiment):
         "ablation_fft_rs": (True, True, False),
         "ablation_fft_mc": (True, False, True),
         "ablation_full": (True, True, True),
-        "table1_monodepth2": (False, False, False),
         "table1_dnet": (False, False, False),
         "table1_fsnet": (False, False, True),
         "table1_fsnet_rs": (False, True, True),
-        "table1_fisheyedepth": (True, True, True),
     }[experiment]
     assert (m.fisheye_projection, m.real_scale, m.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
@@ -63,6 +61,42 @@ def test_config_groups_compose(group, option):
     cfg = compose_train([f"{group}={option}"])
     assert cfg[group] is not None or option == "none"
     assert "experiment" not in cfg  # the experiment group is not in the defaults list
+
+
+def compose_command(name, overrides=()):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides), return_hydra_config=True)
+
+
+def test_every_command_shares_paths_and_run_folders():
+    """One paths block and one hydra block for every command: only the task name differs."""
+    for name in ("train", "eval", "predict", "export"):
+        cfg = compose_command(name)
+        assert cfg.task_name == name
+        assert set(cfg.paths) == {"root_dir", "data_dir", "output_dir"}
+        assert cfg.hydra.run.dir.startswith(f"outputs/{name}/") and cfg.hydra.job.chdir is False
+        assert cfg.hydra.sweep.dir.startswith(f"multirun/{name}/")
+    for name in ("train.yaml", "eval.yaml", "predict.yaml", "export.yaml"):
+        text = (ROOT / "conf" / name).read_text()
+        assert "\npaths:" not in text and "\nhydra:" not in text, name  # through defaults only
+
+
+def test_trainers_share_one_base_and_clipping_has_one_name():
+    cpu, gpu, ddp = (compose_train([f"trainer={t}"]).trainer for t in ("cpu", "gpu", "ddp"))
+    for trainer in (cpu, gpu, ddp):
+        assert trainer.gradient_clip_val == 1.0 and trainer.num_sanity_val_steps == 1
+    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 10, 10)
+    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 20, 50)
+    assert ddp.strategy == "ddp" and ddp.sync_batchnorm is True
+    assert "grad_clip" not in compose_train([]).model
+
+
+def test_debug_tiny_is_what_the_smoke_tests_use():
+    cfg = compose_train(["+debug=tiny"])
+    assert cfg.data.generate.frames == 12 and list(cfg.data.datamodule.size) == [64, 64]
+    plain = compose_train(TINY)
+    for key in ("data", "model", "eval", "trainer"):
+        assert cfg[key] == plain[key], key
 
 
 def run(script, *args, env=None, cwd=None, timeout=600):
@@ -92,7 +126,7 @@ def test_fast_dev_run_through_train_py(workdir, experiment):
         "trainer.fast_dev_run=true",
         f"paths.data_dir={workdir}/data",
         f"hydra.run.dir={out}",
-        *TINY,
+        "+debug=tiny",
     )
     assert (
         workdir / "data" / "synthetic_kitti360_64_seed0_f12" / "synthetic.json"
@@ -134,6 +168,20 @@ def test_train_eval_resume_tables(workdir):
     )
     again = json.loads((evaluated / "results.json").read_text())
     assert again["checkpoint"].endswith("last.ckpt") and again["results"]["full"]["none"]["images"] > 0
+    assert again["split"] == "test" and again["train_size"] == [64, 64]
+    on_val = workdir / "eval_val"
+    run(
+        "eval.py",
+        f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
+        f"paths.data_dir={workdir}/data",
+        f"hydra.run.dir={on_val}",
+        "split=val",
+        *[o for o in TINY if o.startswith("data.") or o.startswith("eval.")],
+        "data.datamodule.size=[32,32]",  # the data config's size: the checkpoint's wins
+    )
+    val = json.loads((on_val / "results.json").read_text())
+    assert val["split"] == "val" and val["train_size"] == [64, 64]
+    assert val["results"]["full"]["none"]["abs_rel"] != again["results"]["full"]["none"]["abs_rel"]
 
     resumed = workdir / "run2"
     run(

@@ -187,6 +187,19 @@ def test_weight_shapes_that_do_not_fit_are_named(checkpoint, tmp_path):
         load_module(tmp_path / "shapes.ckpt")
 
 
+def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
+    """grad_clip left the model on 2026-11-23 (the trainer's gradient_clip_val is the only one)."""
+    ckpt = torch.load(checkpoint, weights_only=True)
+    ckpt["hyper_parameters"]["grad_clip"] = 1.0
+    torch.save(ckpt, tmp_path / "old.ckpt")
+    module = load_module(tmp_path / "old.ckpt")
+    assert "grad_clip" not in module.hparams
+    ckpt["hyper_parameters"]["no_such_key"] = 1.0  # an unknown key is still refused, by name
+    torch.save(ckpt, tmp_path / "foreign.ckpt")
+    with pytest.raises(CheckpointError, match="no_such_key"):
+        load_module(tmp_path / "foreign.ckpt")
+
+
 def test_resume_from_a_foreign_checkpoint_is_one_line(checkpoint, tmp_path):
     proc = python("train.py", f"ckpt_path={checkpoint}", f"hydra.run.dir={tmp_path / 'run'}", timeout=300)
     assert proc.returncode == EXIT_USAGE, proc.stderr[-2000:]

@@ -51,6 +51,9 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return ckpt
 
 
+RETIRED_HPARAMS = ("grad_clip",)  # 2026-11-23: clipping is the trainer's gradient_clip_val only
+
+
 def load_module(path: str | os.PathLike) -> FisheyeDepthModule:
     """A trained :class:`FisheyeDepthModule` from a Lightning checkpoint."""
     ckpt = read_checkpoint(path)
@@ -59,6 +62,8 @@ def load_module(path: str | os.PathLike) -> FisheyeDepthModule:
         raise CheckpointError(path, f"not a FisheyeDepth checkpoint (no {' / '.join(missing)})")
     hparams = dict(ckpt["hyper_parameters"])
     hparams["weights"] = None  # the ImageNet file of the training machine is not needed: weights follow
+    for key in RETIRED_HPARAMS:  # checkpoints written before a key was retired still load
+        hparams.pop(key, None)
     try:
         module = FisheyeDepthModule(**hparams)
     except TypeError as exc:

@@ -98,11 +98,13 @@ def run_evaluation(
     out_dir: Path,
     ckpt: str | None,
     extra: dict[str, Any],
+    split: str = "test",
 ) -> dict[str, Any]:
-    """Evaluate on the test split at the ground truth's native resolution; write ``results.json``."""
-    train_size = datamodule.size
+    """Evaluate ``split`` at the ground truth's native resolution, the network at the size it was
+    trained at (its checkpoint's ``input_size``); write ``results.json``."""
+    train_size = module.hparams.get("input_size") or datamodule.size
     native = instantiate(cfg.data.datamodule, size=None, augment=None, batch_size=4, num_workers=0)
-    loader = native.test_dataloader()
+    loader = native.dataloader(split)
     results = evaluate(
         module,
         loader,
@@ -120,6 +122,7 @@ def run_evaluation(
             k: module.hparams[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")
         },
         "data": str(cfg.data.datamodule.root),
+        "split": split,
         "train_size": list(train_size) if train_size else None,
         "results": results,
         "commit": _git_commit(),
@@ -187,7 +190,9 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     prepare_data(cfg)
     module = load_module(cfg.ckpt_path).to(cfg.get("device", "cpu"))
     datamodule = instantiate(cfg.data.datamodule)
-    return run_evaluation(cfg, module, datamodule, out_dir, str(cfg.ckpt_path), {})
+    return run_evaluation(
+        cfg, module, datamodule, out_dir, str(cfg.ckpt_path), {}, str(cfg.get("split", "test"))
+    )
 
 
 # ----------------------------------------------------------------------------------------------- predict

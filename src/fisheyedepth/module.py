@@ -58,7 +58,6 @@ class FisheyeDepthModule(L.LightningModule):
         weight_decay: float = 1e-5,
         lr_step: int = 8,
         lr_gamma: float = 0.1,
-        grad_clip: float | None = 1.0,
         eval_min: float = 1e-3,
         eval_max: float = 80.0,
         log_images_every: int = 200,
@@ -308,13 +307,6 @@ class FisheyeDepthModule(L.LightningModule):
         )
         scheduler = torch.optim.lr_scheduler.StepLR(optimizer, self.hparams.lr_step, self.hparams.lr_gamma)
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
-
-    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None):
-        value = gradient_clip_val if gradient_clip_val is not None else self.hparams.grad_clip
-        if value:
-            self.clip_gradients(
-                optimizer, gradient_clip_val=value, gradient_clip_algorithm=gradient_clip_algorithm or "norm"
-            )
 
     # ------------------------------------------------------------------------------- pictures
     def log_panel(self, stage: str, batch: dict[str, Any], distance: Tensor) -> None:

@@ -137,7 +137,11 @@ class FisheyeDataModule(L.LightningDataModule):
         return self._loader("val", shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader("test", shuffle=False)
+        return self.dataloader("test")
+
+    def dataloader(self, split: str) -> DataLoader:
+        """Any configured split in order, unshuffled (evaluation)."""
+        return self._loader(split, shuffle=False)
 
     def predict_dataloader(self) -> DataLoader:
         return self._loader("test", shuffle=False)
