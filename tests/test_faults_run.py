@@ -55,7 +55,8 @@ def python(*args, **kwargs):
 def predict_cfg(**values):
     """The predict.py config as Hydra would compose it, without Hydra's runtime."""
     cfg = OmegaConf.load(ROOT / "conf" / "predict.yaml")
-    del cfg["hydra"]
+    for hydra_only in ("defaults", "hydra"):
+        cfg.pop(hydra_only, None)
     cfg.paths = {"output_dir": "unused"}
     return OmegaConf.merge(cfg, {k: str(v) if isinstance(v, Path) else v for k, v in values.items()})
 
