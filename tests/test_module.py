@@ -93,8 +93,16 @@ def test_multi_channel_switch_replaces_only_the_heads():
         FisheyeDepthModule(real_scale=False),
         FisheyeDepthModule(real_scale=False, multi_channel=False),
     )
-    assert single_pose.depth_net.initial_distance == pytest.approx(1 / (1 / 150 + (2 - 1 / 150) / 2))
+    # both heads start at the binned head's first distance (26 m), not Monodepth2's 1 m
     assert mc_pose.depth_net.initial_distance == pytest.approx(float(mc_pose.depth_net.bins.mean()))
+    assert single_pose.depth_net.initial_distance == mc_pose.depth_net.initial_distance
+    assert 25.0 < single_pose.depth_net.initial_distance < 28.0
+    torch.manual_seed(0)
+    image = torch.rand(2, 3, 64, 64)
+    for m in (mc_pose, single_pose):
+        with torch.no_grad():
+            first = m.depth_net.eval()(image, scales=(0,))["distance"][0]
+        assert first.median().item() == pytest.approx(m.depth_net.initial_distance, rel=0.25)
     for m in (mc_pose, single_pose):
         assert m.pose_net.decoder.translation_scale == pytest.approx(0.05 * m.depth_net.initial_distance)
 
@@ -166,7 +174,7 @@ def test_lightning_fit_validate_predict_and_skip_non_finite_batches(kitti_data, 
 @pytest.mark.parametrize("multi_channel", [False, True])
 def test_a_posenet_row_learns_its_poses_on_a_tiny_world(kitti_data, multi_channel):
     """The PoseNet rows used to start late or never: Monodepth2's 0.01 m translation unit against a head
-    that starts at 1 m (sigmoid) or 27 m (bins) made the first warps 5x-130x too short, and a PoseNet
+    that started at 1 m (sigmoid) or 26 m (bins) made the first warps 5x-130x too short, and a PoseNet
     predicting each camera's own motion learned one motion for both side cameras (reversed for one).
     With the unit tied to the head's first distance and the body's motion predicted, the photometric
     loss falls and the translation direction is learned, for both cameras, within 40 steps."""

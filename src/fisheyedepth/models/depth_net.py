@@ -8,7 +8,15 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .heads import MultiChannelHead, SigmoidHead, conv3x3, distance_bins, gather_output, sigmoid_to_distance
+from .heads import (
+    MultiChannelHead,
+    SigmoidHead,
+    conv3x3,
+    distance_bins,
+    distance_to_sigmoid,
+    gather_output,
+    sigmoid_to_distance,
+)
 from .resnet import ResNetEncoder
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)
@@ -78,21 +86,20 @@ class DepthNet(nn.Module):
         self.decoder = DepthDecoder(self.encoder.channels, scales)
         self.multi_channel, self.scales = multi_channel, tuple(scales)
         self.min_distance, self.max_distance = min_distance, max_distance
+        bins = distance_bins(n_bins, min_distance, max_distance)
+        # Both heads start at the same distance, the binned head's (equal logits: the bins' mean, 26 m
+        # for 64 bins over 0.5-150 m), so the head switch changes the head and nothing else. Monodepth2's
+        # sigmoid of 0.5 would start at 1 m, where metric poses (about 1 m per frame) warp most pixels
+        # far off their match; FFT + RS collapsed to the 0.5 m floor from there in one of two seeds.
+        self.initial_distance = float(bins.mean())
         if multi_channel:
             self.heads = nn.ModuleDict(
                 {str(s): MultiChannelHead(DECODER_CHANNELS[s], n_bins, attention) for s in scales}
             )
-            self.register_buffer("bins", distance_bins(n_bins, min_distance, max_distance), persistent=False)
+            self.register_buffer("bins", bins, persistent=False)
         else:
-            self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s]) for s in scales})
-
-    @property
-    def initial_distance(self) -> float:
-        """The distance the head predicts before training (equal logits, or a sigmoid of 0.5), metres:
-        the log-bins' mean for the binned head (26 m for 0.5-150 m), 1 m for the sigmoid head."""
-        if self.multi_channel:
-            return float(self.bins.mean())
-        return float(sigmoid_to_distance(torch.tensor(0.5), self.min_distance, self.max_distance))
+            initial = float(distance_to_sigmoid(torch.tensor(self.initial_distance), min_distance, max_distance))
+            self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s], initial) for s in scales})
 
     def forward(
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None

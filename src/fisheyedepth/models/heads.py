@@ -34,7 +34,7 @@ def gather_output(
     """
     p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
     d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
-    disp = (1.0 / d - 1.0 / max_distance) / (1.0 / min_distance - 1.0 / max_distance)
+    disp = distance_to_sigmoid(d, min_distance, max_distance)
     scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
     return d * scale, disp
 
@@ -43,6 +43,11 @@ def sigmoid_to_distance(sigmoid: Tensor, min_distance: float, max_distance: floa
     """Monodepth2's ``disp_to_depth``: inverse distance linear in the sigmoid between 1/max and 1/min."""
     inv = 1.0 / max_distance + (1.0 / min_distance - 1.0 / max_distance) * sigmoid
     return 1.0 / inv
+
+
+def distance_to_sigmoid(distance: Tensor, min_distance: float, max_distance: float) -> Tensor:
+    """The inverse of :func:`sigmoid_to_distance`: ``(1/d - 1/max) / (1/min - 1/max)``."""
+    return (1.0 / distance - 1.0 / max_distance) / (1.0 / min_distance - 1.0 / max_distance)
 
 
 class MultiChannelHead(nn.Module):
@@ -60,11 +65,15 @@ class MultiChannelHead(nn.Module):
 
 
 class SigmoidHead(nn.Module):
-    """Monodepth2's single sigmoid channel."""
+    """Monodepth2's single sigmoid channel; its bias starts at ``logit(initial)``, so before training the
+    head outputs ``initial`` on average (Monodepth2: 0.5)."""
 
-    def __init__(self, in_ch: int):
+    def __init__(self, in_ch: int, initial: float = 0.5):
         super().__init__()
+        if not 0.0 < initial < 1.0:
+            raise ValueError(f"SigmoidHead: initial must lie in (0, 1), got {initial}")
         self.conv = conv3x3(in_ch, 1)
+        nn.init.constant_(self.conv[1].bias, math.log(initial / (1.0 - initial)))
 
     def forward(self, x: Tensor) -> Tensor:
         return torch.sigmoid(self.conv(x))
