@@ -4,7 +4,8 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import eval_checkpoint, run_command
+from fisheyedepth.cli import run_command
+from fisheyedepth.cli.evaluate import eval_checkpoint
 
 
 @hydra.main(config_path="conf", config_name="eval", version_base="1.3")

@@ -4,7 +4,8 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import export, run_command
+from fisheyedepth.cli import run_command
+from fisheyedepth.cli.export import export
 
 
 @hydra.main(config_path="conf", config_name="export", version_base="1.3")

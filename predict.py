@@ -4,7 +4,8 @@
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import predict, run_command
+from fisheyedepth.cli import run_command
+from fisheyedepth.cli.predict import predict
 
 
 @hydra.main(config_path="conf", config_name="predict", version_base="1.3")

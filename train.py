@@ -8,7 +8,8 @@ output folder. Sweeps: ``python train.py -m +experiment=ablation_full,ablation_f
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.entrypoints import run_command, train
+from fisheyedepth.cli import run_command
+from fisheyedepth.cli.train import train
 
 
 @hydra.main(config_path="conf", config_name="train", version_base="1.3")

@@ -20,8 +20,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from fisheyedepth.data import FisheyeDataModule  # noqa: E402
-from fisheyedepth.entrypoints import load_module  # noqa: E402
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
+from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     dm = FisheyeDataModule(args.data, args.layout, {args.split: f"splits/{args.split}.txt"}, batch_size=4)
     labels, scores = [], []
     for i, ckpt in enumerate(args.ckpt):
-        module = load_module(ckpt)
+        module = FisheyeDepthModule.from_checkpoint(ckpt)
         size = module.hparams.get("input_size")
         loader = dm._loader(args.split, shuffle=False)
         res = evaluate(

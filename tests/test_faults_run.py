@@ -28,10 +28,13 @@ from omegaconf import OmegaConf
 
 from fisheyedepth.cameras import CalibrationError, load_camera, load_yaml, save_camera
 from fisheyedepth.cameras.presets import kitti360_camera
-from fisheyedepth.checkpoints import CheckpointError, check_resumable, load_module, read_checkpoint
-from fisheyedepth.entrypoints import EXIT_USAGE, export, predict, run_command
+from fisheyedepth.checkpoints import CheckpointError, check_resumable, read_checkpoint
+from fisheyedepth.cli import EXIT_USAGE, run_command
+from fisheyedepth.cli.export import export
+from fisheyedepth.cli.predict import predict
 from fisheyedepth.images import ImageError, read_image
 from fisheyedepth.inference import DistancePredictor
+from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.utils import atomic_write_text
 
 from conftest import TINY, TRAIN_SEQ
@@ -171,7 +174,7 @@ def test_broken_checkpoints_are_named(checkpoint, tmp_path, kind, capsys):
     else:
         torch.save([torch.zeros(2)], path)
     with pytest.raises(CheckpointError) as info:
-        load_module(path)
+        FisheyeDepthModule.from_checkpoint(path)
     message = str(info.value)
     assert message.startswith(str(path)) and "\n" not in message
     with pytest.raises(CheckpointError, match="cannot resume|not a|empty|refused|holds"):
@@ -185,7 +188,7 @@ def test_weight_shapes_that_do_not_fit_are_named(checkpoint, tmp_path):
     ckpt["hyper_parameters"]["n_bins"] = 32
     torch.save(ckpt, tmp_path / "shapes.ckpt")
     with pytest.raises(CheckpointError, match="weights do not fit"):
-        load_module(tmp_path / "shapes.ckpt")
+        FisheyeDepthModule.from_checkpoint(tmp_path / "shapes.ckpt")
 
 
 def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
@@ -193,12 +196,12 @@ def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
     ckpt = torch.load(checkpoint, weights_only=True)
     ckpt["hyper_parameters"]["grad_clip"] = 1.0
     torch.save(ckpt, tmp_path / "old.ckpt")
-    module = load_module(tmp_path / "old.ckpt")
+    module = FisheyeDepthModule.from_checkpoint(tmp_path / "old.ckpt")
     assert "grad_clip" not in module.hparams
     ckpt["hyper_parameters"]["no_such_key"] = 1.0  # an unknown key is still refused, by name
     torch.save(ckpt, tmp_path / "foreign.ckpt")
     with pytest.raises(CheckpointError, match="no_such_key"):
-        load_module(tmp_path / "foreign.ckpt")
+        FisheyeDepthModule.from_checkpoint(tmp_path / "foreign.ckpt")
 
 
 def test_resume_from_a_foreign_checkpoint_is_one_line(checkpoint, tmp_path):
@@ -273,7 +276,7 @@ def test_yaml_exponents_without_a_dot_are_numbers(kitti_data, tmp_path):
 def test_pixels_without_a_ray_get_no_distance_on_the_real_kitti360_frame(realdata, checkpoint, tmp_path):
     frame = realdata / "kitti360_frame"
     camera = load_camera(frame / "image_02.yaml")
-    predictor = DistancePredictor(load_module(checkpoint), camera)
+    predictor = DistancePredictor(FisheyeDepthModule.from_checkpoint(checkpoint), camera)
     no_ray = ~predictor.has_ray
     assert int(no_ray.sum()) == 259_005  # of 1400 x 1400 = 1,960,000 pixels
     out = tmp_path / "out"

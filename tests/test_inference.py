@@ -14,10 +14,13 @@ import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
+from torch.nn import functional as F
 
 from fisheyedepth.cameras import load_camera
-from fisheyedepth.entrypoints import export, load_module
+from fisheyedepth.cli.export import export
 from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud, read_ply, write_ply
+from fisheyedepth.models import upsample_inverse
+from fisheyedepth.module import FisheyeDepthModule
 
 from conftest import TRAIN_SEQ
 
@@ -154,7 +157,7 @@ def test_export_parity_and_refusal(checkpoint, tmp_path, fmt):
 
 
 def test_predictor_and_png_units(checkpoint, kitti_data):
-    module = load_module(checkpoint)
+    module = FisheyeDepthModule.from_checkpoint(checkpoint)
     camera = load_camera(kitti_data / "calibration" / "image_02.yaml")
     predictor = DistancePredictor(module, camera)
     assert predictor.input_size == (64, 64)  # from the checkpoint
@@ -194,3 +197,36 @@ def test_visualize_writes_panels_and_the_angle_plot(kitti_data, checkpoint, tmp_
     plot = cv2.imread(str(tmp_path / "viz" / "abs_rel_by_angle.png"))
     assert plot is not None and plot.shape[0] > 200
     assert len(list((tmp_path / "viz").glob("panel_*.png"))) == 2
+
+
+def test_every_caller_gets_its_distance_from_one_path(kitti_data):
+    """Training's forward, Lightning's predict, evaluation, the predictor and the export all run
+    ``DepthNet.distance``/``for_cameras``: on one image of a camera whose focal differs from
+    ``base_focal`` they agree to float precision, and ``depth_scale`` multiplies the distance."""
+    from fisheyedepth.evaluation import evaluate
+
+    torch.manual_seed(0)
+    camera = load_camera(kitti_data / "calibration" / "image_02.yaml")  # 256x256
+    focal = min(camera.resize(64, 64).paraxial_focal())
+    module = FisheyeDepthModule(base_focal=focal / 2, input_size=(64, 64), scales=(0,)).eval()
+    image = torch.rand(1, 3, 256, 256)
+    with torch.no_grad():
+        net = module.depth_net(F.interpolate(image, size=(64, 64), mode="area"), 2.0, scales=(0,))
+        reference = upsample_inverse(net["distance"][0], (256, 256))
+        unit = module.depth_net(F.interpolate(image, size=(64, 64), mode="area"), 1.0, scales=(0,))
+        assert torch.allclose(net["distance"][0], 2.0 * unit["distance"][0], rtol=1e-5)
+
+        small = module(F.interpolate(image, size=(64, 64), mode="area"), [camera.resize(64, 64)])
+        assert torch.allclose(small["distance"][0], net["distance"][0], rtol=1e-5)
+        predicted = module.predict_step({"image": image, "camera": [camera]}, 0)
+        assert torch.allclose(predicted, reference, rtol=1e-5)
+        by_predictor = DistancePredictor(module, camera)(image)
+        has_ray = DistancePredictor(module, camera).has_ray
+        assert torch.allclose(by_predictor[0, 0][has_ray], reference[0, 0][has_ray], rtol=1e-5)
+        exported = DistancePredictor(module, camera).exportable()
+        assert torch.allclose(exported(F.interpolate(image, size=(64, 64), mode="area")), net["distance"][0])
+
+    # evaluation: ground truth equal to the reference distance scores zero error, unscaled
+    batch = {"image": image, "camera": [camera], "distance": reference, "mask": torch.ones(1, 1, 256, 256)}
+    result = evaluate(module, [batch], (64, 64), ["full"], scalings=("none",))
+    assert result["full"]["none"]["abs_rel"] < 1e-5

@@ -26,3 +26,28 @@ def test_constraints_pin_torch_and_block_torchvision():
 
 def test_lightning_imports():
     import lightning  # noqa: F401  (breaks when a CUDA-only torchvision is installed)
+
+
+def test_configs_become_objects_only_in_the_commands():
+    """``hydra.utils.instantiate`` lives in ``fisheyedepth.cli`` alone; every command is one small module
+    there, and the console script points at one of them."""
+    package = ROOT / "src" / "fisheyedepth"
+    users = sorted(
+        str(p.relative_to(package)) for p in package.rglob("*.py") if "instantiate(" in p.read_text()
+    )
+    assert users and all(u.startswith("cli/") for u in users), users
+    commands = sorted(p.stem for p in (package / "cli").glob("*.py"))
+    assert commands == ["__init__", "evaluate", "export", "predict", "train"]
+    assert max(len(p.read_text().splitlines()) for p in (package / "cli").glob("*.py")) < 150
+    scripts = (ROOT / "pyproject.toml").read_text()
+    assert 'fisheyedepth-predict = "fisheyedepth.cli.predict:main"' in scripts
+    import subprocess
+    import sys
+
+    shown = subprocess.run(
+        [sys.executable, "-c", "from fisheyedepth.cli.predict import main; main()", "--cfg", "job"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert shown.returncode == 0 and "task_name: predict" in shown.stdout, shown.stderr[-500:]

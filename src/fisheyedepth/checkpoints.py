@@ -16,8 +16,6 @@ from typing import Any
 
 import torch
 
-from .module import FisheyeDepthModule
-
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
 
@@ -54,9 +52,8 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 RETIRED_HPARAMS = ("grad_clip",)  # 2026-11-23: clipping is the trainer's gradient_clip_val only
 
 
-def load_module(path: str | os.PathLike) -> FisheyeDepthModule:
-    """A trained :class:`FisheyeDepthModule` from a Lightning checkpoint."""
-    ckpt = read_checkpoint(path)
+def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str, Any]:
+    """The checkpoint's hyper-parameters as constructor arguments (retired keys dropped)."""
     missing = [k for k in ("state_dict", "hyper_parameters") if k not in ckpt]
     if missing:
         raise CheckpointError(path, f"not a FisheyeDepth checkpoint (no {' / '.join(missing)})")
@@ -64,21 +61,7 @@ def load_module(path: str | os.PathLike) -> FisheyeDepthModule:
     hparams["weights"] = None  # the ImageNet file of the training machine is not needed: weights follow
     for key in RETIRED_HPARAMS:  # checkpoints written before a key was retired still load
         hparams.pop(key, None)
-    try:
-        module = FisheyeDepthModule(**hparams)
-    except TypeError as exc:
-        raise CheckpointError(
-            path, f"hyper_parameters do not fit FisheyeDepthModule ({exc}); another project's checkpoint?"
-        ) from None
-    try:
-        module.load_state_dict(ckpt["state_dict"])
-    except (RuntimeError, TypeError, AttributeError) as exc:
-        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-        detail = "; ".join(lines[1:3] or lines[:1])
-        raise CheckpointError(
-            path, f"weights do not fit the model its hyper_parameters describe ({detail[:300]})"
-        ) from None
-    return module
+    return hparams
 
 
 def check_resumable(path: str | os.PathLike) -> None:

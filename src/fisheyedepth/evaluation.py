@@ -21,7 +21,6 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache
 from .metrics import DepthMetrics
-from .models import depth_scale_for
 from .viz import panel
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
@@ -52,14 +51,6 @@ PROTOCOLS = {
     "full": Protocol("full", "distance", None, None),
     "full_z": Protocol("full_z", "z", (1e-3, 80.0), None),
 }
-
-
-def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:
-    """Resize ``[B, 1, h, w]`` distance to ``size`` (H, W) bilinearly in inverse-distance space."""
-    if distance.shape[-2:] == size:
-        return distance
-    inv = F.interpolate(1.0 / distance.clamp_min(1e-6), size=size, mode="bilinear", align_corners=False)
-    return 1.0 / inv.clamp_min(1e-9)
 
 
 def dnet_scale(distance: Tensor, rays: Tensor, camera_height: float, up=(0.0, -1.0, 0.0)) -> float:
@@ -167,13 +158,7 @@ def evaluate(
             continue
         if "distance" not in batch:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
-        image, cameras = batch["image"].to(module.device), batch["camera"]
-        H, W = image.shape[-2:]
-        if train_size is not None and (W, H) != tuple(train_size):
-            image = F.interpolate(image, size=(train_size[1], train_size[0]), mode="area")
-            cameras = [c.resize(*train_size) for c in cameras]
-        scale = depth_scale_for(cameras, module.hparams.get("base_focal")).to(image)
-        pred = upsample_inverse(module.depth_net(image, scale, scales=(0,))["distance"][0], (H, W))
+        pred = module.depth_net.distance(batch["image"].to(module.device), batch["camera"], train_size)
         gt, mask = batch["distance"].to(pred), batch["mask"].to(pred) > 0.5
         for i, cam in enumerate(batch["camera"]):
             for ev in evaluators.values():

@@ -16,11 +16,8 @@ import cv2
 import numpy as np
 import torch
 from torch import Tensor, nn
-from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache, compute_rays
-from .evaluation import upsample_inverse
-from .models import depth_scale_for
 from .utils import atomic_write_bytes
 from .viz import colourise
 
@@ -46,8 +43,6 @@ class DistancePredictor:
         size = input_size or module.hparams.get("input_size") or (camera.width, camera.height)
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera
-        self.net_camera = camera.resize(*self.input_size)
-        self.depth_scale = depth_scale_for([self.net_camera], module.hparams.get("base_focal"))
         self.has_ray = compute_rays(camera, self.device).valid  # [H, W]: pixels the model gives a ray
 
     @torch.no_grad()
@@ -57,15 +52,16 @@ class DistancePredictor:
         H, W = images.shape[-2:]
         if (W, H) != (self.camera.width, self.camera.height):
             raise ValueError(f"images are {W}x{H}, the camera is {self.camera.width}x{self.camera.height}")
-        x = images.to(self.device)
-        if (W, H) != self.input_size:
-            x = F.interpolate(x, size=self.input_size[::-1], mode="area")
-        out = self.module.depth_net(x, self.depth_scale.to(x).expand(x.shape[0]), scales=(0,))["distance"][0]
-        distance = upsample_inverse(out, (H, W))
+        cameras = [self.camera] * images.shape[0]
+        distance = self.module.depth_net.distance(images.to(self.device), cameras, self.input_size)
         return distance.masked_fill(~self.has_ray, float("nan"))
 
     def exportable(self) -> ExportableNet:
-        return ExportableNet(self.module.depth_net, float(self.depth_scale[0])).eval()
+        """The network at ``input_size`` with this camera's ``depth_scale`` frozen in."""
+        net_camera = self.camera.resize(*self.input_size)
+        return ExportableNet(
+            self.module.depth_net, float(self.module.depth_net.depth_scale([net_camera])[0])
+        ).eval()
 
 
 def distance_png(distance: np.ndarray, scale: str = "mm") -> np.ndarray:
@@ -198,3 +194,64 @@ def _write_png(path: Path, image: np.ndarray) -> None:
     if not ok:
         raise OSError(f"{path}: could not encode the PNG")
     atomic_write_bytes(path, encoded.tobytes())
+
+
+def check_aspect(frame_path: Path, size: tuple[int, int], camera: CameraModel, calibration) -> None:
+    """A calibration is resized to the images only when both have one aspect ratio."""
+    (w, h), (cw, ch) = size, (camera.width, camera.height)
+    if abs(w * ch - h * cw) > 0.01 * w * ch:
+        raise ValueError(
+            f"{frame_path}: image is {w}x{h} but the calibration {calibration} is {cw}x{ch}, another "
+            "aspect ratio; resizing the camera model would stretch it (crop the images or recalibrate)"
+        )
+
+
+class FramePrediction:
+    """Frames of one source -> files: frames are batched while they share one size, each size gets a
+    :class:`DistancePredictor` with the calibration resized to it, and a :class:`PredictionWriter`
+    writes every frame. ``add`` frames, then ``flush`` once at the end; ``written`` counts frames."""
+
+    def __init__(
+        self,
+        module,
+        camera: CameraModel,
+        calibration: str | os.PathLike,
+        writer: PredictionWriter,
+        batch_size: int = 4,
+        input_size: tuple[int, int] | None = None,
+        device: str = "cpu",
+    ):
+        self.module, self.camera, self.calibration, self.writer = module, camera, calibration, writer
+        self.batch_size, self.input_size, self.device = batch_size, input_size, device
+        self.predictors: dict[tuple[int, int], DistancePredictor] = {}
+        self.pending: list = []
+        self.written = 0
+
+    def predictor(self, frame) -> DistancePredictor:
+        h, w = frame.bgr.shape[:2]
+        if (w, h) not in self.predictors:
+            check_aspect(frame.path, (w, h), self.camera, self.calibration)
+            same = (w, h) == (self.camera.width, self.camera.height)
+            camera = self.camera if same else self.camera.resize(w, h)
+            self.predictors[(w, h)] = DistancePredictor(self.module, camera, self.input_size, self.device)
+        return self.predictors[(w, h)]
+
+    def add(self, frame) -> None:
+        """Queue a decoded frame (``images.Frame``); a full batch, or a change of size, runs the network."""
+        if self.pending and frame.bgr.shape != self.pending[0].bgr.shape:
+            self.flush()
+        self.pending.append(frame)
+        if len(self.pending) >= self.batch_size:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        predictor = self.predictor(self.pending[0])
+        rgb = np.stack([f.bgr[..., ::-1] for f in self.pending])
+        images = torch.from_numpy(rgb.copy()).permute(0, 3, 1, 2).float() / 255.0
+        distance = predictor(images).cpu()
+        for frame, d, colour in zip(self.pending, distance[:, 0], rgb, strict=True):
+            self.writer.write(frame.name, d, colour, predictor.camera)
+        self.written += len(self.pending)
+        self.pending.clear()

@@ -10,6 +10,7 @@ One switch per ablation of the paper's Table 2:
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache, pinhole_like
 from .cameras.pinhole import PINHOLE_FOCALS
+from .checkpoints import CheckpointError, module_arguments, read_checkpoint
 from .geometry import (
     invert_pose,
     rotation_error_deg,
@@ -31,7 +33,7 @@ from .geometry import (
 )
 from .losses import ReprojectionLoss, edge_aware_smoothness
 from .metrics import DepthMetrics
-from .models import DepthNet, PoseNet, depth_scale_for
+from .models import DepthNet, PoseNet
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .viz import panel
 
@@ -83,7 +85,15 @@ class FisheyeDepthModule(L.LightningModule):
         self.scales = tuple(scales)
         self.source_offsets = tuple(source_offsets)
         self.depth_net = DepthNet(
-            resnet, weights, multi_channel, n_bins, attention, min_distance, max_distance, self.scales
+            resnet,
+            weights,
+            multi_channel,
+            n_bins,
+            attention,
+            min_distance,
+            max_distance,
+            self.scales,
+            base_focal,
         )
         if pose_translation_scale is None:  # Monodepth2's first parallax for this head's first distance
             pose_translation_scale = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance
@@ -96,6 +106,27 @@ class FisheyeDepthModule(L.LightningModule):
         self.skipped_batches = 0
         self.skipped_frames: list[str] = []
 
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike) -> FisheyeDepthModule:
+        """A trained module from a Lightning checkpoint, read with ``weights_only=True``; a file that does
+        not hold one raises :class:`~fisheyedepth.checkpoints.CheckpointError` naming it."""
+        ckpt = read_checkpoint(path)
+        try:
+            module = cls(**module_arguments(path, ckpt))
+        except TypeError as exc:
+            raise CheckpointError(
+                path, f"hyper_parameters do not fit {cls.__name__} ({exc}); another project's checkpoint?"
+            ) from None
+        try:
+            module.load_state_dict(ckpt["state_dict"])
+        except (RuntimeError, TypeError, AttributeError) as exc:
+            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+            detail = "; ".join(lines[1:3] or lines[:1])
+            raise CheckpointError(
+                path, f"weights do not fit the model its hyper_parameters describe ({detail[:300]})"
+            ) from None
+        return module
+
     # ------------------------------------------------------------------------------- geometry
     def warp_camera(self, camera: CameraModel) -> CameraModel:
         """The camera model the warp uses: the real one, or its pinhole stand-in when the switch is off."""
@@ -104,8 +135,7 @@ class FisheyeDepthModule(L.LightningModule):
         return pinhole_like(camera, self.hparams.pinhole_focal)
 
     def forward(self, image: Tensor, cameras: list[CameraModel]) -> dict[str, dict[int, Tensor]]:
-        scale = depth_scale_for(cameras, self.hparams.base_focal).to(image)
-        return self.depth_net(image, scale)
+        return self.depth_net.for_cameras(image, cameras)
 
     def relative_poses(self, batch: dict[str, Any]) -> Tensor:
         """``[B, S, 4, 4]`` target-to-source transforms: the batch's real-scale poses, or the PoseNet's.
@@ -284,8 +314,7 @@ class FisheyeDepthModule(L.LightningModule):
     def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
         if self._count_skipped(batch):
             return None
-        scale = depth_scale_for(batch["camera"], self.hparams.base_focal).to(batch["image"])
-        return self.depth_net(batch["image"], scale, scales=(0,))["distance"][0]
+        return self.depth_net.distance(batch["image"], batch["camera"], self.hparams.input_size)
 
     def _log_metrics(self, stage: str, metrics: DepthMetrics, scaled: DepthMetrics) -> None:
         if int(metrics.images) == 0:

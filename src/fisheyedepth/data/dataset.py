@@ -28,6 +28,7 @@ from torch.utils.data import Dataset
 
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
+from ..utils import atomic_write_bytes
 from .augment import Augment, PoseNoise, colour_jitter, flip_sample
 from .layouts import Frame, Kitti360Layout
 
@@ -119,10 +120,10 @@ class ImageCache:
         if str(self.dir) not in ImageCache._announced:
             ImageCache._announced.add(str(self.dir))
             log.info("resized images are cached in %s", self.dir / "resized")
-        tmp = cached.with_name(f".{cached.stem}.{os.getpid()}.tmp.png")
-        if not cv2.imwrite(str(tmp), resized):
-            raise OSError(f"{tmp}: could not write the resized image (disk full or not writable?)")
-        os.replace(tmp, cached)
+        ok, encoded = cv2.imencode(".png", resized)
+        if not ok:
+            raise OSError(f"{cached}: could not encode the resized image")
+        atomic_write_bytes(cached, encoded.tobytes())  # concurrent workers never see half a file
         return resized
 
 

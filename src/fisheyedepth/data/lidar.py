@@ -9,6 +9,7 @@ sees around foreground edges that the camera cannot). Results are cached on disk
 
 from __future__ import annotations
 
+import io
 import logging
 import os
 import zipfile
@@ -19,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import CameraModel
+from ..utils import atomic_write_bytes
 from .kitti360_files import read_cam_to_pose, read_cam_to_velo, read_velodyne
 
 log = logging.getLogger(__name__)
@@ -92,10 +94,9 @@ class LidarGroundTruth:
                 d.flat[idx],
                 z.flat[idx],
             )
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)  # atomic: concurrent workers may both build, neither sees half a file
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **arrays)
+        atomic_write_bytes(path, buffer.getvalue())  # concurrent workers may both build, none sees half
         log.info("LiDAR ground truth for %s/%s cached in %s", sequence, camera_name, path)
 
     def __call__(

@@ -1,6 +1,6 @@
 """Networks: ResNet encoders, the depth network with multi-channel or sigmoid heads, and PoseNet."""
 
-from .depth_net import DepthDecoder, DepthNet, depth_scale_for
+from .depth_net import DepthDecoder, DepthNet, upsample_inverse
 from .heads import MultiChannelHead, SigmoidHead, distance_bins, gather_output, sigmoid_to_distance
 from .posenet import PoseNet
 from .resnet import ResNetEncoder, WeightsError
@@ -13,8 +13,8 @@ __all__ = [
     "ResNetEncoder",
     "SigmoidHead",
     "WeightsError",
-    "depth_scale_for",
     "distance_bins",
     "gather_output",
     "sigmoid_to_distance",
+    "upsample_inverse",
 ]

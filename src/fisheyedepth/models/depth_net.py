@@ -62,12 +62,17 @@ class DepthDecoder(nn.Module):
 
 
 class DepthNet(nn.Module):
-    """Image -> Euclidean distance (and normalised disparity) at 4 scales.
+    """Image + camera -> Euclidean distance (and normalised disparity): the one path from pixels to metres.
 
     ``multi_channel=True``: the paper's head (``n_bins`` log-spaced bins, channel attention,
     :func:`gather_output`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
-    ``depth_scale`` (per sample) multiplies the binned distance, so cameras of different focal lengths can
-    share one network (see :func:`depth_scale_for`).
+    ``depth_scale`` (per sample, ``paraxial focal / base_focal``) multiplies the distance, so cameras of
+    different focal lengths can share one network.
+
+    - ``forward(image, depth_scale)``: the network itself, every scale (export traces it);
+    - :meth:`for_cameras`: the same with each sample's camera (training);
+    - :meth:`distance`: any image of a calibrated camera at its own resolution, resized to the
+      training size and back (evaluation, prediction).
     """
 
     def __init__(
@@ -80,8 +85,10 @@ class DepthNet(nn.Module):
         min_distance: float = 0.5,
         max_distance: float = 150.0,
         scales: tuple[int, ...] = (0, 1, 2, 3),
+        base_focal: float | None = None,
     ):
         super().__init__()
+        self.base_focal = base_focal
         self.encoder = ResNetEncoder(resnet, 1, weights)
         self.decoder = DepthDecoder(self.encoder.channels, scales)
         self.multi_channel, self.scales = multi_channel, tuple(scales)
@@ -98,7 +105,9 @@ class DepthNet(nn.Module):
             )
             self.register_buffer("bins", bins, persistent=False)
         else:
-            initial = float(distance_to_sigmoid(torch.tensor(self.initial_distance), min_distance, max_distance))
+            initial = float(
+                distance_to_sigmoid(torch.tensor(self.initial_distance), min_distance, max_distance)
+            )
             self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s], initial) for s in scales})
 
     def forward(
@@ -121,9 +130,36 @@ class DepthNet(nn.Module):
                 distance[s], disp[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale, y
         return {"distance": distance, "disp": disp}
 
+    def depth_scale(self, cameras) -> Tensor:
+        """Per-sample ``paraxial focal / base_focal`` ``[B]`` (1 when ``base_focal`` is unset)."""
+        if self.base_focal is None:
+            return torch.ones(len(cameras))
+        return torch.tensor([min(cam.paraxial_focal()) / self.base_focal for cam in cameras])
 
-def depth_scale_for(cameras, base_focal: float | None) -> Tensor:
-    """Per-sample ``paraxial focal / base_focal`` (1 when ``base_focal`` is unset)."""
-    if base_focal is None:
-        return torch.ones(len(cameras))
-    return torch.tensor([min(cam.paraxial_focal()) / base_focal for cam in cameras])
+    def for_cameras(
+        self, image: Tensor, cameras, scales: tuple[int, ...] | None = None
+    ) -> dict[str, dict[int, Tensor]]:
+        """:meth:`forward` with the ``depth_scale`` of each sample's camera (images at the cameras' size)."""
+        return self(image, self.depth_scale(cameras).to(image), scales)
+
+    def distance(self, image: Tensor, cameras, input_size: tuple[int, int] | None = None) -> Tensor:
+        """Distance ``[B, 1, H, W]`` (metres) of images ``[B, 3, H, W]`` taken by ``cameras`` (one per image,
+        at the images' size). The network runs at ``input_size`` (W, H; default: the images' size) on the
+        image and camera resized alike, and its distance is upsampled back in inverse-distance space."""
+        H, W = image.shape[-2:]
+        if input_size is not None and (W, H) != tuple(input_size):
+            w, h = int(input_size[0]), int(input_size[1])
+            image = F.interpolate(image, size=(h, w), mode="area")
+            cameras = [c.resize(w, h) for c in cameras]
+        out = self.for_cameras(image, cameras, scales=(0,))["distance"][0]
+        return upsample_inverse(out, (H, W))
+
+
+def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:
+    """Resize ``[B, 1, h, w]`` distance to ``size`` (H, W) bilinearly in inverse-distance space."""
+    if distance.shape[-2:] == tuple(size):
+        return distance
+    inv = F.interpolate(
+        1.0 / distance.clamp_min(1e-6), size=tuple(size), mode="bilinear", align_corners=False
+    )
+    return 1.0 / inv.clamp_min(1e-9)

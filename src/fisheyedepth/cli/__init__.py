@@ -1,0 +1,56 @@
+"""The commands behind ``train.py``, ``eval.py``, ``predict.py`` and ``export.py``: the only place where
+configs become objects (``hydra.utils.instantiate``). One small module per command; this one holds what
+they share: how an input error ends a command, the first-use rendering of the synthetic data, and
+output paths that never replace an earlier run's file."""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from ..data.synthetic import ensure_dataset, is_complete
+
+log = logging.getLogger("fisheyedepth")
+
+EXIT_SIGTERM = 128 + 15  # the shell's status for a process ended by SIGTERM
+EXIT_USAGE = 2
+# Errors about the user's input (files, options): one line naming the file or option, no traceback.
+INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
+
+
+def run_command(command, cfg: DictConfig):
+    """Run an entry point; an input error prints one line (``error: <file>: <what>``) and exits 2.
+    ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead."""
+    try:
+        return command(cfg)
+    except INPUT_ERRORS as exc:
+        if os.environ.get("FISHEYEDEPTH_TRACEBACK"):
+            raise
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"error: {message}", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE) from None
+
+
+def prepare_data(cfg: DictConfig) -> None:
+    """Render the synthetic dataset on first use (``data.generate``); a finished one is reused. A folder
+    that is not a synthetic dataset made by this project is refused and left untouched."""
+    gen = cfg.data.get("generate")
+    if not gen:
+        return
+    root = Path(cfg.data.datamodule.root)
+    if not is_complete(root):
+        log.info("rendering the synthetic dataset into %s (first use)", root)
+    ensure_dataset(root, **OmegaConf.to_container(gen, resolve=True))
+
+
+def free_path(path: Path) -> Path:
+    """``path``, or ``name_1.ext``, ``name_2.ext`` ... when it exists: an earlier run's file is kept."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.stem}_{n}{path.suffix}")
+    return candidate

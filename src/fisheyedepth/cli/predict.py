@@ -1,0 +1,92 @@
+"""``python predict.py ckpt_path=... input=DIR_OR_VIDEO camera=CALIB``: metric distance for every frame,
+written beside a ``summary.json``; unreadable frames are skipped and listed, nothing is overwritten."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+from rich.console import Console
+from tqdm import tqdm
+
+from ..cameras import load_camera
+from ..images import FrameSource
+from ..inference import FramePrediction, PredictionWriter
+from ..module import FisheyeDepthModule
+from ..utils import atomic_write_text
+from . import free_path, run_command
+
+log = logging.getLogger("fisheyedepth")
+
+
+def predict(cfg: DictConfig) -> dict[str, Any]:
+    out = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir)
+    writer = PredictionWriter(
+        out, cfg.z_depth, cfg.point_cloud, str(cfg.png_scale), cfg.vmin, cfg.vmax, cfg.overwrite
+    )
+    source = FrameSource(cfg.input)  # lists the inputs without decoding any
+    writer.check_free(source.names())
+    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
+    run = FramePrediction(
+        module,
+        load_camera(cfg.camera),
+        cfg.camera,
+        writer,
+        int(cfg.batch_size),
+        cfg.get("size"),
+        cfg.get("device", "cpu"),
+    )
+    unreadable: list[str] = []
+    grayscale: list[str] = []
+    t0 = time.perf_counter()
+    for frame in tqdm(source, total=len(source) or None, desc="predicting", unit="frame"):
+        if frame.bgr is None:
+            unreadable.append(str(frame.path))
+            log.warning("%s, skipped", frame.error)
+            continue
+        if frame.channels == 1:
+            grayscale.append(str(frame.path))
+            if len(grayscale) == 1:
+                log.warning(
+                    "%s: grayscale image, replicated to 3 channels (and any others: summary)", frame.path
+                )
+        run.add(frame)
+    run.flush()
+    done, seconds = run.written, time.perf_counter() - t0
+    summary = {
+        "input": str(source.source),
+        "frames": done,
+        "skipped": len(unreadable),
+        "unreadable": unreadable,
+        "grayscale": grayscale,
+        "seconds": round(seconds, 3),
+        "fps": round(done / seconds, 2) if seconds > 0 else None,
+        "output": str(out),
+        "png_scale": f"uint16 = metres * {int(1000 if cfg.png_scale == 'mm' else 256)}, 0 = no ray",
+    }
+    if done == 0:
+        raise ValueError(f"{source.source}: no frame could be read ({len(unreadable)} unreadable)")
+    summary_path = out / "summary.json" if cfg.overwrite else free_path(out / "summary.json")
+    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
+    Console(width=130).print(
+        f"{done} frames in {seconds:.1f} s ({summary['fps']} fps), {len(unreadable)} unreadable "
+        f"skipped{': ' + ', '.join(unreadable[:5]) if unreadable else ''}"
+        f"{f', {len(grayscale)} grayscale' if grayscale else ''}; outputs in {out} ({summary_path.name})"
+    )
+    return summary
+
+
+def main() -> None:
+    """Console script ``fisheyedepth-predict`` (the same as ``python predict.py``, from a source checkout:
+    the configs live in its ``conf/``, found by absolute path since a relative one would be read as a
+    Python module's)."""
+    import hydra
+
+    conf = Path(__file__).resolve().parents[3] / "conf"
+    hydra.main(config_path=str(conf), config_name="predict", version_base="1.3")(
+        lambda cfg: run_command(predict, cfg)
+    )()
