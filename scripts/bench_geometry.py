@@ -29,7 +29,7 @@ from fisheyedepth.cameras import (
     compute_rays,
     pinhole_like,
 )
-from fisheyedepth.cameras.presets import kitti360_camera
+from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
 
 from _benchmarks import publish

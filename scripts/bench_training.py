@@ -59,7 +59,7 @@ def make_module(config: str) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]
 
 
 def step(module, optimizer, batch) -> None:
-    loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+    loss, _ = module.losses(batch, module(batch.image, batch.camera))
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()

@@ -9,12 +9,8 @@ import pytest
 import yaml
 
 from fisheyedepth.cameras import DoubleSphereCamera, KannalaBrandtCamera, MeiCamera, PinholeCamera
-from fisheyedepth.cameras.presets import (
-    KITTI360_MEI,
-    kitti360_camera,
-    tumvi_double_sphere,
-    tumvi_kannala_brandt,
-)
+from fisheyedepth.cameras.presets import tumvi_double_sphere, tumvi_kannala_brandt
+from fisheyedepth.data.kitti360 import KITTI360_MEI, kitti360_camera
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -108,9 +104,16 @@ def kitti_data(tmp_path_factory):
 
 def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 64)):
     """A training batch read through ``FisheyeDataset``, resized to ``size`` (the camera models with it)."""
+    from fisheyedepth.data import collate
+
+    return collate(tiny_samples(root, frames, cameras, size))
+
+
+def tiny_samples(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 64)):
+    """The samples of :func:`tiny_batch`, one dict each, in the order frames x cameras."""
     import tempfile
 
-    from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+    from fisheyedepth.data import FisheyeDataset, Kitti360Layout
 
     layout = Kitti360Layout(root)
     dataset = FisheyeDataset(
@@ -121,7 +124,7 @@ def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 
         cache_dir=tempfile.mkdtemp(prefix="fd-cache-"),
     )
     index = {(layout.frames(it.sequence)[it.row].key, it.camera): i for i, it in enumerate(dataset.items)}
-    return collate([dataset[index[(f, c)]] for f in frames for c in cameras])
+    return [dataset[index[(f, c)]] for f in frames for c in cameras]
 
 
 @pytest.fixture(scope="session")
@@ -136,7 +139,7 @@ def checkpoint(kitti_data, tmp_path_factory):
     batch = tiny_batch(kitti_data)
     opt = torch.optim.Adam(module.parameters(), 1e-3)
     for _ in range(3):
-        loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+        loss, _ = module.losses(batch, module(batch.image, batch.camera))
         opt.zero_grad()
         loss.backward()
         opt.step()

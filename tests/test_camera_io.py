@@ -10,6 +10,7 @@ from fisheyedepth.cameras import (
     MeiCamera,
     PinholeCamera,
     load_camera,
+    opencv_yaml,
     save_camera,
 )
 
@@ -166,3 +167,21 @@ def test_unreadable_or_malformed_file(tmp_path):
         load_camera(write(tmp_path, "model: [unclosed\n", "broken.yaml"))
     with pytest.raises(CalibrationError, match="mapping"):
         load_camera(write(tmp_path, "- a list\n", "list.yaml"))
+
+
+def test_opencv_yaml_is_written_with_the_table_it_is_read_with(tmp_path):
+    """One key table serves reading and writing: every OpenCV model round-trips exactly (MEI with its
+    tangential terms when they are kept), and the MEI file has KITTI-360's exact layout."""
+    mei = kitti02(tangential=True)
+    assert mei.p1 != 0 and mei.p2 != 0
+    kb = KannalaBrandtCamera(
+        width=640, height=480, fx=300.5, fy=301.0, cx=320.2, cy=239.8, k1=0.01, k2=-0.002, k3=1e-4, k4=-1e-5
+    )
+    pin = PinholeCamera(width=320, height=240, fx=200.0, fy=201.0, cx=160.0, cy=120.0)
+    for camera in (mei, kb, pin):
+        path = write(tmp_path, opencv_yaml(camera, "cam"), f"{camera.model_name}.yaml")
+        assert load_camera(path, keep_tangential=True) == camera
+    assert load_camera(tmp_path / "mei.yaml") == kitti02()  # p1/p2 ignored by default, as KITTI-360 does
+    official = kitti_yaml().splitlines()
+    written = opencv_yaml(kitti02(), "image_02").splitlines()
+    assert [line.split(":")[0] for line in written] == [line.split(":")[0] for line in official]

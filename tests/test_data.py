@@ -22,8 +22,7 @@ from fisheyedepth.data import (
     collate,
     flip_sample,
 )
-from fisheyedepth.data.kitti360_files import read_cam_to_pose, read_poses
-from fisheyedepth.data.lidar import LidarGroundTruth
+from fisheyedepth.data.kitti360 import LidarGroundTruth, read_cam_to_pose, read_poses
 from fisheyedepth.geometry import sample as grid_sample_image
 from fisheyedepth.geometry import warp_to_source
 from fisheyedepth.module import FisheyeDepthModule
@@ -51,17 +50,17 @@ def test_datamodule_batches(kitti_data, cache):
     dm = FisheyeDataModule(kitti_data, size=(128, 128), batch_size=4, augment=Augment(), cache_dir=cache)
     dm.setup("fit")
     batch = next(iter(dm.train_dataloader()))
-    assert batch["image"].shape == (4, 3, 128, 128) and batch["sources"].shape == (4, 2, 3, 128, 128)
-    assert batch["poses"].shape == (4, 2, 4, 4) and batch["mask"].shape == (4, 1, 128, 128)
-    assert batch["image_aug"].shape == batch["image"].shape and batch["distance"].shape == (4, 1, 128, 128)
-    assert all(c.width == 128 for c in batch["camera"])
+    assert batch.image.shape == (4, 3, 128, 128) and batch.sources.shape == (4, 2, 3, 128, 128)
+    assert batch.poses.shape == (4, 2, 4, 4) and batch.mask.shape == (4, 1, 128, 128)
+    assert batch.image_aug.shape == batch.image.shape and batch.distance.shape == (4, 1, 128, 128)
+    assert all(c.width == 128 for c in batch.camera)
     assert len(dm.dataset("train")) == 2 * (12 - 2 * 3 - 2)  # both cameras, minus frames without neighbours
     assert dm.dataset("train").dropped["no neighbour"] == 4
     cams = {dm.dataset("val").items[i].camera for i in range(len(dm.dataset("val")))}
     assert cams == {"image_02", "image_03"}
     assert (cache / "resized" / "128x128").is_dir()
     for key in ("image", "sources", "poses", "mask", "distance", "image_aug"):
-        assert torch.isfinite(batch[key]).all()
+        assert torch.isfinite(getattr(batch, key)).all()
 
 
 def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
@@ -72,10 +71,10 @@ def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
         root, size=(64, 64), batch_size=8, splits={"train": "splits/train.txt"}, cache_dir=cache
     )
     batch = next(iter(dm.train_dataloader()))
-    models = {type(c).__name__ for c in batch["camera"]}
+    models = {type(c).__name__ for c in batch.camera}
     assert models == {"MeiCamera", "KannalaBrandtCamera"}
     module = FisheyeDepthModule(scales=(0,))
-    loss, _ = module.losses(batch, module(batch["image"], batch["camera"]))
+    loss, _ = module.losses(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss)
 
 
@@ -144,7 +143,8 @@ def test_worker_seeding_is_deterministic(kitti_data, cache):
         return next(iter(dm.train_dataloader()))
 
     a, b = first_batch(), first_batch()
-    assert torch.equal(a["flipped"], b["flipped"]) and torch.equal(a["image_aug"], b["image_aug"])
+    assert a.camera == b.camera  # the same flips (a flip mirrors the principal point)
+    assert torch.equal(a.image_aug, b.image_aug)
 
 
 def test_translation_bounds_drop_samples(kitti_data, cache):
@@ -237,12 +237,8 @@ def test_rig_layout_reads_a_robot_recording(kitti_data, tmp_path, cache):
     ds_rig = FisheyeDataset(rig, [{"sequence": "drive"}], size=(64, 64), cache_dir=cache)
     ds_kitti = FisheyeDataset(kitti, [{"sequence": TRAIN_SEQ}], size=(64, 64), cache_dir=cache)
     a, b = ds_rig[2], ds_kitti[2]
-    assert (
-        a["camera"] == b["camera"]
-        and torch.equal(a["image"], b["image"])
-        and torch.equal(a["mask"], b["mask"])
-    )
-    assert torch.allclose(a["poses"], b["poses"], atol=1e-5)
+    assert a["camera"] == b["camera"] and torch.equal(a["image"], b["image"])
+    assert torch.equal(a["mask"], b["mask"]) and torch.allclose(a["poses"], b["poses"], atol=1e-5)
 
 
 def test_rig_poses_are_interpolated_with_slerp(kitti_data, tmp_path):
@@ -270,6 +266,14 @@ def test_bad_rig_description_names_file_and_key(kitti_data, tmp_path):
     rig_yaml.write_text(yaml.safe_dump(data))
     with pytest.raises(ValueError, match="not a rigid transform"):
         RigLayout(tmp_path / "rig")
+    data["cameras"][1]["cam_to_body"] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0.5, 1]]
+    rig_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match=r"cameras\[1\].cam_to_body'.*last row .* must be 0 0 0 1"):
+        RigLayout(tmp_path / "rig")
+    data["cameras"][1]["cam_to_body"] = {"translation": [1, 2, 3], "quaternion_xyzw": [0, 0, 0, 2]}
+    rig_yaml.write_text(yaml.safe_dump(data))
+    name = data["cameras"][1]["name"]
+    assert np.allclose(RigLayout(tmp_path / "rig").cameras[name].cam_to_body[:3, 3], (1, 2, 3))
 
 
 @pytest.fixture
@@ -305,8 +309,8 @@ def test_bad_images_name_the_file_or_are_skipped_and_counted(broken, cache, dama
     )
     batch = collate([ds[i] for i in range(len(ds))])
     # frame 3 is the target of one sample and a neighbour of two others, for the damaged camera
-    assert len(batch["skipped_frames"]) == 3 and all(str(path) in r for r in batch["skipped_frames"])
-    assert batch["image"].shape[0] == len(ds) - 3 and torch.isfinite(batch["image"]).all()
+    assert len(batch.skipped_frames) == 3 and all(str(path) in r for r in batch.skipped_frames)
+    assert batch.image.shape[0] == len(ds) - 3 and torch.isfinite(batch.image).all()
     module = FisheyeDepthModule(scales=(0,))
     module._count_skipped(batch)
     with pytest.warns(UserWarning, match="3 frames skipped"):
@@ -359,3 +363,35 @@ def test_real_kitti360_frame_loads(realdata):
     # the LiDAR returns avoid the body and lie on pixels that have a ray
     has = lidar > 0
     assert (has & body).sum() < 0.01 * has.sum() and valid.numpy()[has].all()
+
+
+def test_collate_builds_a_typed_batch_with_every_optional_part_resolved(kitti_data):
+    """A sample without the optional keys gets them in the batch: the network's inputs are the frames
+    themselves, the sources share the target's mask and camera; unknown or missing keys are refused."""
+    from fisheyedepth.data import Batch, SkippedBatch
+
+    from conftest import tiny_samples
+
+    samples = tiny_samples(kitti_data, frames=(2,), cameras=("image_02", "image_03"))
+    bare = [
+        {k: v for k, v in s.items() if k in ("image", "sources", "poses", "mask", "camera")} for s in samples
+    ]
+    batch = collate(bare)
+    assert isinstance(batch, Batch) and len(batch) == 2 and batch.n_sources == 2
+    assert batch.image_aug is batch.image and batch.sources_aug is batch.sources
+    assert batch.source_mask.shape == (2, 2, 1, 64, 64) and torch.equal(batch.source_mask[:, 1], batch.mask)
+    assert batch.source_camera == [[c, c] for c in batch.camera] and batch.camera[0] != batch.camera[1]
+    assert batch.cam_to_body is None and batch.distance is None and batch.skipped_frames == []
+    full = collate(samples)
+    assert full.cam_to_body.shape == (2, 4, 4) and full.distance.shape == (2, 1, 64, 64)
+    assert full.poses.dtype == torch.float32
+    moved = full.to("cpu")
+    assert moved.camera is full.camera and torch.equal(moved.image, full.image)
+    with pytest.raises(ValueError, match="does not know: flipped"):
+        collate([{**s, "flipped": torch.tensor(True)} for s in samples])
+    with pytest.raises(ValueError, match="sample 0 lacks poses"):
+        collate([{k: v for k, v in s.items() if k != "poses"} for s in samples])
+    skipped = collate([{"skipped": "a: truncated"}])
+    assert (
+        isinstance(skipped, SkippedBatch) and skipped.skipped_frames == ["a: truncated"] and len(skipped) == 0
+    )

@@ -18,7 +18,7 @@ from hydra.utils import instantiate
 
 from fisheyedepth.data import FisheyeDataModule, FisheyeDataset, Kitti360Layout, RigLayout, collate
 from fisheyedepth.data import dataset as dataset_module
-from fisheyedepth.data.kitti360_files import read_cam_to_pose, read_poses
+from fisheyedepth.data.kitti360 import read_cam_to_pose, read_poses
 
 from conftest import TRAIN_SEQ, kitti02
 
@@ -278,9 +278,9 @@ def test_truncated_image_names_the_file_or_is_a_counted_skip(damaged, cache, siz
     )
     batch = collate([ds[i] for i in range(len(ds))])
     # frame 3 is the target of one sample and a neighbour of two others
-    assert len(batch["skipped_frames"]) == 3
-    assert all(f"{path}: truncated PNG" in reason for reason in batch["skipped_frames"])
-    assert batch["image"].shape[0] == len(ds) - 3
+    assert len(batch.skipped_frames) == 3
+    assert all(f"{path}: truncated PNG" in reason for reason in batch.skipped_frames)
+    assert batch.image.shape[0] == len(ds) - 3
 
 
 # 4. A training size of another aspect ratio ------------------------------------------------------------

@@ -27,11 +27,11 @@ import torch
 from omegaconf import OmegaConf
 
 from fisheyedepth.cameras import CalibrationError, load_camera, load_yaml, save_camera
-from fisheyedepth.cameras.presets import kitti360_camera
 from fisheyedepth.checkpoints import CheckpointError, check_resumable, read_checkpoint
 from fisheyedepth.cli import EXIT_USAGE, run_command
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
+from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.images import ImageError, read_image
 from fisheyedepth.inference import DistancePredictor
 from fisheyedepth.module import FisheyeDepthModule

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fisheyedepth.cameras import KannalaBrandtCamera, MeiCamera, PinholeCamera, RayCache, pixel_grid
-from fisheyedepth.cameras.presets import KITTI360_CAM_TO_POSE
+from fisheyedepth.data.kitti360 import KITTI360_CAM_TO_POSE
 from fisheyedepth.geometry import (
     ALIGN_CORNERS,
     axis_angle_to_matrix,

@@ -18,6 +18,7 @@ from torch.nn import functional as F
 
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.cli.export import export
+from fisheyedepth.data import collate
 from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud, read_ply, write_ply
 from fisheyedepth.models import upsample_inverse
 from fisheyedepth.module import FisheyeDepthModule
@@ -218,7 +219,14 @@ def test_every_caller_gets_its_distance_from_one_path(kitti_data):
 
         small = module(F.interpolate(image, size=(64, 64), mode="area"), [camera.resize(64, 64)])
         assert torch.allclose(small["distance"][0], net["distance"][0], rtol=1e-5)
-        predicted = module.predict_step({"image": image, "camera": [camera]}, 0)
+        sample = {
+            "image": image[0],
+            "sources": image,
+            "poses": torch.eye(4).expand(1, 4, 4),
+            "camera": camera,
+        }
+        batch = collate([{**sample, "mask": torch.ones(1, 256, 256), "distance": torch.ones(1, 256, 256)}])
+        predicted = module.predict_step(batch, 0)
         assert torch.allclose(predicted, reference, rtol=1e-5)
         by_predictor = DistancePredictor(module, camera)(image)
         has_ray = DistancePredictor(module, camera).has_ray
@@ -227,6 +235,6 @@ def test_every_caller_gets_its_distance_from_one_path(kitti_data):
         assert torch.allclose(exported(F.interpolate(image, size=(64, 64), mode="area")), net["distance"][0])
 
     # evaluation: ground truth equal to the reference distance scores zero error, unscaled
-    batch = {"image": image, "camera": [camera], "distance": reference, "mask": torch.ones(1, 1, 256, 256)}
+    batch.distance = reference
     result = evaluate(module, [batch], (64, 64), ["full"], scalings=("none",))
     assert result["full"]["none"]["abs_rel"] < 1e-5

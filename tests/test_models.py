@@ -1,4 +1,4 @@
-"""Networks: ResNet fidelity and weight loading, heads, gather_output, PoseNet."""
+"""Networks: ResNet fidelity and weight loading, heads, bin_expectation, PoseNet."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from fisheyedepth.models import (
     PoseNet,
     ResNetEncoder,
     WeightsError,
+    bin_expectation,
     distance_bins,
-    gather_output,
     sigmoid_to_distance,
 )
 
@@ -90,22 +90,22 @@ def test_gather_output_is_a_monotone_expectation_within_the_bins():
     # a peak moving to farther bins moves the distance monotonically
     peaks = torch.full((64, 64, 1, 1), -10.0)
     peaks[torch.arange(64), torch.arange(64)] = 10.0
-    d, disp = gather_output(peaks, 1.0, bins, 0.5, 150.0)
+    d, disp = bin_expectation(peaks, 1.0, bins, 0.5, 150.0)
     d = d.flatten()
     assert torch.all(d[1:] > d[:-1]) and torch.all(disp.flatten()[1:] < disp.flatten()[:-1])
     assert d[0].item() == pytest.approx(0.5, rel=1e-4) and d[-1].item() == pytest.approx(150.0, rel=1e-4)
     # raising one logit moves the expectation towards that bin
     logits = torch.randn(1, 64, 3, 3, generator=torch.Generator().manual_seed(0))
-    base, _ = gather_output(logits, 1.0, bins, 0.5, 150.0)
+    base, _ = bin_expectation(logits, 1.0, bins, 0.5, 150.0)
     bumped = logits.clone()
     bumped[:, 63] += 1.0
-    far, _ = gather_output(bumped, 1.0, bins, 0.5, 150.0)
+    far, _ = bin_expectation(bumped, 1.0, bins, 0.5, 150.0)
     assert torch.all(far > base)
-    scaled, _ = gather_output(logits, torch.tensor([2.0]), bins, 0.5, 150.0)
+    scaled, _ = bin_expectation(logits, torch.tensor([2.0]), bins, 0.5, 150.0)
     assert torch.allclose(scaled, 2 * base)
     # huge logits are clamped: no overflow, finite gradients
     wild = (torch.randn(1, 64, 2, 2) * 1e4).requires_grad_(True)
-    out, _ = gather_output(wild, 1.0, bins, 0.5, 150.0)
+    out, _ = bin_expectation(wild, 1.0, bins, 0.5, 150.0)
     out.sum().backward()
     assert torch.isfinite(out).all() and torch.isfinite(wild.grad).all()
 

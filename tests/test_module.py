@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 
 import lightning as L
@@ -15,14 +16,14 @@ from fisheyedepth.data.batch import collate
 from fisheyedepth.models import MultiChannelHead, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 
-from conftest import tiny_batch
+from conftest import tiny_batch, tiny_samples
 
 
 def photometric_after(module, batch, steps, lr):
     opt = torch.optim.Adam(module.parameters(), lr)
     history = []
     for _ in range(steps):
-        loss, logs = module.losses(batch, module(batch["image"], batch["camera"]))
+        loss, logs = module.losses(batch, module(batch.image, batch.camera))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -43,7 +44,7 @@ def test_the_loss_measures_geometry(kitti_data):
     """Ground-truth distance as the prediction beats a wrong constant distance, for every camera."""
     module = FisheyeDepthModule(scales=(0,), automask=False)
     batch = tiny_batch(kitti_data, size=None)  # at 256 px: at 64 px mixed pixels swamp the parallax
-    gt = batch["distance"]
+    gt = batch.distance
 
     def loss_with(distance):
         disp = torch.full_like(distance, 0.5)
@@ -64,17 +65,17 @@ def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
     pin = FisheyeDepthModule(fisheye_projection=False)
     pin.load_state_dict(full.state_dict())
     batch = tiny_batch(kitti_data)
-    cam = batch["camera"][0]
-    assert isinstance(cam, MeiCamera) and full.warp_camera(cam) is cam
-    assert pin.warp_camera(cam) == pinhole_like(cam) and isinstance(pin.warp_camera(cam), PinholeCamera)
-    gamma = FisheyeDepthModule(fisheye_projection=False, pinhole_focal="calibration").warp_camera(cam)
+    cam = batch.camera[0]
+    assert isinstance(cam, MeiCamera) and full.warp_model(cam) is cam
+    assert pin.warp_model(cam) == pinhole_like(cam) and isinstance(pin.warp_model(cam), PinholeCamera)
+    gamma = FisheyeDepthModule(fisheye_projection=False, pinhole_focal="calibration").warp_model(cam)
     assert (gamma.fx, gamma.fy, gamma.cx, gamma.cy) == (cam.gamma1, cam.gamma2, cam.u0, cam.v0)
-    assert pin.warp_camera(cam).fx == pytest.approx(cam.gamma1 / (1 + cam.xi))  # paraxial
+    assert pin.warp_model(cam).fx == pytest.approx(cam.gamma1 / (1 + cam.xi))  # paraxial
     with pytest.raises(ValueError, match="pinhole_focal: 'fov' is not one of paraxial, calibration"):
         FisheyeDepthModule(fisheye_projection=False, pinhole_focal="fov")
     with torch.no_grad():
-        out = full(batch["image"], batch["camera"])
-        assert torch.equal(out["distance"][0], pin(batch["image"], batch["camera"])["distance"][0])
+        out = full(batch.image, batch.camera)
+        assert torch.equal(out["distance"][0], pin(batch.image, batch.camera)["distance"][0])
         assert full.losses(batch, out)[0] != pin.losses(batch, out)[0]
 
 
@@ -109,23 +110,23 @@ def test_multi_channel_switch_replaces_only_the_heads():
 
 def test_real_scale_switch_replaces_only_the_poses(kitti_data):
     batch = tiny_batch(kitti_data)
-    moved = dict(batch, poses=batch["poses"].clone())
-    moved["poses"][..., :3, 3] *= 1.5
+    moved = dataclasses.replace(batch, poses=batch.poses.clone())
+    moved.poses[..., :3, 3] *= 1.5
     real, learned = FisheyeDepthModule(automask=False), FisheyeDepthModule(real_scale=False, automask=False)
     assert learned.pose_net is not None and real.pose_net is None
     assert count_parameters(real.depth_net) == count_parameters(learned.depth_net)
     with torch.no_grad():
-        out = real(batch["image"], batch["camera"])
+        out = real(batch.image, batch.camera)
         assert real.losses(batch, out)[0] != real.losses(moved, out)[0]  # real-scale poses are used ...
-        out = learned(batch["image"], batch["camera"])
+        out = learned(batch.image, batch.camera)
         assert learned.losses(batch, out)[0] == learned.losses(moved, out)[0]  # ... or ignored
 
 
 def test_mixed_cameras_in_one_batch(kitti_data):
     batch = tiny_batch(kitti_data, frames=(4,), cameras=("image_02", "image_03"))
-    assert batch["camera"][0] != batch["camera"][1]
+    assert batch.camera[0] != batch.camera[1]
     module = FisheyeDepthModule(scales=(0, 1))
-    loss, logs = module.losses(batch, module(batch["image"], batch["camera"]))
+    loss, logs = module.losses(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss) and 0.1 < logs["used_pixels/0"].item() <= 1.0  # sky, body, corners: out
 
 
@@ -134,10 +135,7 @@ class _Loader(list):
 
 
 def test_lightning_fit_validate_predict_and_skip_non_finite_batches(kitti_data, tmp_path):
-    samples = [
-        tiny_batch(kitti_data, frames=(f,), cameras=(c,)) for f in (1, 2, 3) for c in ("image_02", "image_03")
-    ]
-    flat = [{k: (v[0] if not isinstance(v, list) else v[0]) for k, v in s.items()} for s in samples]
+    flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     poisoned = copy.deepcopy(flat[0])
     poisoned["image"][:] = float("nan")
     train = DataLoader([poisoned, *flat], batch_size=2, collate_fn=collate)
@@ -198,10 +196,10 @@ def test_a_posenet_predicts_the_body_motion_and_each_camera_follows_its_extrinsi
     from fisheyedepth.geometry import invert_pose
 
     batch = tiny_batch(kitti_data, frames=(2, 3), cameras=("image_02", "image_03"))
-    E = batch["cam_to_body"].double()[:, None]
-    body = E @ batch["poses"].double() @ invert_pose(E)  # the vehicle's motion, the same for both cameras
+    E = batch.cam_to_body.double()[:, None]
+    body = E @ batch.poses.double() @ invert_pose(E)  # the vehicle's motion, the same for both cameras
     assert torch.allclose(body[0], body[1], atol=1e-5)  # image_02 and image_03 of frame 2
-    samples = [{k: v[i] if not isinstance(v, list) else v[i] for k, v in batch.items()} for i in range(4)]
+    samples = tiny_samples(kitti_data, frames=(2, 3), cameras=("image_02", "image_03"))
     flipped = collate([flip_sample(s) for s in samples])
     module = FisheyeDepthModule(real_scale=False, scales=(0,))
 
@@ -212,4 +210,4 @@ def test_a_posenet_predicts_the_body_motion_and_each_camera_follows_its_extrinsi
 
     module.pose_net = Oracle()
     for b in (batch, flipped):
-        assert torch.allclose(module.relative_poses(b).double(), b["poses"].double(), atol=1e-5)
+        assert torch.allclose(module.relative_poses(b).double(), b.poses.double(), atol=1e-5)

@@ -11,8 +11,14 @@ import pytest
 import torch
 
 from fisheyedepth.cameras import RayCache, load_camera
-from fisheyedepth.cameras.presets import KITTI360_CAM_TO_POSE, kitti360_camera
-from fisheyedepth.data.kitti360_files import read_cam_to_pose, read_cam_to_velo, read_poses, read_velodyne
+from fisheyedepth.data.kitti360 import (
+    KITTI360_CAM_TO_POSE,
+    kitti360_camera,
+    read_cam_to_pose,
+    read_cam_to_velo,
+    read_poses,
+    read_velodyne,
+)
 from fisheyedepth.data.synthetic import generate, is_complete, make_trajectory, make_world
 from fisheyedepth.data.synthetic import writer as writer_module
 from fisheyedepth.data.synthetic.cli import main as cli_main

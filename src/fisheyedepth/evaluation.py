@@ -20,6 +20,7 @@ from torch import Tensor
 from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache
+from .data.batch import SkippedBatch
 from .metrics import DepthMetrics
 from .viz import panel
 
@@ -154,19 +155,19 @@ def evaluate(
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
     written = 0
     for batch in loader:
-        if "image" not in batch:
+        if isinstance(batch, SkippedBatch):  # no frame of it could be read (skip_bad_frames)
             continue
-        if "distance" not in batch:
+        if batch.distance is None:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
-        pred = module.depth_net.distance(batch["image"].to(module.device), batch["camera"], train_size)
-        gt, mask = batch["distance"].to(pred), batch["mask"].to(pred) > 0.5
-        for i, cam in enumerate(batch["camera"]):
+        pred = module.depth_net.distance(batch.image.to(module.device), batch.camera, train_size)
+        gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
+        for i, cam in enumerate(batch.camera):
             for ev in evaluators.values():
                 ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam)
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
-                scored = batch["distance"][i] * (batch["mask"][i] > 0.5)  # no error shown on the ego body
-                pic = panel(batch["image"][i], pred[i].cpu(), scored, 0.5, 80.0)
+                scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body
+                pic = panel(batch.image[i], pred[i].cpu(), scored, 0.5, 80.0)
                 cv2.imwrite(str(pictures / f"panel_{written:03d}.png"), pic[..., ::-1])
                 written += 1
     return {name: ev.compute() for name, ev in evaluators.items()}

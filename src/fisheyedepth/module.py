@@ -24,6 +24,7 @@ from torch.nn import functional as F
 from .cameras import CameraModel, RayCache, pinhole_like
 from .cameras.pinhole import PINHOLE_FOCALS
 from .checkpoints import CheckpointError, module_arguments, read_checkpoint
+from .data.batch import Batch, SkippedBatch
 from .geometry import (
     invert_pose,
     rotation_error_deg,
@@ -128,7 +129,7 @@ class FisheyeDepthModule(L.LightningModule):
         return module
 
     # ------------------------------------------------------------------------------- geometry
-    def warp_camera(self, camera: CameraModel) -> CameraModel:
+    def warp_model(self, camera: CameraModel) -> CameraModel:
         """The camera model the warp uses: the real one, or its pinhole stand-in when the switch is off."""
         if self.hparams.fisheye_projection:
             return camera
@@ -137,7 +138,7 @@ class FisheyeDepthModule(L.LightningModule):
     def forward(self, image: Tensor, cameras: list[CameraModel]) -> dict[str, dict[int, Tensor]]:
         return self.depth_net.for_cameras(image, cameras)
 
-    def relative_poses(self, batch: dict[str, Any]) -> Tensor:
+    def relative_poses(self, batch: Batch) -> Tensor:
         """``[B, S, 4, 4]`` target-to-source transforms: the batch's real-scale poses, or the PoseNet's.
 
         With the camera-to-body extrinsic in the batch, the PoseNet predicts the motion of the body
@@ -146,23 +147,22 @@ class FisheyeDepthModule(L.LightningModule):
         predicted each camera's own motion had to tell a left-looking from a right-looking camera
         before anything else, and learned one motion for both instead (reversed for one of them)."""
         if self.pose_net is None:
-            return batch["poses"].to(batch["image"].dtype)
-        target = batch.get("image_aug", batch["image"])
-        sources = batch.get("sources_aug", batch["sources"])
+            return batch.poses.to(batch.image.dtype)
+        target, sources = batch.image_aug, batch.sources_aug
         offsets = enumerate(self.source_offsets)
         poses = torch.stack([self.pose_net(target, sources[:, j], o < 0) for j, o in offsets], 1)
-        if "cam_to_body" not in batch:
+        if batch.cam_to_body is None:
             return poses
-        E = batch["cam_to_body"].to(poses)[:, None]
+        E = batch.cam_to_body.to(poses)[:, None]
         return invert_pose(E) @ poses @ E
 
     @torch.no_grad()
-    def pose_errors(self, batch: dict[str, Any]) -> dict[str, Tensor]:
+    def pose_errors(self, batch: Batch) -> dict[str, Tensor]:
         """The PoseNet against the batch's true relative poses (odometry, or the synthetic world's exact
         ones): mean rotation error and translation-direction error (degrees, scale-free), the fraction
         of translations pointing backwards, and the median ratio of predicted to true translation
         length (the PoseNet's drifting scale)."""
-        predicted, true = self.relative_poses(batch).double(), batch["poses"].double()
+        predicted, true = self.relative_poses(batch).double(), batch.poses.double()
         moving = true[..., :3, 3].norm(dim=-1) > 1e-6
         ratio = predicted[..., :3, 3].norm(dim=-1)[moving] / true[..., :3, 3].norm(dim=-1)[moving]
         direction = translation_direction_error_deg(predicted[moving], true[moving])
@@ -176,20 +176,14 @@ class FisheyeDepthModule(L.LightningModule):
             "scale": ratio.median().float() if ratio.numel() else nan,
         }
 
-    def losses(
-        self, batch: dict[str, Any], outputs: dict[str, dict[int, Tensor]]
-    ) -> tuple[Tensor, dict[str, Tensor]]:
-        target, sources = batch["image"], batch["sources"]
-        B, S = sources.shape[:2]
+    def losses(self, batch: Batch, outputs: dict[str, dict[int, Tensor]]) -> tuple[Tensor, dict[str, Tensor]]:
+        target, sources, source_mask = batch.image, batch.sources, batch.source_mask
+        S = batch.n_sources
         H, W = target.shape[-2:]
-        cameras = [self.warp_camera(c) for c in batch["camera"]]
-        source_cameras = [
-            [self.warp_camera(c) for c in cams]
-            for cams in batch.get("source_camera", [[c] * S for c in batch["camera"]])
-        ]
+        cameras = [self.warp_model(c) for c in batch.camera]
+        source_cameras = [[self.warp_model(c) for c in cams] for cams in batch.source_camera]
         rays, rays_valid = self.rays.batch(cameras, target.device, target.dtype)
-        mask = (batch["mask"][:, 0] > 0.5) & rays_valid
-        source_mask = batch.get("source_mask", batch["mask"][:, None].expand(B, S, 1, H, W))
+        mask = (batch.mask[:, 0] > 0.5) & rays_valid
         poses = self.relative_poses(batch)
         identity = self.reprojection.identity(sources, target)  # the same at every scale: once per step
         logs: dict[str, Tensor] = {}
@@ -221,18 +215,15 @@ class FisheyeDepthModule(L.LightningModule):
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""
-        if isinstance(batch, dict):
-            return {
-                k: v.to(device, non_blocking=True) if isinstance(v, Tensor) else v for k, v in batch.items()
-            }
+        if isinstance(batch, Batch | SkippedBatch):
+            return batch.to(device)
         return super().transfer_batch_to_device(batch, device, dataloader_idx)
 
     # ------------------------------------------------------------------------------- steps
-    def _count_skipped(self, batch: dict[str, Any]) -> bool:
+    def _count_skipped(self, batch: Batch | SkippedBatch) -> bool:
         """Record frames the dataset could not read (``skip_bad_frames``); True when nothing is left."""
-        reasons = batch.get("skipped_frames", [])
-        self.skipped_frames.extend(reasons)
-        return "image" not in batch
+        self.skipped_frames.extend(batch.skipped_frames)
+        return isinstance(batch, SkippedBatch)
 
     def on_train_epoch_end(self) -> None:
         if self.skipped_frames:
@@ -245,12 +236,12 @@ class FisheyeDepthModule(L.LightningModule):
                 self.log("train/skipped_frames", float(len(self.skipped_frames)))
             self.skipped_frames.clear()
 
-    def training_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+    def training_step(self, batch: Batch | SkippedBatch, batch_idx: int) -> Tensor | None:
         if self._count_skipped(batch):
             return None
         # a non-finite batch must not poison BatchNorm's running statistics either: keep them to restore
         saved = {name: b.clone() for name, b in self.named_buffers() if "running_" in name}
-        outputs = self(batch.get("image_aug", batch["image"]), batch["camera"])
+        outputs = self(batch.image_aug, batch.camera)
         loss, logs = self.losses(batch, outputs)
         if not torch.isfinite(loss):
             with torch.no_grad():
@@ -261,9 +252,9 @@ class FisheyeDepthModule(L.LightningModule):
             warnings.warn(
                 f"non-finite loss at step {self.global_step} (batch {batch_idx}): batch skipped", stacklevel=1
             )
-            self.log("train/skipped_batches", float(self.skipped_batches), batch_size=len(batch["camera"]))
+            self.log("train/skipped_batches", float(self.skipped_batches), batch_size=len(batch))
             return None
-        batch_size = len(batch["camera"])
+        batch_size = len(batch)
         logs.pop("loss")
         self.log_dict({f"train/{k}": v.detach() for k, v in logs.items()}, batch_size=batch_size)
         self.log("train/loss", loss.detach(), prog_bar=True, batch_size=batch_size)
@@ -278,31 +269,31 @@ class FisheyeDepthModule(L.LightningModule):
         return loss
 
     def _evaluate(
-        self, batch: dict[str, Any], stage: str, metrics: DepthMetrics, scaled: DepthMetrics
+        self, batch: Batch | SkippedBatch, stage: str, metrics: DepthMetrics, scaled: DepthMetrics
     ) -> tuple[Tensor, dict[str, dict[int, Tensor]]] | None:
         if self._count_skipped(batch):
             return None
-        outputs = self(batch["image"], batch["camera"])
+        outputs = self(batch.image, batch.camera)
         loss, logs = self.losses(batch, outputs)
-        batch_size = len(batch["camera"])
+        batch_size = len(batch)
         self.log(f"{stage}/loss", loss, batch_size=batch_size, sync_dist=True)
         # the selection criterion: Monodepth2's automasked photometric error, comparable across epochs
         photometric = torch.stack([logs[f"automasked/{s}"] for s in self.scales]).mean()
         self.log(f"{stage}/photometric", photometric, batch_size=batch_size, sync_dist=True)
-        if self.pose_net is not None and "poses" in batch:
+        if self.pose_net is not None:
             self.log_dict(
                 {f"{stage}/pose/{k}": v for k, v in self.pose_errors(batch).items()},
                 batch_size=batch_size,
                 sync_dist=True,
             )
-        if "distance" in batch:
-            pred, gt = outputs["distance"][0], batch["distance"]
-            valid = batch["mask"] > 0.5
+        if batch.distance is not None:
+            pred, gt = outputs["distance"][0], batch.distance
+            valid = batch.mask > 0.5
             metrics.update(pred, gt, valid)
             scaled.update(pred, gt, valid)
         return loss, outputs
 
-    def validation_step(self, batch: dict[str, Any], batch_idx: int) -> Tensor | None:
+    def validation_step(self, batch: Batch | SkippedBatch, batch_idx: int) -> Tensor | None:
         result = self._evaluate(batch, "val", self.val_metrics, self.val_metrics_scaled)
         if result is None:
             return None
@@ -311,10 +302,12 @@ class FisheyeDepthModule(L.LightningModule):
             self.log_panel("val", batch, outputs["distance"][0])
         return loss
 
-    def predict_step(self, batch: dict[str, Any], batch_idx: int, dataloader_idx: int = 0) -> Tensor | None:
+    def predict_step(
+        self, batch: Batch | SkippedBatch, batch_idx: int, dataloader_idx: int = 0
+    ) -> Tensor | None:
         if self._count_skipped(batch):
             return None
-        return self.depth_net.distance(batch["image"], batch["camera"], self.hparams.input_size)
+        return self.depth_net.distance(batch.image, batch.camera, self.hparams.input_size)
 
     def _log_metrics(self, stage: str, metrics: DepthMetrics, scaled: DepthMetrics) -> None:
         if int(metrics.images) == 0:
@@ -338,13 +331,13 @@ class FisheyeDepthModule(L.LightningModule):
         return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
 
     # ------------------------------------------------------------------------------- pictures
-    def log_panel(self, stage: str, batch: dict[str, Any], distance: Tensor) -> None:
+    def log_panel(self, stage: str, batch: Batch, distance: Tensor) -> None:
         """Input | distance | GT | error of the first sample, through the logger or as a PNG in its folder."""
         if self._trainer is None or not self.trainer.is_global_zero:
             return
-        gt = batch["distance"][0] if "distance" in batch else None
+        gt = batch.distance[0] if batch.distance is not None else None
         vmax = min(self.hparams.eval_max, self.hparams.max_distance)
-        picture = panel(batch["image"][0], distance[0], gt, self.hparams.min_distance, vmax)
+        picture = panel(batch.image[0], distance[0], gt, self.hparams.min_distance, vmax)
         tag = f"{stage}/panel"
         logger = self.logger
         if logger is not None and hasattr(logger, "log_image"):  # wandb

@@ -5,7 +5,7 @@ See :mod:`fisheyedepth.cameras.base` for the conventions shared by every model.
 
 from .base import CAMERA_MODELS, CameraModel, CameraParameterError
 from .double_sphere import DoubleSphereCamera
-from .io import CalibrationError, camera_from_mapping, load_camera, load_yaml, save_camera
+from .io import CalibrationError, camera_from_mapping, load_camera, load_yaml, opencv_yaml, save_camera
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
 from .pinhole import PinholeCamera, pinhole_like
@@ -25,6 +25,7 @@ __all__ = [
     "camera_from_mapping",
     "compute_rays",
     "load_camera",
+    "opencv_yaml",
     "load_yaml",
     "pinhole_like",
     "pixel_grid",

@@ -76,25 +76,26 @@ def _get(tree: dict, dotted: str, path) -> Any:
     return node
 
 
-def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
-    model_type = str(_get(tree, "model_type", path)).strip().upper()
-    size = {"width": _get(tree, "image_width", path), "height": _get(tree, "image_height", path)}
-    keys: dict[str, str]  # our parameter -> dotted key in the file
-    if model_type == "MEI":
-        keys = {
+# The OpenCV YAML layouts, for reading and writing alike: model_type -> (our model name, our parameter
+# -> the file's dotted key, in the file's order). MEI's p1/p2 are read only with keep_tangential.
+OPENCV_LAYOUTS: dict[str, tuple[str, dict[str, str]]] = {
+    "MEI": (
+        "mei",
+        {
             "xi": "mirror_parameters.xi",
             "k1": "distortion_parameters.k1",
             "k2": "distortion_parameters.k2",
+            "p1": "distortion_parameters.p1",
+            "p2": "distortion_parameters.p2",
             "gamma1": "projection_parameters.gamma1",
             "gamma2": "projection_parameters.gamma2",
             "u0": "projection_parameters.u0",
             "v0": "projection_parameters.v0",
-        }
-        if keep_tangential:
-            keys.update(p1="distortion_parameters.p1", p2="distortion_parameters.p2")
-        model = "mei"
-    elif model_type == "KANNALA_BRANDT":
-        keys = {
+        },
+    ),
+    "KANNALA_BRANDT": (
+        "kannala_brandt",
+        {
             "k1": "projection_parameters.k2",
             "k2": "projection_parameters.k3",
             "k3": "projection_parameters.k4",
@@ -103,25 +104,56 @@ def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
             "fy": "projection_parameters.mv",
             "cx": "projection_parameters.u0",
             "cy": "projection_parameters.v0",
-        }
-        model = "kannala_brandt"
-    elif model_type == "PINHOLE":
-        keys = {name: f"projection_parameters.{name}" for name in ("fx", "fy", "cx", "cy")}
-        dist = tree.get("distortion_parameters") or {}
-        for name, value in dist.items():
+        },
+    ),
+    "PINHOLE": ("pinhole", {name: f"projection_parameters.{name}" for name in ("fx", "fy", "cx", "cy")}),
+}
+TANGENTIAL = ("p1", "p2")
+
+
+def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
+    model_type = str(_get(tree, "model_type", path)).strip().upper()
+    size = {"width": _get(tree, "image_width", path), "height": _get(tree, "image_height", path)}
+    if model_type not in OPENCV_LAYOUTS:
+        raise CalibrationError(
+            path, "model_type", f"unknown model_type {model_type!r}; expected MEI, KANNALA_BRANDT or PINHOLE"
+        )
+    model, layout = OPENCV_LAYOUTS[model_type]
+    keys = {ours: theirs for ours, theirs in layout.items() if keep_tangential or ours not in TANGENTIAL}
+    if model_type == "PINHOLE":
+        for name, value in (tree.get("distortion_parameters") or {}).items():
             if value not in (0, 0.0):
                 raise CalibrationError(
                     path, f"distortion_parameters.{name}", "pinhole distortion is not supported"
                 )
-        model = "pinhole"
-    else:
-        raise CalibrationError(
-            path, "model_type", f"unknown model_type {model_type!r}; expected MEI, KANNALA_BRANDT or PINHOLE"
-        )
     out: dict[str, Any] = {"model": model, **size}
     out.update({ours: _get(tree, theirs, path) for ours, theirs in keys.items()})
     out["_source_keys"] = {**keys, "width": "image_width", "height": "image_height"}
     return out
+
+
+def opencv_yaml(camera: CameraModel, name: str) -> str:
+    """``camera`` in KITTI-360's (CamOdoCal's) OpenCV YAML layout, the one :func:`load_camera` reads."""
+    layouts = {model: (model_type, keys) for model_type, (model, keys) in OPENCV_LAYOUTS.items()}
+    if camera.model_name not in layouts:
+        raise TypeError(f"no OpenCV YAML layout for {type(camera).__name__}")
+    model_type, keys = layouts[camera.model_name]
+    lines = [
+        "%YAML:1.0",
+        "---",
+        f"model_type: {model_type}",
+        f"camera_name: {name}",
+        f"image_width: {camera.width}",
+        f"image_height: {camera.height}",
+    ]
+    section = None
+    for ours, theirs in keys.items():
+        group, key = theirs.split(".")
+        if group != section:
+            lines.append(f"{group}:")
+            section = group
+        lines.append(f"   {key}: {getattr(camera, ours)!r}")
+    return "\n".join(lines) + "\n"
 
 
 def camera_from_mapping(data: dict[str, Any], path="<mapping>") -> CameraModel:

@@ -46,7 +46,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     example = torch.rand(1, 3, size[1], size[0], generator=torch.Generator().manual_seed(0))
     buffer = io.BytesIO()  # serialised in memory, verified, then written atomically
     if cfg.format == "torchscript":
-        torch.jit.trace(net, example).save(buffer)
+        torch.jit.save(torch.jit.trace(net, example), buffer)  # ScriptModule.save takes file names only
         exported = torch.jit.load(io.BytesIO(buffer.getvalue()))
         run = lambda x: exported(x)  # noqa: E731
     else:

@@ -1,13 +1,15 @@
 """Data: the synthetic fisheye world, dataset layouts (KITTI-360, robot rig), the dataset and DataModule."""
 
 from .augment import Augment, PoseNoise, colour_jitter, flip_sample
-from .batch import collate
+from .batch import Batch, SkippedBatch, collate
 from .datamodule import FisheyeDataModule
 from .dataset import FisheyeDataset, ImageCache
-from .layouts import CameraSpec, Kitti360Layout, RigLayout
+from .kitti360 import Kitti360Layout
+from .layouts import CameraSpec, RigLayout
 
 __all__ = [
     "Augment",
+    "Batch",
     "PoseNoise",
     "CameraSpec",
     "FisheyeDataModule",
@@ -15,6 +17,7 @@ __all__ = [
     "ImageCache",
     "Kitti360Layout",
     "RigLayout",
+    "SkippedBatch",
     "colour_jitter",
     "collate",
     "flip_sample",

@@ -23,6 +23,16 @@ class Augment:
     saturation: float = 0.2
     hue: float = 0.1
 
+    def __call__(self, sample: dict[str, Any]) -> dict[str, Any]:
+        """A training sample, flipped with probability ``flip`` (images, masks, ground truth, camera and
+        poses together, :func:`flip_sample`), with ``image_aug``/``sources_aug`` colour-jittered alike
+        for the networks' input; the un-jittered frames stay for the photometric loss."""
+        if torch.rand(()).item() < self.flip:
+            sample = flip_sample(sample)
+        frames = torch.cat((sample["image"][None], sample["sources"]))
+        jittered = colour_jitter(frames, self.brightness, self.contrast, self.saturation, self.hue)
+        return {**sample, "image_aug": jittered[0], "sources_aug": jittered[1:]}
+
 
 _GREY = torch.tensor([0.299, 0.587, 0.114])
 

@@ -14,7 +14,8 @@ from torch.utils.data import DataLoader
 from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset
-from .layouts import Kitti360Layout, RigLayout
+from .kitti360 import Kitti360Layout
+from .layouts import RigLayout
 
 LAYOUTS = {"kitti360": Kitti360Layout, "rig": RigLayout}
 

@@ -17,7 +17,6 @@ import dataclasses
 import hashlib
 import logging
 import os
-import random
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +28,9 @@ from torch.utils.data import Dataset
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
 from ..utils import atomic_write_bytes
-from .augment import Augment, PoseNoise, colour_jitter, flip_sample
-from .layouts import Frame, Kitti360Layout
+from .augment import Augment, PoseNoise
+from .kitti360 import Kitti360Layout, LidarGroundTruth
+from .layouts import Frame
 
 log = logging.getLogger(__name__)
 
@@ -200,8 +200,6 @@ class FisheyeDataset(Dataset):
         self.ground_truth = ground_truth
         self.lidar = None
         if ground_truth in ("lidar", "auto") and isinstance(layout, Kitti360Layout):
-            from .lidar import LidarGroundTruth
-
             self.lidar = LidarGroundTruth(layout, self.cache.dir, lidar_occlusion)
         self.dropped = {
             "no neighbour": 0,
@@ -342,12 +340,5 @@ class FisheyeDataset(Dataset):
                 raise
             return {"skipped": f"{item.sequence}/{item.camera}/row {item.row}: {exc}"}
         if self.augment is not None:
-            aug = self.augment
-            flip = random.random() < aug.flip
-            if flip:
-                sample = flip_sample(sample)
-            sample["flipped"] = torch.tensor(flip)
-            frames = torch.cat((sample["image"][None], sample["sources"]))
-            jittered = colour_jitter(frames, aug.brightness, aug.contrast, aug.saturation, aug.hue)
-            sample["image_aug"], sample["sources_aug"] = jittered[0], jittered[1:]
+            sample = self.augment(sample)
         return sample

@@ -1,4 +1,4 @@
-"""Where frames, poses, cameras and masks live on disk: the KITTI-360 layout and the robot-rig layout.
+"""Where frames, poses, cameras and masks live on disk: what every layout answers, and the robot-rig layout.
 
 A layout answers a few questions for the dataset, which builds every sample the same way for both:
 which cameras exist (model, camera-to-body extrinsic, optional body mask), which frames a sequence has
@@ -18,8 +18,7 @@ import numpy as np
 import torch
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
-from ..geometry import quaternion_to_matrix
-from .kitti360_files import read_cam_to_pose, read_poses
+from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -36,73 +35,6 @@ class CameraSpec:
 class Frame:
     key: int  # frame index (KITTI-360) or timestamp in ns (rig)
     pose: np.ndarray  # 4x4 body to world
-
-
-class Kitti360Layout:
-    """The official KITTI-360 layout (and the synthetic world's)."""
-
-    name = "kitti360"
-
-    def __init__(
-        self,
-        root: str | os.PathLike,
-        cameras: list[str] | None = None,
-        masks: dict[str, str | os.PathLike] | None = None,
-        keep_tangential: bool = False,
-    ):
-        self.root = Path(root)
-        calib = self.root / "calibration"
-        extrinsics_file = _existing(calib / "calib_cam_to_pose.txt", "calibration file")
-        extrinsics = read_cam_to_pose(extrinsics_file)
-        if cameras is None:
-            cameras = self.discover_cameras()
-        self.cameras: dict[str, CameraSpec] = {}
-        for name in cameras:
-            if name not in extrinsics:
-                raise KeyError(f"{extrinsics_file}: no line for camera {name!r}")
-            calibration = _existing(calib / f"{name}.yaml", f"calibration file of camera {name!r}")
-            camera = load_camera(calibration, keep_tangential)
-            mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
-            if masks and name in masks:
-                _existing(mask, "body mask")
-            self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
-        self._frames: dict[str, list[Frame]] = {}
-
-    def discover_cameras(self) -> list[str]:
-        """The fisheye cameras of the dataset: every ``calibration/image_0X.yaml`` and every image folder
-        ``data_2d_raw/<seq>/<camera>/data_rgb``. Each must have both a calibration yaml and a line in
-        ``calib_cam_to_pose.txt``, checked by the caller, so a camera never vanishes without a word.
-        KITTI-360's perspective cameras (``image_00/01``: ``data_rect`` folders, no yaml) are not fisheyes
-        and are not demanded."""
-        calibrated = {p.stem for p in (self.root / "calibration").glob("image_0*.yaml")}
-        recorded = {p.parent.name for p in (self.root / "data_2d_raw").glob("*/*/data_rgb") if p.is_dir()}
-        cameras = sorted(calibrated | recorded)
-        if not cameras:
-            raise FileNotFoundError(
-                f"{self.root}: no camera found (no calibration/image_0X.yaml, "
-                "no data_2d_raw/<sequence>/<camera>/data_rgb folder)"
-            )
-        return cameras
-
-    def sequences(self) -> list[str]:
-        return sorted(p.name for p in (self.root / "data_poses").iterdir() if (p / "poses.txt").is_file())
-
-    def frames(self, sequence: str, camera: str | None = None) -> list[Frame]:
-        """The sequence's frames in ``poses.txt`` row order (the same for every camera)."""
-        if sequence not in self._frames:
-            poses = read_poses(_existing(self.root / "data_poses" / sequence / "poses.txt", "pose file"))
-            self._frames[sequence] = [Frame(k, poses[k]) for k in sorted(poses)]
-        return self._frames[sequence]
-
-    def image(self, sequence: str, camera: str, frame: Frame) -> Path:
-        return self.root / "data_2d_raw" / sequence / camera / "data_rgb" / f"{frame.key:010d}.png"
-
-    def distance(self, sequence: str, camera: str, frame: Frame) -> Path | None:
-        path = self.root / "data_2d_distance" / sequence / camera / f"{frame.key:010d}.npy"
-        return path if path.is_file() else None
-
-    def lidar(self, sequence: str, frame: Frame) -> Path:
-        return self.root / "data_3d_raw" / sequence / "velodyne_points" / "data" / f"{frame.key:010d}.bin"
 
 
 class RigLayout:
@@ -123,7 +55,7 @@ class RigLayout:
         masks: dict[str, str | os.PathLike] | None = None,
     ):
         self.root = Path(root)
-        rig_file = _existing(self.root / "rig.yaml", "rig description")
+        rig_file = existing(self.root / "rig.yaml", "rig description")
         try:
             text = rig_file.read_text(encoding="utf-8")
         except UnicodeDecodeError:
@@ -150,7 +82,7 @@ class RigLayout:
                 raise CalibrationError(rig_file, f"{where}.cam_to_body", "missing")
             extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
             mask = masks.get(name) if masks else entry.get("mask")
-            mask = None if mask is None else _existing(self.root / mask, "body mask")
+            mask = None if mask is None else existing(self.root / mask, "body mask")
             self.cameras[name] = CameraSpec(name, camera, extrinsic, mask)
         if cameras is not None and set(cameras) - set(self.cameras):
             raise CalibrationError(
@@ -163,7 +95,7 @@ class RigLayout:
         return sorted(p.name for p in self.root.iterdir() if (p / "poses.txt").is_file())
 
     def _poses(self, sequence: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        path = _existing(self.root / sequence / "poses.txt", "pose file")
+        path = existing(self.root / sequence / "poses.txt", "pose file")
         stamps, rows = [], []
         lines: dict[int, int] = {}
         for lineno, line in enumerate(path.read_text().splitlines(), start=1):
@@ -242,31 +174,31 @@ def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t:
     i = int(np.searchsorted(times, t, side="right")) - 1
     i = min(max(i, 0), len(times) - 2)
     u = (t - times[i]) / (times[i + 1] - times[i])
-    T = np.eye(4)
-    T[:3, :3] = quaternion_matrix(slerp(quats[i], quats[i + 1], float(u)))
-    T[:3, 3] = (1 - u) * trans[i] + u * trans[i + 1]
-    return T
+    R = quaternion_matrix(slerp(quats[i], quats[i + 1], float(u)))
+    return _make_pose(R, (1 - u) * trans[i] + u * trans[i + 1])
+
+
+def _make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return make_pose(torch.as_tensor(R, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64)).numpy()
 
 
 def _transform(value, path: Path, key: str) -> np.ndarray:
     """A 4x4 / 3x4 matrix (nested lists) or ``{translation: [3], quaternion_xyzw: [4]}``."""
     try:
         if isinstance(value, dict):
-            T = np.eye(4)
-            T[:3, :3] = quaternion_matrix(
-                np.asarray(value["quaternion_xyzw"], float) / np.linalg.norm(value["quaternion_xyzw"])
-            )
-            T[:3, 3] = np.asarray(value["translation"], float)
+            q = np.asarray(value["quaternion_xyzw"], float)
+            T = _make_pose(quaternion_matrix(q / np.linalg.norm(q)), np.asarray(value["translation"], float))
         else:
             m = np.asarray(value, dtype=float)
-            T = np.eye(4)
-            T[: m.shape[0]] = m
             if m.shape not in ((3, 4), (4, 4)):
                 raise ValueError
+            T = pose_from_3x4(m[:3]).numpy()
     except (KeyError, ValueError, TypeError):
         raise CalibrationError(
             path, key, "expected a 3x4/4x4 matrix or {translation, quaternion_xyzw}"
         ) from None
+    if not isinstance(value, dict) and m.shape == (4, 4) and not np.allclose(m[3], (0, 0, 0, 1)):
+        raise CalibrationError(path, key, f"the last row of a 4x4 transform must be 0 0 0 1, got {m[3]}")
     R = T[:3, :3]
     if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
         raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
@@ -284,7 +216,7 @@ def _timestamp(field: str) -> int:
         return int(value)
 
 
-def _existing(path: Path, what: str) -> Path:
+def existing(path: Path, what: str) -> Path:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: {what} not found")
     return path

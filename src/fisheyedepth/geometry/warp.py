@@ -101,8 +101,8 @@ def warp_to_source(
     if distance.dim() == 4:
         distance = distance[:, 0]
     finite = torch.isfinite(distance) & (distance > 0)
-    depth = torch.where(finite, distance, torch.ones_like(distance))
-    points = transform_points(T_target_to_source, rays * depth[..., None])
+    usable = torch.where(finite, distance, torch.ones_like(distance))  # any value: masked out below
+    points = transform_points(T_target_to_source, rays * usable[..., None])
     uv, valid = project_cameras(source_cameras, points)
 
     batch = rays.shape[0]

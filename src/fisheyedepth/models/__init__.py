@@ -1,7 +1,7 @@
 """Networks: ResNet encoders, the depth network with multi-channel or sigmoid heads, and PoseNet."""
 
 from .depth_net import DepthDecoder, DepthNet, upsample_inverse
-from .heads import MultiChannelHead, SigmoidHead, distance_bins, gather_output, sigmoid_to_distance
+from .heads import MultiChannelHead, SigmoidHead, bin_expectation, distance_bins, sigmoid_to_distance
 from .posenet import PoseNet
 from .resnet import ResNetEncoder, WeightsError
 
@@ -14,7 +14,7 @@ __all__ = [
     "SigmoidHead",
     "WeightsError",
     "distance_bins",
-    "gather_output",
+    "bin_expectation",
     "sigmoid_to_distance",
     "upsample_inverse",
 ]

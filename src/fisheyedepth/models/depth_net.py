@@ -11,10 +11,10 @@ from torch.nn import functional as F
 from .heads import (
     MultiChannelHead,
     SigmoidHead,
+    bin_expectation,
     conv3x3,
     distance_bins,
     distance_to_sigmoid,
-    gather_output,
     sigmoid_to_distance,
 )
 from .resnet import ResNetEncoder
@@ -65,7 +65,7 @@ class DepthNet(nn.Module):
     """Image + camera -> Euclidean distance (and normalised disparity): the one path from pixels to metres.
 
     ``multi_channel=True``: the paper's head (``n_bins`` log-spaced bins, channel attention,
-    :func:`gather_output`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
+    :func:`bin_expectation`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
     ``depth_scale`` (per sample, ``paraxial focal / base_focal``) multiplies the distance, so cameras of
     different focal lengths can share one network.
 
@@ -122,7 +122,7 @@ class DepthNet(nn.Module):
                 continue
             y = self.heads[str(s)](x)
             if self.multi_channel:
-                distance[s], disp[s] = gather_output(
+                distance[s], disp[s] = bin_expectation(
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
                 )
             else:

@@ -22,7 +22,7 @@ def distance_bins(n_bins: int, min_distance: float, max_distance: float) -> Tens
     return torch.exp(torch.linspace(math.log(min_distance), math.log(max_distance), n_bins))
 
 
-def gather_output(
+def bin_expectation(
     logits: Tensor, depth_scale: Tensor | float, bins: Tensor, min_distance: float, max_distance: float
 ) -> tuple[Tensor, Tensor]:
     """Multi-channel logits ``[B, K, H, W]`` -> (distance ``[B, 1, H, W]``, disparity ``[B, 1, H, W]``).

@@ -14,9 +14,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import torch
 
 from ...cameras import CameraModel, KannalaBrandtCamera
-from ...cameras.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
+from ...geometry import make_pose, pose_from_3x4
+from ..kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
 
 RIGS = ("kitti360", "surround4")
 
@@ -30,18 +32,14 @@ EGO_BODY = (
 
 
 def _pose(values) -> np.ndarray:
-    T = np.eye(4)
-    T[:3] = np.asarray(values, dtype=np.float64).reshape(3, 4)
-    return T
+    return pose_from_3x4(np.asarray(values, dtype=np.float64)).numpy()
 
 
 def _looking(forward, right, position) -> np.ndarray:
     """Camera-to-pose for a camera whose optical axis is ``forward`` and image x axis ``right``."""
     z, x = np.asarray(forward, float), np.asarray(right, float)
-    T = np.eye(4)
-    T[:3, :3] = np.stack((x, np.cross(z, x), z), 1)
-    T[:3, 3] = position
-    return T
+    R = torch.from_numpy(np.stack((x, np.cross(z, x), z), 1))
+    return make_pose(R, torch.as_tensor(position, dtype=torch.float64)).numpy()
 
 
 @dataclasses.dataclass

@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from ... import __version__
-from ...cameras import CameraModel, KannalaBrandtCamera, MeiCamera
+from ...cameras import opencv_yaml
 from .raycast import scene_tensors
 from .render import CameraRenderer, LidarRenderer
 from .rig import RIGS, Rig, make_rig
@@ -73,29 +73,6 @@ class Job:
     sequence: str
     frame: int
     pose: np.ndarray
-
-
-def opencv_yaml(name: str, camera: CameraModel) -> str:
-    """A calibration file in KITTI-360's (CamOdoCal's) OpenCV YAML layout."""
-    head = (
-        f"%YAML:1.0\n---\nmodel_type: {{}}\ncamera_name: {name}\nimage_width: {camera.width}\n"
-        f"image_height: {camera.height}\n"
-    )
-    if isinstance(camera, MeiCamera):
-        c = camera
-        return head.format("MEI") + (
-            f"mirror_parameters:\n   xi: {c.xi!r}\n"
-            f"distortion_parameters:\n   k1: {c.k1!r}\n   k2: {c.k2!r}\n   p1: {c.p1!r}\n   p2: {c.p2!r}\n"
-            f"projection_parameters:\n   gamma1: {c.gamma1!r}\n   gamma2: {c.gamma2!r}\n   u0: {c.u0!r}\n"
-            f"   v0: {c.v0!r}\n"
-        )
-    if isinstance(camera, KannalaBrandtCamera):
-        c = camera
-        return head.format("KANNALA_BRANDT") + (
-            f"projection_parameters:\n   k2: {c.k1!r}\n   k3: {c.k2!r}\n   k4: {c.k3!r}\n   k5: {c.k4!r}\n"
-            f"   mu: {c.fx!r}\n   mv: {c.fy!r}\n   u0: {c.cx!r}\n   v0: {c.cy!r}\n"
-        )
-    raise TypeError(f"no OpenCV YAML layout for {type(camera).__name__}")
 
 
 def _row(T: np.ndarray) -> str:
@@ -172,7 +149,7 @@ def _write_layout(
     calib = root / "calibration"
     calib.mkdir(parents=True)
     for name, cam in rig.written.items():
-        (calib / f"{name}.yaml").write_text(opencv_yaml(name, cam))
+        (calib / f"{name}.yaml").write_text(opencv_yaml(cam, name))
         cv2.imwrite(str(calib / f"body_mask_{name}.png"), np.where(body_masks[name], 255, 0).astype(np.uint8))
     (calib / "calib_cam_to_pose.txt").write_text(
         "".join(f"{k}: {_row(T)}\n" for k, T in rig.cam_to_pose.items())

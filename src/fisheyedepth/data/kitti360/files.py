@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ...geometry import pose_from_3x4
+
 
 def _numbers(path: Path, lineno: int, fields: list[str], count: int) -> np.ndarray:
     try:
@@ -26,15 +28,9 @@ def _numbers(path: Path, lineno: int, fields: list[str], count: int) -> np.ndarr
 RIGID_TOLERANCE = 1e-4
 
 
-def _pose(values: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3] = values.reshape(3, 4)
-    return T
-
-
 def _rigid_pose(path: Path, lineno: int, values: np.ndarray, what: str) -> np.ndarray:
     """A 3x4 row-major pose whose rotation block must be orthonormal with det +1."""
-    T = _pose(values)
+    T = pose_from_3x4(values).numpy()
     R = T[:3, :3]
     error = float(np.abs(R @ R.T - np.eye(3)).max())
     if error >= RIGID_TOLERANCE:

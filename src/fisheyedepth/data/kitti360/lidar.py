@@ -19,9 +19,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..cameras import CameraModel
-from ..utils import atomic_write_bytes
-from .kitti360_files import read_cam_to_pose, read_cam_to_velo, read_velodyne
+from ...cameras import CameraModel
+from ...utils import atomic_write_bytes
+from .files import read_velodyne
 
 log = logging.getLogger(__name__)
 
@@ -58,15 +58,6 @@ def project_points(
     return d_img.float().numpy(), z_img.float().numpy()
 
 
-def velo_to_camera(root: Path, camera_name: str) -> np.ndarray:
-    """``inv(E_cam) @ E_00 @ inv(T_cam0_to_velo)``: Velodyne frame to the camera frame."""
-    E = read_cam_to_pose(root / "calibration" / "calib_cam_to_pose.txt")
-    velo_to_pose = E["image_00"] @ np.linalg.inv(
-        read_cam_to_velo(root / "calibration" / "calib_cam_to_velo.txt")
-    )
-    return np.linalg.inv(E[camera_name]) @ velo_to_pose
-
-
 class LidarGroundTruth:
     """Projected LiDAR per frame, computed for a whole sequence on first use and cached to ``cache_dir``."""
 
@@ -81,7 +72,7 @@ class LidarGroundTruth:
         )
 
     def _build(self, sequence: str, camera_name: str, camera: CameraModel, path: Path) -> None:
-        T = velo_to_camera(self.layout.root, camera_name)
+        T = self.layout.velo_to_camera(camera_name)
         arrays = {}
         for frame in self.layout.frames(sequence, camera_name):
             scan = self.layout.lidar(sequence, frame)
