@@ -195,9 +195,13 @@ def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
     """grad_clip left the model on 2026-11-23 (the trainer's gradient_clip_val is the only one)."""
     ckpt = torch.load(checkpoint, weights_only=True)
     ckpt["hyper_parameters"]["grad_clip"] = 1.0
+    cap = ckpt["hyper_parameters"].pop("eval_cap")  # before 2026-11-23: eval_min and eval_max
+    ckpt["hyper_parameters"].update(eval_min=0.5, eval_max=40.0)
     torch.save(ckpt, tmp_path / "old.ckpt")
     module = FisheyeDepthModule.from_checkpoint(tmp_path / "old.ckpt")
-    assert "grad_clip" not in module.hparams
+    assert "grad_clip" not in module.hparams and "eval_min" not in module.hparams
+    assert tuple(module.hparams.eval_cap) == (0.5, 40.0) and module.val_metrics.cap == (0.5, 40.0)
+    assert tuple(cap) == (1e-3, 80.0)
     ckpt["hyper_parameters"]["no_such_key"] = 1.0  # an unknown key is still refused, by name
     torch.save(ckpt, tmp_path / "foreign.ckpt")
     with pytest.raises(CheckpointError, match="no_such_key"):

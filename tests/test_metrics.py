@@ -25,8 +25,8 @@ def test_known_values():
 
 
 def test_epoch_average_is_per_image_with_masks_caps_and_scaling():
-    metric = DepthMetrics(min_depth=1e-3, max_depth=80.0)
-    scaled = DepthMetrics(min_depth=1e-3, max_depth=80.0, median_scaling=True)
+    metric = DepthMetrics(cap=(1e-3, 80.0))
+    scaled = DepthMetrics(cap=(1e-3, 80.0), median_scaling=True)
     gt = torch.full((2, 1, 4, 4), 10.0)
     gt[0, 0, 0, 0] = 0.0  # no ground truth: ignored
     gt[1, 0, 0, 0] = 500.0  # beyond the cap: ignored
@@ -51,6 +51,6 @@ def test_epoch_average_is_per_image_with_masks_caps_and_scaling():
 
 
 def test_predictions_are_clamped_to_the_caps():
-    metric = DepthMetrics(min_depth=1.0, max_depth=10.0)
+    metric = DepthMetrics(cap=(1.0, 10.0))
     metric.update(torch.full((1, 1, 2, 2), 1e6), torch.full((1, 1, 2, 2), 5.0))
     assert metric.compute()["abs_rel"].item() == pytest.approx(1.0)  # clamped to 10, not 1e6

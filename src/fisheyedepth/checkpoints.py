@@ -50,6 +50,8 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 
 RETIRED_HPARAMS = ("grad_clip",)  # 2026-11-23: clipping is the trainer's gradient_clip_val only
+# 2026-11-23: one name for the evaluation cap, as in the protocols and DepthMetrics
+RENAMED_HPARAMS = {("eval_min", "eval_max"): "eval_cap"}
 
 
 def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str, Any]:
@@ -61,6 +63,9 @@ def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str,
     hparams["weights"] = None  # the ImageNet file of the training machine is not needed: weights follow
     for key in RETIRED_HPARAMS:  # checkpoints written before a key was retired still load
         hparams.pop(key, None)
+    for old, new in RENAMED_HPARAMS.items():
+        if all(k in hparams for k in old):
+            hparams[new] = tuple(hparams.pop(k) for k in old)
     return hparams
 
 

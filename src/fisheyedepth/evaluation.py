@@ -81,11 +81,10 @@ class Evaluator:
         rays: RayCache | None = None,
     ):
         self.protocol, self.scalings, self.camera_height = protocol, tuple(scalings), camera_height
-        lo, hi = protocol.cap
         # every scaling (median included) is applied here, one ratio per image, so that the angle bands
         # are scored with the ratio of the whole image and add up to the headline number
-        self.metrics = {s: DepthMetrics(lo, hi) for s in self.scalings}
-        self.by_angle = {(s, b): DepthMetrics(lo, hi) for s in self.scalings for b in ANGLE_BINS}
+        self.metrics = {s: DepthMetrics(protocol.cap) for s in self.scalings}
+        self.by_angle = {(s, b): DepthMetrics(protocol.cap) for s in self.scalings for b in ANGLE_BINS}
         self.ratios: dict[str, list[float]] = {s: [] for s in self.scalings}
         self.rays = rays if rays is not None else RayCache()
 

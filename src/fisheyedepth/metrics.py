@@ -28,19 +28,17 @@ def image_metrics(pred: Tensor, gt: Tensor) -> Tensor:
 class DepthMetrics(Metric):
     """abs_rel, sq_rel, rmse, rmse_log, a1, a2, a3, each averaged over images.
 
-    A pixel counts when its ground truth lies in ``(min_depth, max_depth)`` and the optional mask is set;
-    predictions are clamped to ``[min_depth, max_depth]`` after optional per-image median scaling
+    A pixel counts when its ground truth lies in the open interval ``cap`` (metres) and the optional mask
+    is set; predictions are clamped to ``cap`` after optional per-image median scaling
     (``median_scaling=True``: prediction * median(gt) / median(pred), for scale-less methods).
     Images without a valid pixel are skipped and counted in ``skipped``.
     """
 
     full_state_update = False
 
-    def __init__(
-        self, min_depth: float = 1e-3, max_depth: float = 80.0, median_scaling: bool = False, **kwargs
-    ):
+    def __init__(self, cap: tuple[float, float] = (1e-3, 80.0), median_scaling: bool = False, **kwargs):
         super().__init__(**kwargs)
-        self.min_depth, self.max_depth, self.median_scaling = min_depth, max_depth, median_scaling
+        self.cap, self.median_scaling = (float(cap[0]), float(cap[1])), median_scaling
         self.add_state("sums", default=torch.zeros(len(NAMES), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("images", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
         self.add_state("skipped", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
@@ -49,7 +47,7 @@ class DepthMetrics(Metric):
     def update(self, pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> None:
         """``pred``, ``gt``: ``[B, 1, H, W]`` (or ``[B, H, W]``); ``mask``: same shape, True = evaluate."""
         pred, gt = pred.reshape(pred.shape[0], -1).double(), gt.reshape(gt.shape[0], -1).double()
-        valid = (gt > self.min_depth) & (gt < self.max_depth)
+        valid = (gt > self.cap[0]) & (gt < self.cap[1])
         if mask is not None:
             valid &= mask.reshape(mask.shape[0], -1).bool()
         for p, g, v in zip(pred, gt, valid, strict=True):
@@ -61,7 +59,7 @@ class DepthMetrics(Metric):
             if self.median_scaling:
                 ratio = g.median() / p.median().clamp_min(1e-12)
                 p = p * ratio
-            self.sums += image_metrics(p.clamp(self.min_depth, self.max_depth), g)
+            self.sums += image_metrics(p.clamp(*self.cap), g)
             self.ratio_sum += ratio
             self.images += 1
 

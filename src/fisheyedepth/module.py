@@ -61,8 +61,7 @@ class FisheyeDepthModule(L.LightningModule):
         weight_decay: float = 1e-5,
         lr_step: int = 8,
         lr_gamma: float = 0.1,
-        eval_min: float = 1e-3,
-        eval_max: float = 80.0,
+        eval_cap: tuple[float, float] = (1e-3, 80.0),
         log_images_every: int = 200,
         input_size: tuple[int, int] | None = None,
         pose_translation_scale: float | None = None,
@@ -102,8 +101,8 @@ class FisheyeDepthModule(L.LightningModule):
         self.smoothness = smoothness
         self.reprojection = ReprojectionLoss(automask=automask)
         self.rays = RayCache()
-        self.val_metrics = DepthMetrics(eval_min, eval_max)
-        self.val_metrics_scaled = DepthMetrics(eval_min, eval_max, median_scaling=True)
+        self.val_metrics = DepthMetrics(tuple(eval_cap))
+        self.val_metrics_scaled = DepthMetrics(tuple(eval_cap), median_scaling=True)
         self.skipped_batches = 0
         self.skipped_frames: list[str] = []
 
@@ -336,7 +335,7 @@ class FisheyeDepthModule(L.LightningModule):
         if self._trainer is None or not self.trainer.is_global_zero:
             return
         gt = batch.distance[0] if batch.distance is not None else None
-        vmax = min(self.hparams.eval_max, self.hparams.max_distance)
+        vmax = min(self.hparams.eval_cap[1], self.hparams.max_distance)
         picture = panel(batch.image[0], distance[0], gt, self.hparams.min_distance, vmax)
         tag = f"{stage}/panel"
         logger = self.logger
