@@ -175,11 +175,7 @@ def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t:
     i = min(max(i, 0), len(times) - 2)
     u = (t - times[i]) / (times[i + 1] - times[i])
     R = quaternion_matrix(slerp(quats[i], quats[i + 1], float(u)))
-    return _make_pose(R, (1 - u) * trans[i] + u * trans[i + 1])
-
-
-def _make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    return make_pose(torch.as_tensor(R, dtype=torch.float64), torch.as_tensor(t, dtype=torch.float64)).numpy()
+    return make_pose(R, (1 - u) * trans[i] + u * trans[i + 1]).numpy()
 
 
 def _transform(value, path: Path, key: str) -> np.ndarray:
@@ -187,7 +183,9 @@ def _transform(value, path: Path, key: str) -> np.ndarray:
     try:
         if isinstance(value, dict):
             q = np.asarray(value["quaternion_xyzw"], float)
-            T = _make_pose(quaternion_matrix(q / np.linalg.norm(q)), np.asarray(value["translation"], float))
+            T = make_pose(
+                quaternion_matrix(q / np.linalg.norm(q)), np.asarray(value["translation"], float)
+            ).numpy()
         else:
             m = np.asarray(value, dtype=float)
             if m.shape not in ((3, 4), (4, 4)):

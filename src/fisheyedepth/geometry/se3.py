@@ -10,8 +10,11 @@ import torch
 from torch import Tensor
 
 
-def make_pose(R: Tensor, t: Tensor) -> Tensor:
-    """``[..., 4, 4]`` from a rotation ``[..., 3, 3]`` and a translation ``[..., 3]``."""
+def make_pose(R, t) -> Tensor:
+    """``[..., 4, 4]`` from a rotation ``[..., 3, 3]`` and a translation ``[..., 3]`` (tensors, or arrays
+    read as tensors: float64 NumPy in, float64 out; the translation takes the rotation's dtype)."""
+    R = torch.as_tensor(R)
+    t = torch.as_tensor(t, dtype=R.dtype, device=R.device)
     T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
     T[..., :3, :3] = R
     T[..., :3, 3] = t

@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import torch
 
 from ...cameras import CameraModel, KannalaBrandtCamera
 from ...geometry import make_pose, pose_from_3x4
@@ -38,8 +37,7 @@ def _pose(values) -> np.ndarray:
 def _looking(forward, right, position) -> np.ndarray:
     """Camera-to-pose for a camera whose optical axis is ``forward`` and image x axis ``right``."""
     z, x = np.asarray(forward, float), np.asarray(right, float)
-    R = torch.from_numpy(np.stack((x, np.cross(z, x), z), 1))
-    return make_pose(R, torch.as_tensor(position, dtype=torch.float64)).numpy()
+    return make_pose(np.stack((x, np.cross(z, x), z), 1), position).numpy()
 
 
 @dataclasses.dataclass
