@@ -9,6 +9,7 @@ from fisheyedepth.losses import (
     INVALID_WARP_ERROR,
     ReprojectionLoss,
     automasked_error,
+    box_mean3,
     edge_aware_smoothness,
     min_reprojection,
     photometric_error,
@@ -29,6 +30,20 @@ def test_ssim_and_photometric_error():
     assert err.mean().item() == pytest.approx(0.15 * 0.1, abs=0.01)
     y = textured(1)
     assert photometric_error(y, x).mean() > 5 * err.mean()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_box_mean3_is_avg_pool_forward_and_backward(dtype):
+    x = textured(2, (2, 5, 11, 9)).to(dtype).requires_grad_()
+    ref = torch.nn.functional.avg_pool2d(x, 3, 1)
+    out = box_mean3(x)
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert out.shape == (2, 5, 9, 7) and torch.allclose(out, ref, atol=tol)
+    weights = torch.rand_like(ref)
+    (g_ref,) = torch.autograd.grad((ref * weights).sum(), x)
+    (g_out,) = torch.autograd.grad((out * weights).sum(), x)
+    assert torch.allclose(g_out, g_ref, atol=tol)
+    assert g_ref[0, 0, 0, 0] == pytest.approx(float(weights[0, 0, 0, 0]) / 9)  # a corner sits in one window
 
 
 def test_min_reprojection_picks_the_best_valid_source_and_automasks():
