@@ -259,3 +259,21 @@ def test_worker_processes_write_the_same_dataset(tmp_path):
     )
     for path in serial.rglob("*.npy"):
         assert np.array_equal(np.load(path), np.load(parallel / path.relative_to(serial)))
+
+
+def _turn_deg(poses: np.ndarray) -> float:
+    """Total absolute heading change along a stretch of body poses (degrees)."""
+    yaw = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    return float(np.degrees(np.abs(np.diff(yaw)).sum()))
+
+
+def test_the_table2_world_turns_in_training_and_validation():
+    """``scripts/reproduce.py`` trains on world 34 because its training segment turns: in the default
+    world 0 it drives straight while validation turns, so a PoseNet never learns a rotation there."""
+    ranges = writer_module.split_frames(200)
+    turns = {}
+    for seed in (0, 34):
+        poses = make_trajectory(make_world(seed), ranges["test"][1], seed)
+        turns[seed] = {split: _turn_deg(poses[a:b]) for split, (a, b) in ranges.items()}
+    assert turns[0]["train"] < 5 and turns[0]["val"] > 30, turns[0]
+    assert turns[34]["train"] > 150 and turns[34]["val"] > 30, turns[34]
