@@ -13,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from fisheyedepth.cameras import MeiCamera, PinholeCamera, pinhole_like
 from fisheyedepth.data.batch import collate
-from fisheyedepth.models import MultiChannelHead, SigmoidHead
+from fisheyedepth.models import MultiChannelHead, PoseNet, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 
 from conftest import tiny_batch, tiny_samples
@@ -40,6 +40,48 @@ def test_overfitting_a_batch_cuts_the_photometric_loss(kitti_data, real_scale, l
     assert history[-1] < factor * history[0], history[::5]
 
 
+def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
+    """The NHWC path (the default, for speed) gives the NCHW path's loss and gradients from the same
+    weights, and its state dict loads into either."""
+    batch = tiny_batch(kitti_data)
+    results = {}
+    for channels_last in (False, True):
+        torch.manual_seed(0)
+        module = FisheyeDepthModule(channels_last=channels_last, log_images_every=0)
+        conv = module.depth_net.encoder.conv1.weight
+        assert conv.is_contiguous(memory_format=torch.channels_last) == channels_last
+        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        loss.backward()
+        grads = {n: p.grad.clone() for n, p in module.named_parameters() if p.grad is not None}
+        results[channels_last] = (loss.item(), grads, module.state_dict())
+    (loss_a, grads_a, _), (loss_b, grads_b, state_b) = results[False], results[True]
+    assert loss_b == pytest.approx(loss_a, rel=1e-5)
+    assert grads_a.keys() == grads_b.keys() and len(grads_a) >= 90
+    worst = max(float((grads_b[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads_a.items())
+    assert worst < 1e-3, worst
+    FisheyeDepthModule(channels_last=False).load_state_dict(state_b)
+
+
+def test_channels_last_posenet_gives_the_same_poses_and_gradients():
+    """The PoseNet alone (in the full loss, a pose that differs in the 7th digit can flip a pixel's
+    minimum-reprojection choice, which says nothing about the network)."""
+    nets = []
+    for channels_last in (False, True):
+        torch.manual_seed(0)
+        nets.append(PoseNet(18, None, 1.3, channels_last).eval())
+    gen = torch.Generator().manual_seed(1)
+    target, source = torch.rand(2, 3, 64, 96, generator=gen), torch.rand(2, 3, 64, 96, generator=gen)
+    weights = torch.randn(2, 4, 4, generator=gen)
+    outs, grads = [], []
+    for net in nets:
+        T = net(target, source, True)
+        (T * weights).sum().backward()
+        outs.append(T.detach())
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+    assert torch.allclose(outs[1], outs[0], atol=1e-6)
+    assert float((grads[1] - grads[0]).norm() / grads[0].norm()) < 1e-4
+
+
 def test_the_loss_measures_geometry(kitti_data):
     """Ground-truth distance as the prediction beats a wrong constant distance, for every camera."""
     module = FisheyeDepthModule(scales=(0,), automask=False)
@@ -58,6 +100,24 @@ def test_the_loss_measures_geometry(kitti_data):
         assert truth < 0.8 * loss_with(torch.where(surface, torch.full_like(gt, wrong), far)), wrong
     assert truth < 0.95 * loss_with(torch.where(surface, gt * 1.3, far))
     assert truth < 0.95 * loss_with(torch.where(surface, gt * 0.8, far))
+
+
+def test_the_pinhole_stand_in_prefers_no_motion_to_the_truth(kitti_data):
+    """Why the Monodepth2 baseline cannot learn the truth on a fisheye rig: with true distance and true
+    poses, its pinhole warp reconstructs the target worse than no motion at all, while the fisheye warp
+    does far better than no motion (``scripts/diagnose_warp.py`` measures the same on whole worlds)."""
+    batch = tiny_batch(kitti_data, size=None)
+    gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
+    outputs = {"distance": {0: gt}, "disp": {0: torch.full_like(gt, 0.5)}}
+    still = dataclasses.replace(batch, poses=torch.eye(4).expand_as(batch.poses).clone())
+    errors = {}
+    for fisheye in (True, False):
+        module = FisheyeDepthModule(fisheye_projection=fisheye, scales=(0,), automask=False)
+        with torch.no_grad():
+            errors[fisheye] = [module.losses(b, outputs)[1]["photometric/0"].item() for b in (batch, still)]
+    (fish_truth, fish_still), (pin_truth, pin_still) = errors[True], errors[False]
+    assert fish_truth < 0.6 * fish_still, errors
+    assert pin_truth > pin_still, errors
 
 
 def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
