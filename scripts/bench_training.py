@@ -8,6 +8,11 @@ that ran two steps of one configuration.
 Targets: fisheye projection <= 5 % of a step (full model against itself with pinhole projection);
 real-scale poses make the step >= 1.6x faster than the same model with a PoseNet.
 
+Then the speed levers of the full model's step, side by side in the same interleaved rounds, each
+against the step as it was before them (``avg_pool2d`` SSIM, NCHW weights): box-sum SSIM (adopted),
+channels_last (a module switch, off by default until it measures faster), bf16 autocast of the
+networks (geometry and losses stay float32) and ``torch.compile`` of the photometric error.
+
 Usage: python scripts/bench_training.py [--rounds 5] [--no-write]
 """
 
@@ -24,7 +29,10 @@ import time
 from pathlib import Path
 
 import torch
+from torch.nn import functional as F
 
+import fisheyedepth.losses.photometric as photometric
+import fisheyedepth.losses.selfsup as selfsup
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.synthetic import generate
 from fisheyedepth.module import FisheyeDepthModule
@@ -49,20 +57,64 @@ def make_batch(root: Path, size: int, batch: int, cache_dir: Path):
     return collate([dataset[i] for i in range(batch)])
 
 
-def make_module(config: str) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
+# name: (box-sum SSIM, channels_last, bf16 autocast of the networks, compiled photometric error)
+LEVERS = {
+    "before: avg_pool2d SSIM, NCHW": (False, False, False, False),
+    "+ box-sum SSIM": (True, False, False, False),
+    "+ channels_last": (True, True, False, False),
+    "+ bf16 autocast of the networks": (True, True, True, False),
+    "+ torch.compile of the photometric error": (True, True, False, True),
+}
+BOX_MEAN3 = photometric.box_mean3
+PHOTOMETRIC_ERROR = selfsup.photometric_error
+
+
+def avg_pool_mean3(x: torch.Tensor) -> torch.Tensor:
+    """The 3x3 mean SSIM used before the box-sum lever."""
+    return F.avg_pool2d(x, 3, 1)
+
+
+def make_module(config: str, channels_last: bool = False) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
     fisheye, real, mc = CONFIGS[config]
     torch.manual_seed(0)
     module = FisheyeDepthModule(
-        fisheye_projection=fisheye, real_scale=real, multi_channel=mc, log_images_every=0
+        fisheye_projection=fisheye,
+        real_scale=real,
+        multi_channel=mc,
+        log_images_every=0,
+        channels_last=channels_last,
     )
     return module, torch.optim.Adam(module.parameters(), lr=1e-4)
 
 
-def step(module, optimizer, batch) -> None:
-    loss, _ = module.losses(batch, module(batch.image, batch.camera))
+def step(module, optimizer, batch, bf16: bool = False) -> None:
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        outputs = module(batch.image, batch.camera)
+    outputs = {key: {s: v.float() for s, v in maps.items()} for key, maps in outputs.items()}
+    loss, _ = module.losses(batch, outputs)
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
+
+
+class Lever:
+    """The full model's step with one set of levers; the loss functions are swapped in for its steps."""
+
+    compiled = None
+
+    def __init__(self, box: bool, channels_last: bool, bf16: bool, compiled: bool):
+        self.box, self.bf16, self.compiled_loss = box, bf16, compiled
+        self.module, self.optimizer = make_module("FFT + RS + MC (full)", channels_last)
+        if compiled and Lever.compiled is None:
+            Lever.compiled = torch.compile(PHOTOMETRIC_ERROR, dynamic=False)
+
+    def __call__(self, batch) -> None:
+        photometric.box_mean3 = BOX_MEAN3 if self.box else avg_pool_mean3
+        selfsup.photometric_error = Lever.compiled if self.compiled_loss else PHOTOMETRIC_ERROR
+        try:
+            step(self.module, self.optimizer, batch, self.bf16)
+        finally:
+            photometric.box_mean3, selfsup.photometric_error = BOX_MEAN3, PHOTOMETRIC_ERROR
 
 
 def memory_child(config: str, root: Path, size: int, batch: int) -> None:
@@ -98,14 +150,17 @@ def main(argv=None) -> int:
         )
         data = make_batch(root, args.size, args.batch, Path(tmp) / "cache")
         modules = {name: make_module(name) for name in CONFIGS}
-        for module, optimizer in modules.values():  # warm-up
-            step(module, optimizer, data)
-        times = {name: [] for name in CONFIGS}
-        names = list(CONFIGS)
+        levers = {name: Lever(*flags) for name, flags in LEVERS.items()}
+        runs = {name: (lambda m=m, o=o: step(m, o, data)) for name, (m, o) in modules.items()}
+        runs |= {name: (lambda lever=lever: lever(data)) for name, lever in levers.items()}
+        for run in runs.values():  # warm-up (and the compilation)
+            run()
+        times = {name: [] for name in runs}
+        names = list(runs)
         for r in range(args.rounds):
             for name in names[r % len(names) :] + names[: r % len(names)]:
                 t0 = time.perf_counter()
-                step(*modules[name], data)
+                runs[name]()
                 times[name].append(time.perf_counter() - t0)
         peak = {}
         for name in CONFIGS:
@@ -151,6 +206,18 @@ def main(argv=None) -> int:
     for name, (fisheye, real, mc) in CONFIGS.items():
         flags = " | ".join("yes" if f else "no" for f in (fisheye, real, mc))
         lines.append(f"| {name} | {flags} | {med[name]:.2f} s | {peak[name]:.0f} MB |")
+    before = next(iter(LEVERS))
+    lines += [
+        "",
+        "Speed levers of the full model's step, in the same rounds. Box-sum SSIM and channels_last add up "
+        "row by row; the bf16 and torch.compile rows each add one lever to the channels_last row. "
+        "Speed-up = median over rounds of the paired ratio to the step before the levers:",
+        "",
+        "| step | time | speed-up |",
+        "|---|---|---|",
+    ]
+    for name in LEVERS:
+        lines.append(f"| {name} | {med[name]:.2f} s | {paired(before, name):.2f}x |")
     lines += [
         "",
         f"- Fisheye projection costs {100 * fisheye_cost:+.1f} % of a step (full model against itself with "

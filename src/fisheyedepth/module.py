@@ -66,6 +66,7 @@ class FisheyeDepthModule(L.LightningModule):
         input_size: tuple[int, int] | None = None,
         pose_translation_scale: float | None = None,
         pinhole_focal: str = "paraxial",
+        channels_last: bool = False,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -73,6 +74,8 @@ class FisheyeDepthModule(L.LightningModule):
         ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference.
         ``pinhole_focal``: with ``fisheye_projection`` off, the pinhole stand-in's focal length:
         "paraxial" (the fisheye's focal at the image centre) or "calibration" (Mei's gamma as stored).
+        ``channels_last``: the networks' weights and inputs in NHWC order: the same numbers (tested), a
+        speed lever for oneDNN convolutions that ``scripts/bench_training.py`` measures against NCHW.
         ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
         ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
         parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
@@ -94,10 +97,13 @@ class FisheyeDepthModule(L.LightningModule):
             max_distance,
             self.scales,
             base_focal,
+            channels_last,
         )
         if pose_translation_scale is None:  # Monodepth2's first parallax for this head's first distance
             pose_translation_scale = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance
-        self.pose_net = None if real_scale else PoseNet(resnet, weights, pose_translation_scale)
+        self.pose_net = (
+            None if real_scale else PoseNet(resnet, weights, pose_translation_scale, channels_last)
+        )
         self.smoothness = smoothness
         self.reprojection = ReprojectionLoss(automask=automask)
         self.rays = RayCache()

@@ -68,6 +68,8 @@ class DepthNet(nn.Module):
     :func:`bin_expectation`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
     ``depth_scale`` (per sample, ``paraxial focal / base_focal``) multiplies the distance, so cameras of
     different focal lengths can share one network.
+    ``channels_last``: weights and input in NHWC memory order (the same numbers; oneDNN's convolutions on
+    CPU run faster so: ``scripts/bench_training.py``).
 
     - ``forward(image, depth_scale)``: the network itself, every scale (export traces it);
     - :meth:`for_cameras`: the same with each sample's camera (training);
@@ -86,6 +88,7 @@ class DepthNet(nn.Module):
         max_distance: float = 150.0,
         scales: tuple[int, ...] = (0, 1, 2, 3),
         base_focal: float | None = None,
+        channels_last: bool = False,
     ):
         super().__init__()
         self.base_focal = base_focal
@@ -109,12 +112,17 @@ class DepthNet(nn.Module):
                 distance_to_sigmoid(torch.tensor(self.initial_distance), min_distance, max_distance)
             )
             self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s], initial) for s in scales})
+        self.channels_last = channels_last
+        if channels_last:
+            self.to(memory_format=torch.channels_last)
 
     def forward(
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
     ) -> dict[str, dict[int, Tensor]]:
         """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}`` for ``scales`` (default:
         all; inference needs only scale 0, and skips the other heads)."""
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
         features = self.decoder(self.encoder(image))
         distance, disp = {}, {}
         for s, x in features.items():

@@ -40,14 +40,22 @@ class PoseDecoder(nn.Module):
 class PoseNet(nn.Module):
     """``translation_scale``: metres per raw output unit. Monodepth2's 0.01 suits its depth head, which
     starts at 0.2 m; a head that starts at distance ``d`` needs ``d * MONODEPTH2_TRANSLATION_PER_DISTANCE``
-    so that the first warps have the same parallax (see ``FisheyeDepthModule``)."""
+    so that the first warps have the same parallax (see ``FisheyeDepthModule``).
+    ``channels_last``: weights and input in NHWC memory order, as in ``DepthNet``."""
 
     def __init__(
-        self, resnet: int = 18, weights: str | os.PathLike | None = None, translation_scale: float = 0.01
+        self,
+        resnet: int = 18,
+        weights: str | os.PathLike | None = None,
+        translation_scale: float = 0.01,
+        channels_last: bool = False,
     ):
         super().__init__()
         self.encoder = ResNetEncoder(resnet, 2, weights)
         self.decoder = PoseDecoder(self.encoder.channels[-1], translation_scale)
+        self.channels_last = channels_last
+        if channels_last:
+            self.to(memory_format=torch.channels_last)
 
     def forward(self, target: Tensor, source: Tensor, source_is_earlier: bool) -> Tensor:
         """``[B, 4, 4]`` transform from the target camera to the source camera.
@@ -56,6 +64,8 @@ class PoseNet(nn.Module):
         source, so the network always sees forward motion.
         """
         pair = torch.cat((source, target) if source_is_earlier else (target, source), 1)
+        if self.channels_last:
+            pair = pair.contiguous(memory_format=torch.channels_last)
         axis_angle, translation = self.decoder(self.encoder(pair)[-1])
         T = make_pose(axis_angle_to_matrix(axis_angle), translation)
         return invert_pose(T) if source_is_earlier else T
