@@ -68,8 +68,8 @@ class DepthNet(nn.Module):
     :func:`bin_expectation`); ``False``: Monodepth2's sigmoid head mapped through its inverse-depth range.
     ``depth_scale`` (per sample, ``paraxial focal / base_focal``) multiplies the distance, so cameras of
     different focal lengths can share one network.
-    ``channels_last``: weights and input in NHWC memory order (the same numbers; oneDNN's convolutions on
-    CPU run faster so: ``scripts/bench_training.py``).
+    ``channels_last``: weights and input in NHWC memory order (the same numbers); a speed lever that
+    ``scripts/bench_training.py`` measures, slower than NCHW on the 2-core CPU of BENCHMARKS.md.
 
     - ``forward(image, depth_scale)``: the network itself, every scale (export traces it);
     - :meth:`for_cameras`: the same with each sample's camera (training);
