@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Collect results.json files into the paper's Table 1 and Table 2 (Markdown, and LaTeX with --latex).
 
-    python scripts/make_tables.py outputs/ multirun/ [--protocol full] [--latex] [--out tables.md]
+    python scripts/make_tables.py outputs/ multirun/ [--protocol full] [--tables 1 2] [--latex] [--out F]
 
 Each argument is a results.json file or a folder searched recursively. Rows are matched by experiment
 name; with several runs of one experiment (seeds) the metrics are averaged and the count is shown.
@@ -154,6 +154,7 @@ def main(argv=None) -> int:
     parser.add_argument("--protocol", default="full")
     parser.add_argument("--latex", action="store_true")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--tables", nargs="+", default=["1", "2"], choices=["1", "2"])
     args = parser.parse_args(argv)
     files = find(args.runs)
     if not files:
@@ -161,9 +162,11 @@ def main(argv=None) -> int:
         return 2
     rows = collect(files, args.protocol)
     text = f"Protocol: {args.protocol}; {len(files)} results files.\n\n"
-    text += markdown("Table 1", TABLE1, rows) + "\n" + markdown("Table 2 (ablation)", TABLE2, rows)
+    specs = {"1": ("Table 1", TABLE1), "2": ("Table 2 (ablation)", TABLE2)}
+    chosen = [specs[t] for t in args.tables]
+    text += "\n".join(markdown(title, spec, rows) for title, spec in chosen)
     if args.latex:
-        text += "\n```latex\n" + latex("Table 1", TABLE1, rows) + latex("Table 2", TABLE2, rows) + "```\n"
+        text += "\n```latex\n" + "".join(latex(title, spec, rows) for title, spec in chosen) + "```\n"
     print(text)
     if args.out:
         from fisheyedepth.utils import atomic_write_text

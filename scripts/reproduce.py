@@ -1,13 +1,19 @@
 #!/usr/bin/env python
 """Reproduce Tables 1 and 2 on the synthetic world at a CPU budget, and write them into BENCHMARKS.md.
 
-    python scripts/reproduce.py [--epochs 6] [--tables 1 2] [--seeds 0 1] [--world-seed 34] [--no-write]
+    python scripts/reproduce.py [--epochs 20] [--size 96] [--tables 1 2] [--seeds 0 1] [--world-seed 34]
+    python scripts/reproduce.py --runs RUN_OR_SWEEP... [--tables 2]   # rows already trained elsewhere
 
-Runs ``train.py -m`` over the experiments and seeds (each trains, then evaluates the checkpoint with
-the lowest self-supervised validation loss on the test split into results.json), then
-``make_tables.py`` on the sweep folder (mean and spread over seeds), and ``plot_curves.py``: every
-row's validation loss, photometric error and PoseNet pose errors per epoch, written beside the tables
+Runs ``train.py -m`` over the experiments and seeds (each trains, then evaluates its last checkpoint,
+selected without ground truth, on the test split into results.json), then ``make_tables.py`` on the
+sweep folder (mean and spread over seeds), and ``plot_curves.py``: every row's validation loss,
+photometric error and PoseNet pose errors per epoch, written beside the tables
 (``docs/figures/reproduce_curves.png``), so a row that has not flattened is seen, not guessed.
+
+The budget is the one every Table 2 row converges in (BENCHMARKS.md): 96x96 input, 20 epochs, the
+learning rate decayed x0.1 after 80 % of them (``--lr-step``, 16 of 20). On 2 CPU cores one run takes
+15-45 minutes; ``--runs`` builds the tables and the figure from runs trained in parallel (other
+processes, a cluster) with the same overrides, without training anything.
 
 The world is the synthetic default (200 frames of the kitti360 rig) rendered with ``--world-seed``,
 34 by default: its training segment turns (180 degrees over 57 frames) and so does its validation
@@ -19,10 +25,12 @@ photometric error stays flat, whatever its depth does (BENCHMARKS.md).
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import subprocess
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 from _benchmarks import publish
@@ -40,7 +48,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--epochs", type=int, default=6)
+    parser.add_argument("--epochs", type=int, default=20)
+    parser.add_argument("--lr-step", type=int, default=None, help="lr decay epoch; default 80%% of --epochs")
+    parser.add_argument("--size", type=int, default=96, help="square training input, pixels")
+    parser.add_argument("--runs", nargs="+", type=Path, help="tabulate these runs; train nothing")
+    parser.add_argument("--out", type=Path, default=ROOT / "outputs" / "reproduce", help="sweeps and figures")
     parser.add_argument("--tables", nargs="+", default=["1", "2"], choices=sorted(TABLES))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--world-seed", type=int, default=34, help="the synthetic world (its turns)")
@@ -48,37 +60,54 @@ def main(argv=None) -> int:
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
     experiments = list(dict.fromkeys(e for t in args.tables for e in TABLES[t]))  # shared rows run once
-    sweep = ROOT / "outputs" / "reproduce" / time.strftime("%Y-%m-%d_%H-%M-%S")
-    cmd = [
-        sys.executable,
-        str(ROOT / "train.py"),
-        "-m",
-        f"+experiment={','.join(experiments)}",
+    lr_step = args.lr_step if args.lr_step is not None else round(0.8 * args.epochs)
+    budget = [
         f"trainer.max_epochs={args.epochs}",
-        f"seed={','.join(map(str, args.seeds))}",
+        f"model.lr_step={lr_step}",
+        f"data.datamodule.size=[{args.size},{args.size}]",
         f"data.generate.seed={args.world_seed}",
-        f"hydra.sweep.dir={sweep}",
-        *args.extra,
     ]
-    t0 = time.time()
-    subprocess.run(cmd, check=True, cwd=ROOT)
-    minutes = (time.time() - t0) / 60
+    if args.runs:
+        missing = [str(r) for r in args.runs if not r.exists()]
+        if missing:
+            parser.error(f"--runs: no such run or sweep folder: {', '.join(missing)}")
+        sweep = args.out / time.strftime("%Y-%m-%d_%H-%M-%S_runs")  # the figure, not the runs
+        sweep.mkdir(parents=True)
+        sources, minutes = [str(r) for r in args.runs], None
+    else:
+        sweep = args.out / time.strftime("%Y-%m-%d_%H-%M-%S")
+        sources = [str(sweep)]
+        cmd = [
+            sys.executable,
+            str(ROOT / "train.py"),
+            "-m",
+            f"+experiment={','.join(experiments)}",
+            f"seed={','.join(map(str, args.seeds))}",
+            *budget,
+            f"hydra.sweep.dir={sweep}",
+            *args.extra,
+        ]
+        t0 = time.time()
+        subprocess.run(cmd, check=True, cwd=ROOT)
+        minutes = (time.time() - t0) / 60
+    make_tables = [sys.executable, str(ROOT / "scripts" / "make_tables.py"), *sources]
+    make_tables += ["--tables", *args.tables]
     tables = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "make_tables.py"), str(sweep), "--protocol", "full"],
+        [*make_tables, "--protocol", "full"],
         check=True,
         capture_output=True,
         text=True,
     ).stdout
     reference = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "make_tables.py"), str(sweep), "--protocol", "kitti360"],
+        [*make_tables, "--protocol", "kitti360"],
         check=True,
         capture_output=True,
         text=True,
     ).stdout
     figure = sweep / "curves.png"
     subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "plot_curves.py"), str(sweep), "--out", str(figure),
-         "--csv", str(sweep / "curves.csv")],
+        [sys.executable, str(ROOT / "scripts" / "plot_curves.py"), *sources, "--out", str(figure),
+         "--csv", str(figure.with_suffix(".csv"))],
         check=True,
         cwd=ROOT,
     )  # fmt: skip
@@ -87,10 +116,15 @@ def main(argv=None) -> int:
         shutil.copyfile(figure, FIGURE)
     tables_arg = " ".join(args.tables)
     seeds = " ".join(map(str, args.seeds))
-    command = (
-        f"python scripts/reproduce.py --epochs {args.epochs} --tables {tables_arg} --seeds {seeds} "
-        f"--world-seed {args.world_seed}"
-    )
+    if args.runs:
+        command = f"python scripts/reproduce.py --runs {' '.join(sources)} --tables {tables_arg}"
+        where = "tables and curves of runs trained beforehand with the overrides below"
+    else:
+        command = (
+            f"python scripts/reproduce.py --epochs {args.epochs} --lr-step {lr_step} --size {args.size} "
+            f"--tables {tables_arg} --seeds {seeds} --world-seed {args.world_seed}"
+        )
+        where = f"{minutes:.0f} min, 2 CPU cores; runs in `{_shown(sweep)}`"
     if args.extra:
         command += " --extra " + " ".join(args.extra)
     section = (
@@ -99,8 +133,9 @@ def main(argv=None) -> int:
                 START,
                 "## Tables 1 and 2 on the synthetic world (`scripts/reproduce.py`)",
                 "",
-                f"Command: `{command}` ({minutes:.0f} min, 2 CPU cores; "
-                f"runs in `{sweep.relative_to(ROOT)}`).",
+                f"Command: `{command}` ({where}).",
+                f"Budget overrides of every run: `{' '.join(budget)}`.",
+                f"Tested checkpoints (selected without ground truth): {_tested(sources)}. "
                 "Real-scale methods are scored unscaled, PoseNet methods median-scaled, "
                 "DNet with camera-height scale "
                 "recovery. Full-range protocol:",
@@ -119,6 +154,24 @@ def main(argv=None) -> int:
     )
     publish(section, ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
     return 0
+
+
+def _tested(sources: list[str]) -> str:
+    """Which checkpoints the tables score, from the runs' results.json: e.g. ``last.ckpt x10``."""
+    files = [Path(s) for s in sources if Path(s).is_file()]
+    files += [f for s in sources if Path(s).is_dir() for f in sorted(Path(s).rglob("results.json"))]
+    kinds = Counter(
+        "best-NNN.ckpt" if name.startswith("best-") else name
+        for name in (Path(json.loads(f.read_text()).get("checkpoint") or "in-memory").name for f in files)
+    )
+    return ", ".join(f"{k} x{n}" for k, n in sorted(kinds.items()))
+
+
+def _shown(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
 
 
 if __name__ == "__main__":

@@ -135,7 +135,7 @@ def checkpoint(kitti_data, tmp_path_factory):
     from fisheyedepth.module import FisheyeDepthModule
 
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64))
+    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64), base_focal=20.0)  # as train.py's auto
     batch = tiny_batch(kitti_data)
     opt = torch.optim.Adam(module.parameters(), 1e-3)
     for _ in range(3):

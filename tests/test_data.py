@@ -63,6 +63,21 @@ def test_datamodule_batches(kitti_data, cache):
         assert torch.isfinite(getattr(batch, key)).all()
 
 
+def test_base_focal_auto_is_the_mean_focal_of_the_training_cameras_at_the_training_size(kitti_data, cache):
+    native = [
+        min(load_camera(kitti_data / "calibration" / f"{c}.yaml").paraxial_focal())
+        for c in ("image_02", "image_03")
+    ]
+    dm = FisheyeDataModule(kitti_data, size=(128, 128), cache_dir=cache)
+    assert dm.base_focal("train") == pytest.approx(sum(native) / 2 / 2, rel=1e-9)  # 256 -> 128 px halves it
+    one = FisheyeDataModule(kitti_data, size=(64, 64), cameras=["image_03"], cache_dir=cache)
+    assert one.base_focal("train") == pytest.approx(native[1] / 4, rel=1e-9)
+    first_frame = [{"sequence": TRAIN_SEQ, "start": 0, "stop": 1}]  # no previous frame: no sample
+    empty = FisheyeDataModule(kitti_data, splits={"train": first_frame}, cache_dir=cache)
+    with pytest.raises(ValueError, match="'train' split has no samples, so no base focal"):
+        empty.base_focal("train")
+
+
 def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
     from fisheyedepth.data.synthetic import generate
 
@@ -73,7 +88,13 @@ def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
     batch = next(iter(dm.train_dataloader()))
     models = {type(c).__name__ for c in batch.camera}
     assert models == {"MeiCamera", "KannalaBrandtCamera"}
-    module = FisheyeDepthModule(scales=(0,))
+    focals = {c: min(dm.layout.cameras[c].camera.paraxial_focal()) for c in dm.layout.cameras}
+    assert len(focals) == 4 and max(focals.values()) / min(focals.values()) > 1.05  # the cameras differ
+    base = dm.base_focal("train")
+    assert base == pytest.approx(sum(focals.values()) / 4, rel=1e-9)
+    module = FisheyeDepthModule(scales=(0,), base_focal=base)
+    scale = module.depth_net.depth_scale(batch.camera)
+    assert torch.allclose(scale, torch.tensor([min(c.paraxial_focal()) / base for c in batch.camera]))
     loss, _ = module.losses(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss)
 

@@ -5,12 +5,22 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
+import lightning as L
 import pytest
+import torch
+import yaml
 from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from fisheyedepth.cameras import load_camera
+from fisheyedepth.cli.evaluate import experiment_of
+from fisheyedepth.cli.train import selected_checkpoint
 
 from conftest import TINY
 
@@ -143,10 +153,12 @@ def test_train_eval_resume_tables(workdir):
         "trainer.limit_train_batches=3",
         f"paths.data_dir={workdir}/data",
         f"hydra.run.dir={first}",
+        "select=best",
         *TINY,
     )
     record = json.loads((first / "results.json").read_text())
     assert record["experiment"] == "ablation_full" and record["model"]["real_scale"] is True
+    assert record["select"] == "best" and re.search(r"best-000\.ckpt$", record["checkpoint"])
     for protocol in ("full", "kitti360"):
         assert {"none", "median", "none_by_angle"} <= set(record["results"][protocol])
     assert set(record["results"]["full"]["none_by_angle"]) == {"0-30", "30-60", "60-90", "90-180"}
@@ -157,6 +169,10 @@ def test_train_eval_resume_tables(workdir):
     assert len(list((first / "predictions").glob("*.png"))) == 2
     assert (first / "checkpoints" / "last.ckpt").is_file()
     assert list((first / "logs").rglob("metrics.csv"))
+    hparams = yaml.safe_load(next((first / "logs").rglob("hparams.yaml")).read_text())
+    calib = workdir / "data" / "synthetic_kitti360_64_seed0_f12" / "calibration"
+    focals = [min(load_camera(calib / f"image_0{i}.yaml").paraxial_focal()) for i in (2, 3)]
+    assert hparams["base_focal"] == pytest.approx(sum(focals) / 2)  # base_focal: auto, at the 64 px of TINY
 
     evaluated = workdir / "eval1"
     run(
@@ -169,6 +185,7 @@ def test_train_eval_resume_tables(workdir):
     again = json.loads((evaluated / "results.json").read_text())
     assert again["checkpoint"].endswith("last.ckpt") and again["results"]["full"]["none"]["images"] > 0
     assert again["split"] == "test" and again["train_size"] == [64, 64]
+    assert again["experiment"] == "ablation_full"  # from the checkpoint's run: make_tables finds its row
     on_val = workdir / "eval_val"
     run(
         "eval.py",
@@ -195,6 +212,8 @@ def test_train_eval_resume_tables(workdir):
         *TINY,
     )
     after = json.loads((resumed / "results.json").read_text())
+    assert after["select"] == "last" and after["checkpoint"].endswith("last.ckpt")  # the default
+    assert torch.load(after["checkpoint"], weights_only=True)["epoch"] == 1  # the second, final epoch
     assert after["global_step"] == 2 * record["global_step"]  # one more epoch on top of the first
     assert after["resumed_from"].endswith("last.ckpt")
 
@@ -208,6 +227,72 @@ def test_train_eval_resume_tables(workdir):
 
     tables = run("scripts/make_tables.py", str(first), str(resumed), "--latex").stdout
     assert "FFT + RS + MC" in tables and "| 2 |" in tables and "\\begin{tabular}" in tables
+
+    reproduced = run(
+        "scripts/reproduce.py", "--runs", str(first), str(resumed), "--tables", "2",
+        "--out", str(workdir / "reproduce"), "--no-write",
+    ).stdout  # fmt: skip
+    assert "best-NNN.ckpt x1, last.ckpt x1" in reproduced and "FFT + RS + MC | none | 2 |" in reproduced
+    assert "model.lr_step=16" in reproduced
+    assert len(list((workdir / "reproduce").glob("*_runs/curves.png"))) == 1
+
+
+def test_the_tested_checkpoint_is_selected_without_ground_truth():
+    best = SimpleNamespace(monitor="val/photometric", best_model_path="/r/best-004.ckpt")
+    latest = SimpleNamespace(monitor=None, best_model_path="/r/last.ckpt")
+    assert selected_checkpoint([best, latest], "last") == "/r/last.ckpt"
+    assert selected_checkpoint([best, latest], "best") == "/r/best-004.ckpt"
+    assert selected_checkpoint([best], "last") is None  # no per-epoch checkpoint: the weights in memory
+    with pytest.raises(ValueError, match="select=best needs a ModelCheckpoint with a monitor"):
+        selected_checkpoint([latest], "best")
+    with pytest.raises(ValueError, match="select='lowest_abs_rel'"):
+        selected_checkpoint([best, latest], "lowest_abs_rel")
+
+
+class _Worsening(L.LightningModule):
+    """Its validation loss rises every epoch, so the best checkpoint is epoch 0 and the last is not."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(1))
+
+    def training_step(self, batch, batch_idx):
+        return (self.w - 1.0).pow(2).sum()
+
+    def validation_step(self, batch, batch_idx):
+        self.log("val/photometric", float(self.current_epoch))
+
+    def configure_optimizers(self):
+        return torch.optim.SGD(self.parameters(), lr=0.1)
+
+
+def test_last_ckpt_is_the_last_epoch_even_when_validation_stops_improving(tmp_path):
+    """Lightning's ``save_last=True`` copies last.ckpt only when a top-k checkpoint is saved, so it
+    would stop at the best epoch; the configured callbacks save the end of every epoch."""
+    cfg = compose_train([f"paths.output_dir={tmp_path}", "hydra.run.dir=."])
+    callbacks = [instantiate(c) for name, c in cfg.callbacks.items() if name != "progress"]
+    loader = torch.utils.data.DataLoader(torch.zeros(2, 1), batch_size=1)
+    trainer = L.Trainer(
+        max_epochs=3, callbacks=callbacks, logger=False, enable_progress_bar=False, default_root_dir=tmp_path
+    )
+    trainer.fit(_Worsening(), loader, loader)
+    saved = sorted(p.name for p in (tmp_path / "checkpoints").iterdir())
+    assert saved == ["best-000.ckpt", "last.ckpt"]
+    epoch = {n: torch.load(tmp_path / "checkpoints" / n, weights_only=True)["epoch"] for n in saved}
+    assert epoch == {"best-000.ckpt": 0, "last.ckpt": 2}
+    assert selected_checkpoint(callbacks, "last") == str(tmp_path / "checkpoints" / "last.ckpt")
+    assert selected_checkpoint(callbacks, "best") == str(tmp_path / "checkpoints" / "best-000.ckpt")
+
+
+def test_eval_names_the_row_by_the_checkpoints_run(tmp_path):
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert experiment_of(ckpt) is None  # no run folder: the row is unnamed unless experiment_name is given
+    (tmp_path / "run" / ".hydra").mkdir(parents=True)
+    (tmp_path / "run" / ".hydra" / "config.yaml").write_text("experiment_name: ablation_fft_mc\nseed: 1\n")
+    assert experiment_of(ckpt) == "ablation_fft_mc"
+    (tmp_path / "run" / ".hydra" / "config.yaml").write_text("experiment_name: [unclosed\n")
+    with pytest.raises(ValueError, match=r"run/\.hydra/config\.yaml: not readable YAML"):
+        experiment_of(ckpt)
 
 
 def test_two_job_sweep_gets_two_output_folders(workdir):

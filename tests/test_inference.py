@@ -153,6 +153,7 @@ def test_export_parity_and_refusal(checkpoint, tmp_path, fmt):
     )
     record = export(cfg)
     assert Path(record["path"]).is_file() and record["max_relative_difference"] < 1e-4
+    assert record["depth_scale"] == 1.0  # no camera: one with the base focal, the training cameras' mean
     with pytest.raises(FileExistsError, match="overwrite=true"):
         export(cfg)
 

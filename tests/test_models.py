@@ -127,3 +127,9 @@ def test_posenet_outputs_rigid_motion_and_inverts_for_earlier_sources():
     assert torch.equal(T[:, 3], torch.tensor([[0.0, 0, 0, 1]] * 2))
     # target b with an earlier source a sees the same frame pair (a, b): the inverse transform
     assert torch.allclose(net(b, a, source_is_earlier=True), invert_pose(T), atol=1e-6)
+
+
+@pytest.mark.parametrize("bad", ["auto", 0.0, -3.0])
+def test_base_focal_must_be_a_positive_focal_or_none(bad):
+    with pytest.raises(ValueError, match=r"base_focal=.*expected a focal length in pixels > 0"):
+        DepthNet(base_focal=bad)

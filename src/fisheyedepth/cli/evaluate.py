@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import yaml
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from rich.console import Console
@@ -93,11 +94,31 @@ def run_evaluation(
     return record
 
 
+def experiment_of(ckpt_path: str | Path) -> str | None:
+    """The experiment a checkpoint was trained by, from its run folder's ``.hydra/config.yaml``
+    (``RUN/checkpoints/X.ckpt``); None when the checkpoint sits elsewhere."""
+    config = Path(ckpt_path).resolve().parent.parent / ".hydra" / "config.yaml"
+    if not config.is_file():
+        return None
+    try:
+        data = yaml.safe_load(config.read_text())
+    except yaml.YAMLError as err:
+        raise ValueError(f"{config}: not readable YAML ({err})") from err
+    return data.get("experiment_name") if isinstance(data, dict) else None
+
+
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(cfg.paths.output_dir)
+    experiment = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path)
     prepare_data(cfg)
     module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
     datamodule = instantiate(cfg.data.datamodule)
     return run_evaluation(
-        cfg, module, datamodule, out_dir, str(cfg.ckpt_path), {}, str(cfg.get("split", "test"))
+        cfg,
+        module,
+        datamodule,
+        out_dir,
+        str(cfg.ckpt_path),
+        {"experiment": experiment},
+        str(cfg.get("split", "test")),
     )

@@ -31,8 +31,9 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         )
     if cfg.get("camera"):
         camera = load_camera(cfg.camera)
-    else:  # no camera: depth_scale 1 (right unless the model was trained with base_focal)
-        camera = PinholeCamera(width=size[0], height=size[1], fx=1.0, fy=1.0, cx=0.0, cy=0.0)
+    else:  # no camera: depth_scale 1, i.e. a camera with the base focal (the training cameras' mean)
+        focal = module.depth_net.base_focal or 1.0
+        camera = PinholeCamera(width=size[0], height=size[1], fx=focal, fy=focal, cx=0.0, cy=0.0)
     net = DistancePredictor(module, camera, size).exportable()
     suffix = EXPORT_FORMATS[cfg.format]
     path = (

@@ -1,5 +1,6 @@
-"""``python train.py [+experiment=...]``: train, then evaluate the checkpoint with the lowest
-self-supervised validation loss on the test split."""
+"""``python train.py [+experiment=...]``: train, then evaluate the selected checkpoint on the test
+split: the one with the lowest self-supervised validation loss (``select=best``, the default) or the
+last one (``select=last``). Neither uses ground truth."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any
 
 import lightning as L
 from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
@@ -20,16 +22,46 @@ from .evaluate import run_evaluation
 log = logging.getLogger("fisheyedepth")
 
 
+SELECT = ("last", "best")
+
+
+def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
+    """The checkpoint to test, from the run's ``ModelCheckpoint`` callbacks: ``last`` is the end of
+    the schedule (the unmonitored one, saved every epoch; as Monodepth2 evaluates), ``best`` has the
+    lowest monitored self-supervised validation loss. None: the weights in memory (no checkpoint)."""
+    if select not in SELECT:
+        raise ValueError(f"select={select!r}: expected one of {SELECT}")
+    monitored = [c for c in callbacks if getattr(c, "monitor", None)]
+    if select == "best":
+        if not monitored:
+            raise ValueError("select=best needs a ModelCheckpoint with a monitor (callbacks.checkpoint)")
+        return monitored[0].best_model_path or None
+    latest = [c for c in callbacks if not getattr(c, "monitor", None)]
+    if latest:
+        return latest[0].best_model_path or None  # unmonitored: its one kept checkpoint is the newest
+    return None  # the weights in memory are the last ones
+
+
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
+    select = cfg.get("select", "last")
     if cfg.get("ckpt_path"):
         check_resumable(cfg.ckpt_path)
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
-    module = instantiate(cfg.model, _convert_="all")
+    resolved = {}
+    if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
+        resolved["base_focal"] = datamodule.base_focal("train")
+        log.info(
+            "base_focal auto: %.3f px, the mean paraxial focal of the training cameras",
+            resolved["base_focal"],
+        )
+    module = instantiate(cfg.model, **resolved, _convert_="all")
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+    checkpointers = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
+    selected_checkpoint(checkpointers, select)  # a bad choice fails now, not after hours of training
     trainer: L.Trainer = instantiate(
         cfg.trainer, logger=logger, callbacks=callbacks, default_root_dir=str(out_dir)
     )
@@ -48,17 +80,18 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
             raise SystemExit(EXIT_SIGTERM) from None
         record = None
         if cfg.get("test") and trainer.is_global_zero and not trainer.fast_dev_run:
-            ckpt = getattr(trainer.checkpoint_callback, "best_model_path", "") or None
-            best = FisheyeDepthModule.from_checkpoint(ckpt) if ckpt else module
+            ckpt = selected_checkpoint(checkpointers, select)
+            tested = FisheyeDepthModule.from_checkpoint(ckpt) if ckpt else module
             record = run_evaluation(
                 cfg,
-                best,
+                tested,
                 datamodule,
                 out_dir,
                 ckpt,
                 {
                     "resumed_from": cfg.get("ckpt_path"),
                     "global_step": trainer.global_step,
+                    "select": select,
                     "skipped_batches": module.skipped_batches,
                 },
             )

@@ -110,6 +110,22 @@ class FisheyeDataModule(L.LightningDataModule):
             )
         return self.datasets[split]
 
+    def base_focal(self, split: str = "train") -> float:
+        """The mean paraxial focal (pixels; the smaller of fx, fy, as ``DepthNet.depth_scale`` uses) of
+        the cameras that ``split`` samples, at the training size: ``base_focal: auto``. A camera with this
+        focal gets ``depth_scale`` 1; one with a longer focal sees objects larger and gets a larger scale."""
+        dataset = self.dataset(split)
+        names = sorted({item.camera for item in dataset.items})
+        if not names:
+            raise ValueError(f"{self.root}: the {split!r} split has no samples, so no base focal")
+        focals = []
+        for name in names:
+            camera = self.layout.cameras[name].camera
+            if self.size is not None:
+                camera = camera.resize(*self.size)
+            focals.append(min(camera.paraxial_focal()))
+        return float(sum(focals) / len(focals))
+
     def setup(self, stage: str | None = None) -> None:
         wanted = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
         for split in wanted.get(stage, tuple(self.splits)):

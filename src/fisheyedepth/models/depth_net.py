@@ -91,7 +91,12 @@ class DepthNet(nn.Module):
         channels_last: bool = False,
     ):
         super().__init__()
-        self.base_focal = base_focal
+        if base_focal is not None and not (isinstance(base_focal, (int, float)) and base_focal > 0):
+            raise ValueError(
+                f"base_focal={base_focal!r}: expected a focal length in pixels > 0, or None (depth_scale 1); "
+                "'auto' is resolved from the training cameras by train.py"
+            )
+        self.base_focal = None if base_focal is None else float(base_focal)
         self.encoder = ResNetEncoder(resnet, 1, weights)
         self.decoder = DepthDecoder(self.encoder.channels, scales)
         self.multi_channel, self.scales = multi_channel, tuple(scales)
