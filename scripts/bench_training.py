@@ -10,8 +10,9 @@ real-scale poses make the step >= 1.6x faster than the same model with a PoseNet
 
 Then the speed levers of the full model's step, side by side in the same interleaved rounds, each
 against the step as it was before them (``avg_pool2d`` SSIM, NCHW weights): box-sum SSIM (adopted),
-channels_last (a module switch, off by default until it measures faster), bf16 autocast of the
-networks (geometry and losses stay float32) and ``torch.compile`` of the photometric error.
+bf16 autocast of the networks (``trainer.precision=bf16-mixed``;
+geometry and losses stay float32), channels_last (a module switch) and ``torch.compile`` of the
+photometric error.
 
 Usage: python scripts/bench_training.py [--rounds 5] [--no-write]
 """
@@ -57,13 +58,18 @@ def make_batch(root: Path, size: int, batch: int, cache_dir: Path):
     return collate([dataset[i] for i in range(batch)])
 
 
-# name: (box-sum SSIM, channels_last, bf16 autocast of the networks, compiled photometric error)
+# name: (box-sum SSIM, channels_last, bf16 autocast of the networks, compiled photometric error, loss
+#        at each scale's native resolution); the first five rows add their lever to the row above, the
+#        last three one lever each to the float32 step with box-sum SSIM (row 2)
 LEVERS = {
-    "before: avg_pool2d SSIM, NCHW": (False, False, False, False),
-    "+ box-sum SSIM": (True, False, False, False),
-    "+ channels_last": (True, True, False, False),
-    "+ bf16 autocast of the networks": (True, True, True, False),
-    "+ torch.compile of the photometric error": (True, True, False, True),
+    "before: avg_pool2d SSIM, NCHW, float32, loss at full resolution": (False, False, False, False, False),
+    "+ box-sum SSIM": (True, False, False, False, False),
+    "+ bf16 autocast of the networks": (True, False, True, False, False),
+    "+ channels_last": (True, True, True, False, False),
+    "+ loss at native resolution": (True, True, True, False, True),
+    "float32, box-sum SSIM + channels_last": (True, True, False, False, False),
+    "float32, box-sum SSIM + loss at native resolution": (True, False, False, False, True),
+    "float32, box-sum SSIM + torch.compile of the photometric error": (True, False, False, True, False),
 }
 BOX_MEAN3 = photometric.box_mean3
 PHOTOMETRIC_ERROR = selfsup.photometric_error
@@ -74,7 +80,9 @@ def avg_pool_mean3(x: torch.Tensor) -> torch.Tensor:
     return F.avg_pool2d(x, 3, 1)
 
 
-def make_module(config: str, channels_last: bool = False) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
+def make_module(
+    config: str, channels_last: bool = False, loss_resolution: str = "full"
+) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
     fisheye, real, mc = CONFIGS[config]
     torch.manual_seed(0)
     module = FisheyeDepthModule(
@@ -83,28 +91,28 @@ def make_module(config: str, channels_last: bool = False) -> tuple[FisheyeDepthM
         multi_channel=mc,
         log_images_every=0,
         channels_last=channels_last,
+        loss_resolution=loss_resolution,
     )
     return module, torch.optim.Adam(module.parameters(), lr=1e-4)
 
 
 def step(module, optimizer, batch, bf16: bool = False) -> None:
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-        outputs = module(batch.image, batch.camera)
-    outputs = {key: {s: v.float() for s, v in maps.items()} for key, maps in outputs.items()}
-    loss, _ = module.losses(batch, outputs)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as trainer.precision=bf16-mixed
+        loss, _ = module.losses(batch, module(batch.image, batch.camera))  # geometry and loss in float32
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
 
 
 class Lever:
-    """The full model's step with one set of levers; the loss functions are swapped in for its steps."""
+    """The full model's step with one set of levers; the functions are swapped in for its steps."""
 
     compiled = None
 
-    def __init__(self, box: bool, channels_last: bool, bf16: bool, compiled: bool):
+    def __init__(self, box: bool, channels_last: bool, bf16: bool, compiled: bool, native: bool):
         self.box, self.bf16, self.compiled_loss = box, bf16, compiled
-        self.module, self.optimizer = make_module("FFT + RS + MC (full)", channels_last)
+        resolution = "native" if native else "full"
+        self.module, self.optimizer = make_module("FFT + RS + MC (full)", channels_last, resolution)
         if compiled and Lever.compiled is None:
             Lever.compiled = torch.compile(PHOTOMETRIC_ERROR, dynamic=False)
 
@@ -196,7 +204,10 @@ def main(argv=None) -> int:
         "",
         f"Command: `python scripts/bench_training.py --rounds {args.rounds} --size {args.size} "
         f"--batch {args.batch}`  ",
-        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}, 2 threads; "
+        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}, "
+        f"{torch.backends.cpu.get_cpu_capability()}, bf16 "
+        f"{'native' if torch.cpu._is_avx512_bf16_supported() else 'emulated'}), "
+        f"torch {torch.__version__}, 2 threads; "
         f"{time.strftime('%Y-%m-%d')}. Batch {args.batch} at {args.size}x{args.size}, two source frames, "
         f"ResNet-18, 4 scales; median over {args.rounds} interleaved rounds.",
         "",
@@ -209,8 +220,9 @@ def main(argv=None) -> int:
     before = next(iter(LEVERS))
     lines += [
         "",
-        "Speed levers of the full model's step, in the same rounds. Box-sum SSIM and channels_last add up "
-        "row by row; the bf16 and torch.compile rows each add one lever to the channels_last row. "
+        "Speed levers of the full model's step, in the same rounds. The first five rows add one lever "
+        "each to the row above; the last three each add one lever to the float32 step with box-sum SSIM "
+        "(row 2). "
         "Speed-up = median over rounds of the paired ratio to the step before the levers:",
         "",
         "| step | time | speed-up |",

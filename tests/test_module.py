@@ -9,6 +9,7 @@ import warnings
 import lightning as L
 import pytest
 import torch
+from torch.nn import functional as F
 from torch.utils.data import DataLoader
 
 from fisheyedepth.cameras import MeiCamera, PinholeCamera, pinhole_like
@@ -271,3 +272,82 @@ def test_a_posenet_predicts_the_body_motion_and_each_camera_follows_its_extrinsi
     module.pose_net = Oracle()
     for b in (batch, flipped):
         assert torch.allclose(module.relative_poses(b).double(), b.poses.double(), atol=1e-5)
+
+
+@pytest.mark.parametrize("real_scale,multi_channel", [(True, True), (False, False)])
+def test_bf16_autocast_runs_the_networks_in_bf16_and_the_geometry_in_float32(
+    kitti_data, real_scale, multi_channel
+):
+    """``trainer.precision=bf16-mixed``: the convolutions run in bf16, every distance, pose, warp and
+    loss in float32, and the loss stays within bf16 rounding of the float32 loss."""
+    batch = tiny_batch(kitti_data)
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(
+        real_scale=real_scale, multi_channel=multi_channel, automask=False, log_images_every=0
+    )
+    exact, _ = module.losses(batch, module(batch.image, batch.camera))
+    seen: set[torch.dtype] = set()
+    hook = module.depth_net.encoder.conv1.register_forward_hook(lambda m, i, o: seen.add(o.dtype))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        outputs = module(batch.image, batch.camera)
+        poses = module.relative_poses(batch)
+        loss, logs = module.losses(batch, outputs)
+    hook.remove()
+    assert seen == {torch.bfloat16}  # the network did run in bf16
+    assert {v.dtype for maps in outputs.values() for v in maps.values()} == {torch.float32}
+    assert poses.dtype == loss.dtype == logs["photometric/0"].dtype == torch.float32
+    assert abs(loss.item() - exact.item()) < 0.03 * exact.item()
+    loss.backward()
+    grads = [p.grad for p in module.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_lightning_trains_with_bf16_mixed_precision(kitti_data):
+    flat = tiny_samples(kitti_data, frames=(1, 2, 3))
+    loader = DataLoader(flat, batch_size=2, collate_fn=collate)
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(scales=(0, 1), log_images_every=0)
+    before = copy.deepcopy(module.state_dict())
+    trainer = L.Trainer(
+        max_epochs=1,
+        precision="bf16-mixed",
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        accelerator="cpu",
+        enable_model_summary=False,
+    )
+    trainer.fit(module, loader, loader)
+    assert module.skipped_batches == 0 and torch.isfinite(trainer.callback_metrics["val/photometric"])
+    assert all(p.dtype == torch.float32 for p in module.parameters())  # float32 master weights
+    moved = [
+        k for k, v in module.state_dict().items() if v.is_floating_point() and not torch.equal(v, before[k])
+    ]
+    assert len(moved) > 50
+
+
+def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
+    """``loss_resolution=native`` compares scale s at its own size: the same scale-0 loss as "full", the
+    coarser scales from resized cameras and downsampled images; with the true distance it still measures
+    geometry at every scale (truth beats a wrong constant), and a bad name is refused."""
+    batch = tiny_batch(kitti_data, size=None)  # 256 px: scales 1-2 at 128 and 64 px
+    gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
+    modules = {
+        r: FisheyeDepthModule(scales=(0, 1, 2), automask=False, loss_resolution=r) for r in ("full", "native")
+    }
+
+    def photometric(module, distance):
+        maps = {s: F.interpolate(distance, scale_factor=0.5**s, mode="nearest") for s in (0, 1, 2)}
+        outputs = {"distance": maps, "disp": {s: torch.full_like(d, 0.5) for s, d in maps.items()}}
+        return module.losses(batch, outputs)[1]
+
+    full, native = photometric(modules["full"], gt), photometric(modules["native"], gt)
+    assert native["photometric/0"].item() == pytest.approx(full["photometric/0"].item(), rel=1e-6)
+    assert native["photometric/2"].item() != pytest.approx(full["photometric/2"].item(), rel=1e-3)
+    wrong = photometric(modules["native"], torch.where(batch.distance > 0, torch.full_like(gt, 5.0), gt))
+    for s in (0, 1, 2):
+        assert native[f"photometric/{s}"] < 0.85 * wrong[f"photometric/{s}"], s
+    sizes = {(key[0].width, key[0].height) for key in modules["native"].rays._entries}
+    assert sizes == {(256, 256), (128, 128), (64, 64)}  # rays of the resized cameras, cached per size
+    with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
+        FisheyeDepthModule(loss_resolution="half")

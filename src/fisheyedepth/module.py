@@ -10,6 +10,7 @@ One switch per ablation of the paper's Table 2:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from pathlib import Path
@@ -37,6 +38,8 @@ from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .viz import panel
+
+LOSS_RESOLUTIONS = ("full", "native")
 
 
 class FisheyeDepthModule(L.LightningModule):
@@ -67,6 +70,7 @@ class FisheyeDepthModule(L.LightningModule):
         pose_translation_scale: float | None = None,
         pinhole_focal: str = "paraxial",
         channels_last: bool = False,
+        loss_resolution: str = "full",
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -76,12 +80,18 @@ class FisheyeDepthModule(L.LightningModule):
         "paraxial" (the fisheye's focal at the image centre) or "calibration" (Mei's gamma as stored).
         ``channels_last``: the networks' weights and inputs in NHWC order: the same numbers (tested), a
         speed lever for oneDNN convolutions that ``scripts/bench_training.py`` measures against NCHW.
+        ``loss_resolution``: "full" (Monodepth2: every scale's distance upsampled and warped at the input
+        size) or "native" (each scale warped at its own size: a speed lever, see ``_losses``).
         ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
         ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
         parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
         binned one at 0.5-150 m). Monodepth2's fixed 0.01 leaves the first warps 5x to 130x too short
         here, and the PoseNet rows learn only once the PoseNet has grown its output that much."""
         super().__init__()
+        if loss_resolution not in LOSS_RESOLUTIONS:
+            raise ValueError(
+                f"loss_resolution: {loss_resolution!r} is not one of {', '.join(LOSS_RESOLUTIONS)}"
+            )
         if pinhole_focal not in PINHOLE_FOCALS:
             raise ValueError(f"pinhole_focal: {pinhole_focal!r} is not one of {', '.join(PINHOLE_FOCALS)}")
         self.save_hyperparameters()
@@ -158,8 +168,9 @@ class FisheyeDepthModule(L.LightningModule):
         poses = torch.stack([self.pose_net(target, sources[:, j], o < 0) for j, o in offsets], 1)
         if batch.cam_to_body is None:
             return poses
-        E = batch.cam_to_body.to(poses)[:, None]
-        return invert_pose(E) @ poses @ E
+        with torch.autocast(poses.device.type, enabled=False):  # float32 products under bf16 autocast
+            E = batch.cam_to_body.to(poses)[:, None]
+            return invert_pose(E) @ poses @ E
 
     @torch.no_grad()
     def pose_errors(self, batch: Batch) -> dict[str, Tensor]:
@@ -182,33 +193,71 @@ class FisheyeDepthModule(L.LightningModule):
         }
 
     def losses(self, batch: Batch, outputs: dict[str, dict[int, Tensor]]) -> tuple[Tensor, dict[str, Tensor]]:
-        target, sources, source_mask = batch.image, batch.sources, batch.source_mask
-        S = batch.n_sources
-        H, W = target.shape[-2:]
+        """The self-supervised loss, mean over scales, and its parts for logging. The warps and the loss
+        run in the batch's precision (float32) even under bf16 autocast (``trainer.precision=bf16-mixed``
+        speeds up the networks only); the PoseNet runs in the caller's precision."""
+        poses = self.relative_poses(batch).to(batch.image.dtype)
+        with torch.autocast(batch.image.device.type, enabled=False):
+            outputs = {
+                k: {s: v.to(batch.image.dtype) for s, v in maps.items()} for k, maps in outputs.items()
+            }
+            return self._losses(batch, outputs, poses)
+
+    def _level(self, batch: Batch, size: tuple[int, int] | None) -> _Level:
+        """The target, sources, rays and masks the loss compares at ``size`` (H, W; None: the input's)."""
         cameras = [self.warp_model(c) for c in batch.camera]
         source_cameras = [[self.warp_model(c) for c in cams] for cams in batch.source_camera]
+        target, sources, body = batch.image, batch.sources, batch.mask[:, 0] > 0.5
+        if size is not None and tuple(size) != tuple(target.shape[-2:]):
+            h, w = size
+            target = F.interpolate(target, size=(h, w), mode="area")
+            sources = F.interpolate(sources.flatten(0, 1), size=(h, w), mode="area")
+            sources = sources.unflatten(0, batch.sources.shape[:2])
+            # a pixel that is partly vehicle body is not scored
+            body = F.interpolate(body[:, None].to(target.dtype), size=(h, w), mode="area")[:, 0] > 1 - 1e-6
+            cameras = [c.resize(w, h) for c in cameras]
+            source_cameras = [[c.resize(w, h) for c in cams] for cams in source_cameras]
         rays, rays_valid = self.rays.batch(cameras, target.device, target.dtype)
-        mask = (batch.mask[:, 0] > 0.5) & rays_valid
-        poses = self.relative_poses(batch)
-        identity = self.reprojection.identity(sources, target)  # the same at every scale: once per step
+        identity = self.reprojection.identity(sources, target)  # the same at every scale of this size
+        return _Level(target, sources, source_cameras, rays, rays_valid, body & rays_valid, identity)
+
+    def _losses(
+        self, batch: Batch, outputs: dict[str, dict[int, Tensor]], poses: Tensor
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """Monodepth2's full-resolution multi-scale loss (``loss_resolution="full"``): every scale's
+        distance is upsampled to the input size and warped there. ``"native"`` compares each scale at its
+        own size instead (downsampled images, resized cameras; Monodepth1's choice), a speed lever."""
+        H, W = batch.image.shape[-2:]
+        full = self._level(batch, None)
+        native = self.hparams.loss_resolution == "native"
         logs: dict[str, Tensor] = {}
-        total = target.new_zeros(())
+        total = batch.image.new_zeros(())
         for s in self.scales:
             distance = outputs["distance"][s]
-            if distance.shape[-2:] != (H, W):  # full-resolution multi-scale: warp at the input resolution
-                distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
+            level = full
+            if distance.shape[-2:] != (H, W):
+                if native:
+                    level = self._level(batch, tuple(distance.shape[-2:]))
+                else:
+                    distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
             warped, valid = [], []
-            for j in range(S):
+            for j in range(batch.n_sources):
+                cams = [c[j] for c in level.source_cameras]
                 warp = warp_to_source(
-                    rays, rays_valid, distance, poses[:, j], [c[j] for c in source_cameras], source_mask[:, j]
+                    level.rays, level.rays_valid, distance, poses[:, j], cams, batch.source_mask[:, j]
                 )
-                warped.append(sample(sources[:, j], warp.grid))
+                warped.append(sample(level.sources[:, j], warp.grid))
                 valid.append(warp.valid)
             photo, used, measured = self.reprojection(
-                target, torch.stack(warped, 1), torch.stack(valid, 1), identity, mask, not self.training
+                level.target,
+                torch.stack(warped, 1),
+                torch.stack(valid, 1),
+                level.identity,
+                level.mask,
+                not self.training,
             )
             disp = outputs["disp"][s]
-            image_s = F.interpolate(target, size=disp.shape[-2:], mode="area") if s else target
+            image_s = F.interpolate(batch.image, size=disp.shape[-2:], mode="area") if s else batch.image
             smooth = edge_aware_smoothness(disp, image_s)
             total = total + photo + self.smoothness / 2**s * smooth
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
@@ -356,6 +405,21 @@ class FisheyeDepthModule(L.LightningModule):
             folder = folder / "images"
             folder.mkdir(parents=True, exist_ok=True)
             cv2.imwrite(str(folder / f"{stage}_step{self.global_step:07d}.png"), picture[..., ::-1])
+
+
+@dataclasses.dataclass
+class _Level:
+    """What the loss compares at one image size: target ``[B, 3, h, w]``, sources ``[B, S, 3, h, w]``,
+    the warp cameras at that size, rays ``[B, h, w, 3]`` and their validity, the scored pixels ``[B, h,
+    w]`` (body mask and rays) and the unwarped sources' errors ``[B, S, h, w]``."""
+
+    target: Tensor
+    sources: Tensor
+    source_cameras: list[list[CameraModel]]
+    rays: Tensor
+    rays_valid: Tensor
+    mask: Tensor
+    identity: Tensor
 
 
 def count_parameters(module: torch.nn.Module | None) -> int:

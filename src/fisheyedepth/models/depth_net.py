@@ -139,8 +139,11 @@ class DepthNet(nn.Module):
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
                 )
             else:
-                scale = torch.as_tensor(depth_scale, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
-                distance[s], disp[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale, y
+                with torch.autocast(y.device.type, enabled=False):  # float32 under bf16 autocast
+                    y = y.to(torch.promote_types(y.dtype, torch.float32))
+                    scale = torch.as_tensor(depth_scale, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
+                    distance[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale
+                    disp[s] = y
         return {"distance": distance, "disp": disp}
 
     def depth_scale(self, cameras) -> Tensor:

@@ -30,13 +30,17 @@ def bin_expectation(
     distance = depth_scale * sum_k softmax(clamp(logits, -10, 10))_k * bin_k, a softmax expectation over
     ``K`` log-spaced bins; it is monotone in each logit's weight and lies in
     ``[min_distance, max_distance] * depth_scale``. The disparity is that of the unscaled expectation,
-    ``(1/d - 1/max) / (1/min - 1/max)``, so it stays in [0, 1] for every camera.
+    ``(1/d - 1/max) / (1/min - 1/max)``, so it stays in [0, 1] for every camera. Computed in float32 (or
+    float64) even under autocast: the logits of a bf16 network are cast up first.
     """
-    p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
-    d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
-    disp = distance_to_sigmoid(d, min_distance, max_distance)
-    scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
-    return d * scale, disp
+    with torch.autocast(logits.device.type, enabled=False):
+        if logits.dtype not in (torch.float32, torch.float64):
+            logits = logits.float()
+        p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
+        d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
+        disp = distance_to_sigmoid(d, min_distance, max_distance)
+        scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
+        return d * scale, disp
 
 
 def sigmoid_to_distance(sigmoid: Tensor, min_distance: float, max_distance: float) -> Tensor:

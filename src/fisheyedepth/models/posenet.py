@@ -67,5 +67,7 @@ class PoseNet(nn.Module):
         if self.channels_last:
             pair = pair.contiguous(memory_format=torch.channels_last)
         axis_angle, translation = self.decoder(self.encoder(pair)[-1])
-        T = make_pose(axis_angle_to_matrix(axis_angle), translation)
-        return invert_pose(T) if source_is_earlier else T
+        with torch.autocast(pair.device.type, enabled=False):  # the pose in float32 under bf16 autocast
+            dtype = torch.promote_types(axis_angle.dtype, torch.float32)
+            T = make_pose(axis_angle_to_matrix(axis_angle.to(dtype)), translation.to(dtype))
+            return invert_pose(T) if source_is_earlier else T
