@@ -33,6 +33,8 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import yaml
+
 from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -125,8 +127,10 @@ def main(argv=None) -> int:
             f"--tables {tables_arg} --seeds {seeds} --world-seed {args.world_seed}"
         )
         where = f"{minutes:.0f} min, 2 CPU cores; runs in `{_shown(sweep)}`"
-    if args.extra:
+    if args.extra and not args.runs:
         command += " --extra " + " ".join(args.extra)
+    if args.runs:  # what the runs were trained with, not this script's defaults
+        budget = _shared_overrides(sources)
     section = (
         "\n".join(
             [
@@ -165,6 +169,23 @@ def _tested(sources: list[str]) -> str:
         for name in (Path(json.loads(f.read_text()).get("checkpoint") or "in-memory").name for f in files)
     )
     return ", ".join(f"{k} x{n}" for k, n in sorted(kinds.items()))
+
+
+PER_RUN = ("+experiment=", "experiment=", "seed=", "hydra.", "paths.")  # what differs between rows
+
+
+def _shared_overrides(sources: list[str]) -> list[str]:
+    """The Hydra overrides every run under ``sources`` was trained with (``.hydra/overrides.yaml``),
+    less the row and seed; overrides that differ between runs are listed as ``KEY: differs``."""
+    files = [f for s in sources for f in sorted(Path(s).rglob("overrides.yaml")) if f.parent.name == ".hydra"]
+    if not files:
+        return ["(no .hydra/overrides.yaml in the runs)"]
+    runs = [
+        {o.split("=", 1)[0]: o for o in yaml.safe_load(f.read_text()) or [] if not o.startswith(PER_RUN)}
+        for f in files
+    ]
+    keys = list(dict.fromkeys(k for r in runs for k in r))
+    return [runs[0][k] if all(r.get(k) == runs[0].get(k) for r in runs) else f"{k}: differs" for k in keys]
 
 
 def _shown(path: Path) -> str:

@@ -20,7 +20,7 @@ from hydra.utils import instantiate
 
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.cli.evaluate import experiment_of
-from fisheyedepth.cli.train import selected_checkpoint
+from fisheyedepth.cli.train import resolve_base_focal, selected_checkpoint
 
 from conftest import TINY
 
@@ -233,7 +233,9 @@ def test_train_eval_resume_tables(workdir):
         "--out", str(workdir / "reproduce"), "--no-write",
     ).stdout  # fmt: skip
     assert "best-NNN.ckpt x1, last.ckpt x1" in reproduced and "FFT + RS + MC | none | 2 |" in reproduced
-    assert "model.lr_step=16" in reproduced
+    budget = next(line for line in reproduced.splitlines() if line.startswith("Budget overrides"))
+    assert "trainer.max_epochs: differs" in budget and "trainer.limit_train_batches=3" in budget  # the runs'
+    assert "select: differs" in budget and "model.lr_step" not in budget and "seed=" not in budget
     assert len(list((workdir / "reproduce").glob("*_runs/curves.png"))) == 1
 
 
@@ -282,6 +284,20 @@ def test_last_ckpt_is_the_last_epoch_even_when_validation_stops_improving(tmp_pa
     assert epoch == {"best-000.ckpt": 0, "last.ckpt": 2}
     assert selected_checkpoint(callbacks, "last") == str(tmp_path / "checkpoints" / "last.ckpt")
     assert selected_checkpoint(callbacks, "best") == str(tmp_path / "checkpoints" / "best-000.ckpt")
+
+
+def test_a_resumed_run_keeps_its_checkpoints_base_focal(tmp_path, caplog):
+    data = SimpleNamespace(base_focal=lambda split: 25.0)
+    assert resolve_base_focal(data, None) == 25.0
+    for stored in (20.0, None):
+        ckpt = tmp_path / f"{stored}.ckpt"
+        torch.save({"hyper_parameters": {"base_focal": stored}}, ckpt)
+        caplog.clear()
+        assert resolve_base_focal(data, str(ckpt)) == stored  # not 25: the scale cannot change mid-run
+        assert f"keeps its base_focal {stored}; the training cameras now give 25.000 px" in caplog.text
+    torch.save({"hyper_parameters": {"base_focal": 25.0}}, tmp_path / "same.ckpt")
+    caplog.clear()
+    assert resolve_base_focal(data, str(tmp_path / "same.ckpt")) == 25.0 and "keeps" not in caplog.text
 
 
 def test_eval_names_the_row_by_the_checkpoints_run(tmp_path):

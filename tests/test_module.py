@@ -302,7 +302,7 @@ def test_bf16_autocast_runs_the_networks_in_bf16_and_the_geometry_in_float32(
     assert grads and all(torch.isfinite(g).all() for g in grads)
 
 
-def test_lightning_trains_with_bf16_mixed_precision(kitti_data):
+def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     loader = DataLoader(flat, batch_size=2, collate_fn=collate)
     torch.manual_seed(0)
@@ -311,6 +311,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data):
     trainer = L.Trainer(
         max_epochs=1,
         precision="bf16-mixed",
+        default_root_dir=tmp_path,  # the validation panel is written there
         logger=False,
         enable_checkpointing=False,
         enable_progress_bar=False,
@@ -349,5 +350,16 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
         assert native[f"photometric/{s}"] < 0.85 * wrong[f"photometric/{s}"], s
     sizes = {(key[0].width, key[0].height) for key in modules["native"].rays._entries}
     assert sizes == {(256, 256), (128, 128), (64, 64)}  # rays of the resized cameras, cached per size
+    # a pixel partly covered by the vehicle body is neither scored nor sampled at the coarser size
+    holed = batch.mask.clone()
+    holed[:, :, 101, 37] = 0.0
+    sources_holed = batch.source_mask.clone()
+    sources_holed[:, :, :, 101, 37] = 0.0
+    level = modules["native"]._level(
+        dataclasses.replace(batch, mask=holed, source_mask=sources_holed), (128, 128)
+    )
+    inside = (batch.mask[:, 0, 100:102, 36:38] > 0.5).all()
+    assert inside and not level.mask[:, 50, 18].any() and level.source_mask[:, :, :, 50, 18].eq(0).all()
+    assert level.source_mask[:, :, :, 50, 19].eq(1).all() and level.mask[:, 50, 19].all()
     with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
         FisheyeDepthModule(loss_resolution="half")

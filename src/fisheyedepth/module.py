@@ -208,18 +208,25 @@ class FisheyeDepthModule(L.LightningModule):
         cameras = [self.warp_model(c) for c in batch.camera]
         source_cameras = [[self.warp_model(c) for c in cams] for cams in batch.source_camera]
         target, sources, body = batch.image, batch.sources, batch.mask[:, 0] > 0.5
+        source_mask = batch.source_mask
         if size is not None and tuple(size) != tuple(target.shape[-2:]):
             h, w = size
+
+            def shrink(x: Tensor) -> Tensor:  # [B, S, C, H, W] -> [B, S, C, h, w], area means
+                return F.interpolate(x.flatten(0, 1), size=(h, w), mode="area").unflatten(0, x.shape[:2])
+
             target = F.interpolate(target, size=(h, w), mode="area")
-            sources = F.interpolate(sources.flatten(0, 1), size=(h, w), mode="area")
-            sources = sources.unflatten(0, batch.sources.shape[:2])
-            # a pixel that is partly vehicle body is not scored
-            body = F.interpolate(body[:, None].to(target.dtype), size=(h, w), mode="area")[:, 0] > 1 - 1e-6
+            sources = shrink(sources)
+            # a pixel that is partly vehicle body is not scored (target), nor sampled (sources)
+            body = shrink(body[:, None, None].to(target.dtype))[:, 0, 0] > 1 - 1e-6
+            source_mask = (shrink(source_mask.to(target.dtype)) > 1 - 1e-6).to(source_mask.dtype)
             cameras = [c.resize(w, h) for c in cameras]
             source_cameras = [[c.resize(w, h) for c in cams] for cams in source_cameras]
         rays, rays_valid = self.rays.batch(cameras, target.device, target.dtype)
         identity = self.reprojection.identity(sources, target)  # the same at every scale of this size
-        return _Level(target, sources, source_cameras, rays, rays_valid, body & rays_valid, identity)
+        return _Level(
+            target, sources, source_mask, source_cameras, rays, rays_valid, body & rays_valid, identity
+        )
 
     def _losses(
         self, batch: Batch, outputs: dict[str, dict[int, Tensor]], poses: Tensor
@@ -244,7 +251,7 @@ class FisheyeDepthModule(L.LightningModule):
             for j in range(batch.n_sources):
                 cams = [c[j] for c in level.source_cameras]
                 warp = warp_to_source(
-                    level.rays, level.rays_valid, distance, poses[:, j], cams, batch.source_mask[:, j]
+                    level.rays, level.rays_valid, distance, poses[:, j], cams, level.source_mask[:, j]
                 )
                 warped.append(sample(level.sources[:, j], warp.grid))
                 valid.append(warp.valid)
@@ -409,12 +416,14 @@ class FisheyeDepthModule(L.LightningModule):
 
 @dataclasses.dataclass
 class _Level:
-    """What the loss compares at one image size: target ``[B, 3, h, w]``, sources ``[B, S, 3, h, w]``,
-    the warp cameras at that size, rays ``[B, h, w, 3]`` and their validity, the scored pixels ``[B, h,
-    w]`` (body mask and rays) and the unwarped sources' errors ``[B, S, h, w]``."""
+    """What the loss compares at one image size: target ``[B, 3, h, w]``, sources ``[B, S, 3, h, w]``
+    and their body masks ``[B, S, 1, h, w]``, the warp cameras at that size, rays ``[B, h, w, 3]`` and
+    their validity, the scored pixels ``[B, h, w]`` (body mask and rays) and the unwarped sources'
+    errors ``[B, S, h, w]``."""
 
     target: Tensor
     sources: Tensor
+    source_mask: Tensor
     source_cameras: list[list[CameraModel]]
     rays: Tensor
     rays_valid: Tensor

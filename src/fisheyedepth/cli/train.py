@@ -1,6 +1,6 @@
 """``python train.py [+experiment=...]``: train, then evaluate the selected checkpoint on the test
-split: the one with the lowest self-supervised validation loss (``select=best``, the default) or the
-last one (``select=last``). Neither uses ground truth."""
+split: the last one (``select=last``, the default: the end of the schedule) or the one with the lowest
+self-supervised validation loss (``select=best``). Neither uses ground truth."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from ..checkpoints import check_resumable
+from ..checkpoints import check_resumable, read_checkpoint
 from ..module import FisheyeDepthModule
 from . import EXIT_SIGTERM, prepare_data
 from .evaluate import run_evaluation
@@ -42,6 +42,25 @@ def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
     return None  # the weights in memory are the last ones
 
 
+def resolve_base_focal(datamodule, ckpt_path: str | None) -> float | None:
+    """``base_focal: auto``: the training cameras' mean paraxial focal at the training size. A resumed
+    run keeps its checkpoint's number (Lightning restores weights, not constructor arguments), so its
+    distance scale cannot change mid-training; a different number from the data now is reported."""
+    here = datamodule.base_focal("train")
+    if ckpt_path:
+        stored = read_checkpoint(ckpt_path).get("hyper_parameters", {}).get("base_focal", here)
+        if stored is None or abs(float(stored) - here) > 1e-6 * here:
+            log.warning(
+                "base_focal auto: %s keeps its base_focal %s; the training cameras now give %.3f px",
+                ckpt_path,
+                stored,
+                here,
+            )
+        return None if stored is None else float(stored)
+    log.info("base_focal auto: %.3f px, the mean paraxial focal of the training cameras", here)
+    return here
+
+
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     select = cfg.get("select", "last")
@@ -52,11 +71,7 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     datamodule = instantiate(cfg.data.datamodule)
     resolved = {}
     if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
-        resolved["base_focal"] = datamodule.base_focal("train")
-        log.info(
-            "base_focal auto: %.3f px, the mean paraxial focal of the training cameras",
-            resolved["base_focal"],
-        )
+        resolved["base_focal"] = resolve_base_focal(datamodule, cfg.get("ckpt_path"))
     module = instantiate(cfg.model, **resolved, _convert_="all")
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
