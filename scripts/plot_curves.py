@@ -96,10 +96,11 @@ def main(argv=None) -> int:
     for ax in axes.flat[len(shown) :]:
         ax.axis("off")
     for ax, (key, title) in zip(axes.flat, shown, strict=False):
-        for name, c in data.items():
+        for i, (name, c) in enumerate(data.items()):  # tab20: a row's two seeds in a dark/light pair
             if key in c:
                 epochs = sorted(c[key])
-                ax.plot(epochs, [c[key][e] for e in epochs], marker="o", ms=3, label=name)
+                style = {"color": plt.cm.tab20(i % 20), "linestyle": "-" if i < 20 else "--"}
+                ax.plot(epochs, [c[key][e] for e in epochs], marker="o", ms=3, label=name, **style)
         ax.set_title(title, fontsize=9)
         ax.set_xlabel("epoch")
         ax.grid(alpha=0.3)
