@@ -35,6 +35,8 @@ from pathlib import Path
 
 import yaml
 
+from make_tables import find
+
 from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,11 +164,11 @@ def main(argv=None) -> int:
 
 def _tested(sources: list[str]) -> str:
     """Which checkpoints the tables score, from the runs' results.json: e.g. ``last.ckpt x10``."""
-    files = [Path(s) for s in sources if Path(s).is_file()]
-    files += [f for s in sources if Path(s).is_dir() for f in sorted(Path(s).rglob("results.json"))]
     kinds = Counter(
         "best-NNN.ckpt" if name.startswith("best-") else name
-        for name in (Path(json.loads(f.read_text()).get("checkpoint") or "in-memory").name for f in files)
+        for name in (
+            Path(json.loads(f.read_text()).get("checkpoint") or "in-memory").name for f in find(sources)
+        )
     )
     return ", ".join(f"{k} x{n}" for k, n in sorted(kinds.items()))
 

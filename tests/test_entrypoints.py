@@ -19,6 +19,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from fisheyedepth.cameras import load_camera
+from fisheyedepth.checkpoints import read_checkpoint
 from fisheyedepth.cli.evaluate import experiment_of
 from fisheyedepth.cli.train import resolve_base_focal, selected_checkpoint
 
@@ -293,11 +294,14 @@ def test_a_resumed_run_keeps_its_checkpoints_base_focal(tmp_path, caplog):
         ckpt = tmp_path / f"{stored}.ckpt"
         torch.save({"hyper_parameters": {"base_focal": stored}}, ckpt)
         caplog.clear()
-        assert resolve_base_focal(data, str(ckpt)) == stored  # not 25: the scale cannot change mid-run
+        assert resolve_base_focal(data, read_checkpoint(ckpt)) == stored  # not 25: the scale cannot change
         assert f"keeps its base_focal {stored}; the training cameras now give 25.000 px" in caplog.text
     torch.save({"hyper_parameters": {"base_focal": 25.0}}, tmp_path / "same.ckpt")
     caplog.clear()
-    assert resolve_base_focal(data, str(tmp_path / "same.ckpt")) == 25.0 and "keeps" not in caplog.text
+    assert (
+        resolve_base_focal(data, read_checkpoint(tmp_path / "same.ckpt")) == 25.0
+        and "keeps" not in caplog.text
+    )
 
 
 def test_eval_names_the_row_by_the_checkpoints_run(tmp_path):

@@ -69,11 +69,12 @@ def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str,
     return hparams
 
 
-def check_resumable(path: str | os.PathLike) -> None:
-    """Refuse, before training starts, a checkpoint Lightning cannot resume from."""
+def check_resumable(path: str | os.PathLike) -> dict[str, Any]:
+    """Refuse, before training starts, a checkpoint Lightning cannot resume from; returns it."""
     ckpt = read_checkpoint(path)
     missing = [k for k in RESUME_KEYS if k not in ckpt]
     if missing:
         raise CheckpointError(
             path, f"cannot resume from it: no {', '.join(missing)} (not a Lightning training checkpoint)"
         )
+    return ckpt

@@ -264,7 +264,9 @@ class FisheyeDepthModule(L.LightningModule):
                 not self.training,
             )
             disp = outputs["disp"][s]
-            image_s = F.interpolate(batch.image, size=disp.shape[-2:], mode="area") if s else batch.image
+            image_s = level.target  # native resolution: already the target at this scale
+            if image_s.shape[-2:] != disp.shape[-2:]:
+                image_s = F.interpolate(batch.image, size=disp.shape[-2:], mode="area")
             smooth = edge_aware_smoothness(disp, image_s)
             total = total + photo + self.smoothness / 2**s * smooth
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used

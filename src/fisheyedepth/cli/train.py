@@ -14,7 +14,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
-from ..checkpoints import check_resumable, read_checkpoint
+from ..checkpoints import check_resumable
 from ..module import FisheyeDepthModule
 from . import EXIT_SIGTERM, prepare_data
 from .evaluate import run_evaluation
@@ -42,17 +42,17 @@ def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
     return None  # the weights in memory are the last ones
 
 
-def resolve_base_focal(datamodule, ckpt_path: str | None) -> float | None:
+def resolve_base_focal(datamodule, resumed: dict[str, Any] | None = None) -> float | None:
     """``base_focal: auto``: the training cameras' mean paraxial focal at the training size. A resumed
     run keeps its checkpoint's number (Lightning restores weights, not constructor arguments), so its
     distance scale cannot change mid-training; a different number from the data now is reported."""
     here = datamodule.base_focal("train")
-    if ckpt_path:
-        stored = read_checkpoint(ckpt_path).get("hyper_parameters", {}).get("base_focal", here)
+    if resumed is not None:
+        stored = resumed.get("hyper_parameters", {}).get("base_focal", here)
         if stored is None or abs(float(stored) - here) > 1e-6 * here:
             log.warning(
-                "base_focal auto: %s keeps its base_focal %s; the training cameras now give %.3f px",
-                ckpt_path,
+                "base_focal auto: the resumed checkpoint keeps its base_focal %s; "
+                "the training cameras now give %.3f px",
                 stored,
                 here,
             )
@@ -64,14 +64,13 @@ def resolve_base_focal(datamodule, ckpt_path: str | None) -> float | None:
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     select = cfg.get("select", "last")
-    if cfg.get("ckpt_path"):
-        check_resumable(cfg.ckpt_path)
+    resumed = check_resumable(cfg.ckpt_path) if cfg.get("ckpt_path") else None
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
     resolved = {}
     if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
-        resolved["base_focal"] = resolve_base_focal(datamodule, cfg.get("ckpt_path"))
+        resolved["base_focal"] = resolve_base_focal(datamodule, resumed)
     module = instantiate(cfg.model, **resolved, _convert_="all")
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]

@@ -11,6 +11,7 @@ from torch.nn import functional as F
 from .heads import (
     MultiChannelHead,
     SigmoidHead,
+    at_least_float32,
     bin_expectation,
     conv3x3,
     distance_bins,
@@ -140,7 +141,7 @@ class DepthNet(nn.Module):
                 )
             else:
                 with torch.autocast(y.device.type, enabled=False):  # float32 under bf16 autocast
-                    y = y.to(torch.promote_types(y.dtype, torch.float32))
+                    y = at_least_float32(y)
                     scale = torch.as_tensor(depth_scale, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
                     distance[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale
                     disp[s] = y

@@ -22,6 +22,11 @@ def distance_bins(n_bins: int, min_distance: float, max_distance: float) -> Tens
     return torch.exp(torch.linspace(math.log(min_distance), math.log(max_distance), n_bins))
 
 
+def at_least_float32(x: Tensor) -> Tensor:
+    """``x`` in float32, or float64 if it is: what a bf16 network's output becomes before geometry."""
+    return x.to(torch.promote_types(x.dtype, torch.float32))
+
+
 def bin_expectation(
     logits: Tensor, depth_scale: Tensor | float, bins: Tensor, min_distance: float, max_distance: float
 ) -> tuple[Tensor, Tensor]:
@@ -34,8 +39,7 @@ def bin_expectation(
     float64) even under autocast: the logits of a bf16 network are cast up first.
     """
     with torch.autocast(logits.device.type, enabled=False):
-        if logits.dtype not in (torch.float32, torch.float64):
-            logits = logits.float()
+        logits = at_least_float32(logits)
         p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
         d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
         disp = distance_to_sigmoid(d, min_distance, max_distance)

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from ..geometry import axis_angle_to_matrix, invert_pose, make_pose
+from .heads import at_least_float32
 from .resnet import ResNetEncoder
 
 # Monodepth2's PoseNet outputs 0.01 x its raw values (radians, metres) while its depth head starts at
@@ -68,6 +69,5 @@ class PoseNet(nn.Module):
             pair = pair.contiguous(memory_format=torch.channels_last)
         axis_angle, translation = self.decoder(self.encoder(pair)[-1])
         with torch.autocast(pair.device.type, enabled=False):  # the pose in float32 under bf16 autocast
-            dtype = torch.promote_types(axis_angle.dtype, torch.float32)
-            T = make_pose(axis_angle_to_matrix(axis_angle.to(dtype)), translation.to(dtype))
+            T = make_pose(axis_angle_to_matrix(at_least_float32(axis_angle)), at_least_float32(translation))
             return invert_pose(T) if source_is_earlier else T
