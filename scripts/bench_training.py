@@ -11,8 +11,9 @@ real-scale poses make the step >= 1.6x faster than the same model with a PoseNet
 Then the speed levers of the full model's step, side by side in the same interleaved rounds, each
 against the step as it was before them (``avg_pool2d`` SSIM, NCHW weights): box-sum SSIM (adopted),
 bf16 autocast of the networks (``trainer.precision=bf16-mixed``;
-geometry and losses stay float32), channels_last (a module switch) and ``torch.compile`` of the
-photometric error.
+geometry and losses stay float32), channels_last, the loss at each scale's native resolution and
+``torch.compile``'d kernels (the bin expectation and the photometric error; ``model.compile_kernels``),
+each a module switch.
 
 Usage: python scripts/bench_training.py [--rounds 5] [--no-write]
 """
@@ -33,7 +34,6 @@ import torch
 from torch.nn import functional as F
 
 import fisheyedepth.losses.photometric as photometric
-import fisheyedepth.losses.selfsup as selfsup
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.synthetic import generate
 from fisheyedepth.module import FisheyeDepthModule
@@ -58,21 +58,22 @@ def make_batch(root: Path, size: int, batch: int, cache_dir: Path):
     return collate([dataset[i] for i in range(batch)])
 
 
-# name: (box-sum SSIM, channels_last, bf16 autocast of the networks, compiled photometric error, loss
-#        at each scale's native resolution); the first five rows add their lever to the row above, the
-#        last three one lever each to the float32 step with box-sum SSIM (row 2)
+# name: (box-sum SSIM, channels_last, bf16 autocast of the networks, compiled kernels, loss at each
+#        scale's native resolution); the first six rows add their lever to the row above, the last three
+#        one lever each to the float32 step with box-sum SSIM (row 2)
 LEVERS = {
     "before: avg_pool2d SSIM, NCHW, float32, loss at full resolution": (False, False, False, False, False),
     "+ box-sum SSIM": (True, False, False, False, False),
     "+ bf16 autocast of the networks": (True, False, True, False, False),
     "+ channels_last": (True, True, True, False, False),
     "+ loss at native resolution": (True, True, True, False, True),
+    "+ compiled kernels (bin expectation, photometric error)": (True, True, True, True, True),
     "float32, box-sum SSIM + channels_last": (True, True, False, False, False),
     "float32, box-sum SSIM + loss at native resolution": (True, False, False, False, True),
-    "float32, box-sum SSIM + torch.compile of the photometric error": (True, False, False, True, False),
+    "float32, box-sum SSIM + compiled kernels": (True, False, False, True, False),
 }
+N_STACKED = 6  # rows of LEVERS that stack
 BOX_MEAN3 = photometric.box_mean3
-PHOTOMETRIC_ERROR = selfsup.photometric_error
 
 
 def avg_pool_mean3(x: torch.Tensor) -> torch.Tensor:
@@ -81,7 +82,7 @@ def avg_pool_mean3(x: torch.Tensor) -> torch.Tensor:
 
 
 def make_module(
-    config: str, channels_last: bool = False, loss_resolution: str = "full"
+    config: str, channels_last: bool = False, loss_resolution: str = "full", compiled: bool = False
 ) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
     fisheye, real, mc = CONFIGS[config]
     torch.manual_seed(0)
@@ -92,7 +93,9 @@ def make_module(
         log_images_every=0,
         channels_last=channels_last,
         loss_resolution=loss_resolution,
+        compile_kernels=compiled,
     )
+    module.on_fit_start()  # what the trainer calls first: compiles the kernels when asked
     return module, torch.optim.Adam(module.parameters(), lr=1e-4)
 
 
@@ -105,24 +108,19 @@ def step(module, optimizer, batch, bf16: bool = False) -> None:
 
 
 class Lever:
-    """The full model's step with one set of levers; the functions are swapped in for its steps."""
-
-    compiled = None
+    """The full model's step with one set of levers (SSIM's mean is swapped in for its steps)."""
 
     def __init__(self, box: bool, channels_last: bool, bf16: bool, compiled: bool, native: bool):
-        self.box, self.bf16, self.compiled_loss = box, bf16, compiled
+        self.box, self.bf16 = box, bf16
         resolution = "native" if native else "full"
-        self.module, self.optimizer = make_module("FFT + RS + MC (full)", channels_last, resolution)
-        if compiled and Lever.compiled is None:
-            Lever.compiled = torch.compile(PHOTOMETRIC_ERROR, dynamic=False)
+        self.module, self.optimizer = make_module("FFT + RS + MC (full)", channels_last, resolution, compiled)
 
     def __call__(self, batch) -> None:
         photometric.box_mean3 = BOX_MEAN3 if self.box else avg_pool_mean3
-        selfsup.photometric_error = Lever.compiled if self.compiled_loss else PHOTOMETRIC_ERROR
         try:
             step(self.module, self.optimizer, batch, self.bf16)
         finally:
-            photometric.box_mean3, selfsup.photometric_error = BOX_MEAN3, PHOTOMETRIC_ERROR
+            photometric.box_mean3 = BOX_MEAN3
 
 
 def memory_child(config: str, root: Path, size: int, batch: int) -> None:
@@ -220,9 +218,9 @@ def main(argv=None) -> int:
     before = next(iter(LEVERS))
     lines += [
         "",
-        "Speed levers of the full model's step, in the same rounds. The first five rows add one lever "
-        "each to the row above; the last three each add one lever to the float32 step with box-sum SSIM "
-        "(row 2). "
+        f"Speed levers of the full model's step, in the same rounds. The first {N_STACKED} rows add one "
+        f"lever each to the row above; the last {len(LEVERS) - N_STACKED} each add one lever to the "
+        "float32 step with box-sum SSIM (row 2). "
         "Speed-up = median over rounds of the paired ratio to the step before the levers:",
         "",
         "| step | time | speed-up |",

@@ -403,8 +403,10 @@ def test_collate_builds_a_typed_batch_with_every_optional_part_resolved(kitti_da
     assert batch.source_mask.shape == (2, 2, 1, 64, 64) and torch.equal(batch.source_mask[:, 1], batch.mask)
     assert batch.source_camera == [[c, c] for c in batch.camera] and batch.camera[0] != batch.camera[1]
     assert batch.cam_to_body is None and batch.distance is None and batch.skipped_frames == []
+    assert batch.camera_name is None
     full = collate(samples)
     assert full.cam_to_body.shape == (2, 4, 4) and full.distance.shape == (2, 1, 64, 64)
+    assert full.camera_name == ["image_02", "image_03"]
     assert full.poses.dtype == torch.float32
     moved = full.to("cpu")
     assert moved.camera is full.camera and torch.equal(moved.image, full.image)

@@ -21,7 +21,7 @@ from hydra.utils import instantiate
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.checkpoints import read_checkpoint
 from fisheyedepth.cli.evaluate import experiment_of
-from fisheyedepth.cli.train import resolve_base_focal, selected_checkpoint
+from fisheyedepth.cli.train import resolve_base_focal, resolve_precision, selected_checkpoint
 
 from conftest import TINY
 
@@ -163,6 +163,7 @@ def test_train_eval_resume_tables(workdir):
     for protocol in ("full", "kitti360"):
         assert {"none", "median", "none_by_angle"} <= set(record["results"][protocol])
     assert set(record["results"]["full"]["none_by_angle"]) == {"0-30", "30-60", "60-90", "90-180"}
+    assert set(record["results"]["full"]["none_by_camera"]) == {"image_02", "image_03"}
     assert (
         0 < record["results"]["full"]["none"]["abs_rel"] < 50
         and record["results"]["full"]["none"]["images"] > 0
@@ -377,3 +378,14 @@ def test_slurm_launcher_config_composes_when_the_plugin_is_installed():
     cfg = compose_train(["hydra/launcher=slurm", "+experiment=ablation_full"])
     assert cfg.hydra.launcher.gpus_per_node == 1
     assert (ROOT / "conf" / "hydra" / "launcher" / "slurm.yaml").is_file()
+
+
+def test_precision_auto_is_bf16_only_where_bf16_is_native(monkeypatch):
+    """``trainer.precision: auto``: bf16-mixed on a CPU with AVX-512 BF16, float32 on one without (bf16
+    is emulated there and several times slower); an explicit precision is passed through."""
+    for native, expected in ((True, "bf16-mixed"), (False, "32-true")):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda native=native: native)
+        assert resolve_precision("auto", "cpu") == expected
+    assert resolve_precision("16-mixed", "cpu") == "16-mixed" and resolve_precision(None, "cpu") is None
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_precision("auto", "gpu") == "32-true"  # no GPU here: nothing claims bf16

@@ -57,3 +57,24 @@ def test_a_right_shape_at_the_wrong_scale_is_exact_after_median_scaling(scene):
     assert out["none"]["abs_rel"] == pytest.approx(0.75)
     assert out["median"]["abs_rel"] == pytest.approx(0.0, abs=1e-9) and out["median"]["a1"] == 1.0
     assert out["median"]["scale_ratio"] == pytest.approx(4.0)
+
+
+def test_per_camera_breakdown_scores_each_named_camera_alone(scene):
+    camera, gt, valid, _ = scene
+    ev = Evaluator(PROTOCOLS["full"], ("none",))
+    ev.update(gt * 0.5, gt, valid, camera, "image_02")  # abs_rel 0.5
+    ev.update(gt * 1.1, gt, valid, camera, "image_03")  # abs_rel 0.1
+    ev.update(gt * 1.1, gt, valid, camera, "image_03")
+    out = ev.compute()
+    cams = out["none_by_camera"]
+    assert set(cams) == {"image_02", "image_03"}
+    assert cams["image_02"]["abs_rel"] == pytest.approx(0.5) and cams["image_02"]["images"] == 1
+    assert cams["image_03"]["abs_rel"] == pytest.approx(0.1) and cams["image_03"]["images"] == 2
+    assert out["none"]["abs_rel"] == pytest.approx((0.5 + 0.1 + 0.1) / 3)  # same pixels per image
+
+
+def test_unnamed_images_give_no_per_camera_breakdown(scene):
+    camera, gt, valid, _ = scene
+    ev = Evaluator(PROTOCOLS["full"], ("none",))
+    ev.update(gt, gt, valid, camera)
+    assert "none_by_camera" not in ev.compute()

@@ -144,3 +144,42 @@ def test_posenet_outputs_rigid_motion_and_inverts_for_earlier_sources():
 def test_base_focal_must_be_a_positive_focal_or_none(bad):
     with pytest.raises(ValueError, match=r"base_focal=.*expected a focal length in pixels > 0"):
         DepthNet(base_focal=bad)
+
+
+class _FixedLogits(torch.nn.Module):
+    """A scale-0 head that ignores its input: the near bin on the left half, the far bin on the right."""
+
+    def __init__(self, n_bins: int, near: int, far: int, size: int):
+        super().__init__()
+        logits = torch.full((1, n_bins, size, size), -10.0)
+        logits[:, near, :, : size // 2] = 10.0
+        logits[:, far, :, size // 2 :] = 10.0
+        self.register_buffer("logits", logits)
+
+    def forward(self, x):
+        return self.logits.expand(x.shape[0], -1, -1, -1)
+
+
+def test_upsampling_logits_keeps_edges_sharp_where_upsampling_distance_blends_them():
+    """``upsample="logits"``: the expectation of the bilinearly upsampled logits, so a step from a near to
+    a far surface stays a step (at most one column in between) where inverse-distance interpolation
+    fills the columns near the edge with distances of neither surface; away from the edge both agree."""
+    from fisheyedepth.cameras import MeiCamera
+
+    camera = MeiCamera(width=256, height=256, xi=1.0, gamma1=160.0, gamma2=160.0, u0=128.0, v0=128.0)
+    image = torch.rand(1, 3, 256, 256)
+    results = {}
+    for upsample in ("distance", "logits"):
+        net = DepthNet(scales=(0,), upsample=upsample).eval()
+        net.heads["0"] = _FixedLogits(64, 10, 50, 64)
+        with torch.no_grad():
+            results[upsample] = net.distance(image, [camera], (64, 64))[0, 0]
+    for d in results.values():  # a 4x upsampling: the edge at column 128 of 256
+        assert d.shape == (256, 256)
+        assert torch.allclose(d[:, :120], torch.full_like(d[:, :120], float(net.bins[10])), rtol=1e-3)
+        assert torch.allclose(d[:, 136:], torch.full_like(d[:, 136:], float(net.bins[50])), rtol=1e-3)
+    lo, hi = float(net.bins[10]) * 1.05, float(net.bins[50]) * 0.95
+    between = {k: int(((d[0] > lo) & (d[0] < hi)).sum()) for k, d in results.items()}
+    assert between["logits"] <= 1 and between["distance"] >= 3, between
+    with pytest.raises(ValueError, match="upsample: 'nearest' is not one of distance, logits"):
+        DepthNet(upsample="nearest")

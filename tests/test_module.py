@@ -363,3 +363,48 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     assert level.source_mask[:, :, :, 50, 19].eq(1).all() and level.mask[:, 50, 19].all()
     with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
         FisheyeDepthModule(loss_resolution="half")
+
+
+def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after_fitting(kitti_data):
+    """``compile_kernels``: while fitting, the bin expectation and the photometric error are
+    ``torch.compile``'d (fused kernels): the same loss and gradients; after fitting the plain functions
+    are back, so evaluation, prediction and export never trace a compiled function."""
+    from fisheyedepth.losses.photometric import photometric_error
+    from fisheyedepth.models import bin_expectation
+
+    batch = tiny_batch(kitti_data)
+    results = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        module = FisheyeDepthModule(compile_kernels=compiled, scales=(0, 1), log_images_every=0)
+        module.on_fit_start()
+        assert (module.depth_net.expectation is bin_expectation) != compiled
+        assert (module.reprojection.error_fn is photometric_error) != compiled
+        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        loss.backward()
+        results.append((loss.item(), {n: p.grad for n, p in module.named_parameters() if p.grad is not None}))
+        module.on_fit_end()
+        assert module.depth_net.expectation is bin_expectation
+        assert module.reprojection.error_fn is photometric_error
+    (plain, grads), (fused, fused_grads) = results
+    assert fused == pytest.approx(plain, rel=1e-5)
+    worst = max(float((fused_grads[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads.items())
+    assert worst < 1e-3, worst
+
+
+def test_cosine_schedule_anneals_to_lr_gamma_over_the_run():
+    module = FisheyeDepthModule(lr_schedule="cosine", lr=1e-3, lr_gamma=0.1)
+    module.trainer = L.Trainer(max_epochs=4, logger=False, enable_checkpointing=False)
+    config = module.configure_optimizers()
+    optimizer, scheduler = config["optimizer"], config["lr_scheduler"]["scheduler"]
+    lrs = []
+    for _ in range(4):
+        lrs.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    lrs.append(optimizer.param_groups[0]["lr"])
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-4)
+    assert lrs[2] == pytest.approx(1e-4 + 0.5 * (1e-3 - 1e-4))  # half way: the mean of the two
+    assert all(a > b for a, b in zip(lrs, lrs[1:], strict=False))
+    with pytest.raises(ValueError, match="lr_schedule: 'linear' is not one of step, cosine"):
+        FisheyeDepthModule(lr_schedule="linear")

@@ -85,11 +85,15 @@ class Evaluator:
         # are scored with the ratio of the whole image and add up to the headline number
         self.metrics = {s: DepthMetrics(protocol.cap) for s in self.scalings}
         self.by_angle = {(s, b): DepthMetrics(protocol.cap) for s in self.scalings for b in ANGLE_BINS}
+        self.by_camera: dict[tuple[str, str], DepthMetrics] = {}  # (scaling, camera name), when named
         self.ratios: dict[str, list[float]] = {s: [] for s in self.scalings}
         self.rays = rays if rays is not None else RayCache()
 
-    def update(self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel) -> None:
-        """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels."""
+    def update(
+        self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel, name: str | None = None
+    ) -> None:
+        """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels;
+        ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs)."""
         rays, valid = self.rays.get(camera, pred.device, pred.dtype)
         p = self.protocol
         gt_z = gt * rays[..., 2]
@@ -115,6 +119,9 @@ class Evaluator:
             q = q * ratio
             self.ratios[scaling].append(ratio)
             self.metrics[scaling].update(q[None], g[None], keep[None])
+            if name is not None:
+                per_camera = self.by_camera.setdefault((scaling, name), DepthMetrics(p.cap))
+                per_camera.update(q[None], g[None], keep[None])
             for lo, hi in ANGLE_BINS:
                 self.by_angle[(scaling, (lo, hi))].update(
                     q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]
@@ -134,6 +141,13 @@ class Evaluator:
                 )
                 for lo, hi in ANGLE_BINS
             }
+            cameras = sorted(n for s, n in self.by_camera if s == scaling)
+            if cameras:
+                out[f"{scaling}_by_camera"] = {
+                    n: {k: float(v) for k, v in self.by_camera[(scaling, n)].compute().items()}
+                    | {"images": int(self.by_camera[(scaling, n)].images)}
+                    for n in cameras
+                }
         return out
 
 
@@ -160,9 +174,10 @@ def evaluate(
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
         pred = module.depth_net.distance(batch.image.to(module.device), batch.camera, train_size)
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
+        names = batch.camera_name or [None] * len(batch)
         for i, cam in enumerate(batch.camera):
             for ev in evaluators.values():
-                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam)
+                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i])
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body

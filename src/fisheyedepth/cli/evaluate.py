@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from ..evaluation import evaluate
+from ..models.depth_net import UPSAMPLING
 from ..module import FisheyeDepthModule
 from ..utils import atomic_write_text
 from . import free_path, prepare_data
@@ -35,19 +36,20 @@ def _git_commit() -> str | None:
 
 
 def print_table(results: dict[str, Any], title: str) -> None:
+    """The headline rows, then one row per camera when the split has more than one (mixed rigs)."""
+    keys = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
     table = Table(title=title)
-    for col in ("protocol", "scaling", "abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3", "images"):
+    for col in ("protocol", "scaling", "camera", *keys, "images"):
         table.add_column(col, justify="right")
     for name, res in results.items():
         for scaling in (k for k in res if k in ("none", "median", "dnet")):
-            m = res[scaling]
-            table.add_row(
-                name,
-                scaling,
-                *(f"{m[k]:.3f}" for k in ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")),
-                str(m["images"]),
-            )
-    Console(width=130).print(table)
+            rows = {"all": res[scaling]}
+            per_camera = res.get(f"{scaling}_by_camera", {})
+            if len(per_camera) > 1:
+                rows |= per_camera
+            for camera, m in rows.items():
+                table.add_row(name, scaling, camera, *(f"{m[k]:.3f}" for k in keys), str(m["images"]))
+    Console(width=140).print(table)
 
 
 def run_evaluation(
@@ -79,7 +81,8 @@ def run_evaluation(
         "checkpoint": ckpt,
         "model": {
             k: module.hparams[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")
-        },
+        }
+        | {"upsample": module.depth_net.upsample},
         "data": str(cfg.data.datamodule.root),
         "split": split,
         "train_size": list(train_size) if train_size else None,
@@ -107,11 +110,22 @@ def experiment_of(ckpt_path: str | Path) -> str | None:
     return data.get("experiment_name") if isinstance(data, dict) else None
 
 
+def set_upsample(module: FisheyeDepthModule, upsample: str) -> None:
+    """Evaluate with another upsampling than the checkpoint's (it only changes how a distance at the
+    training size reaches the ground truth's size); recorded in ``results.json``."""
+    if upsample not in UPSAMPLING:
+        raise ValueError(f"upsample={upsample!r}: expected one of {', '.join(UPSAMPLING)}")
+    module.depth_net.upsample = upsample
+    module.hparams["upsample"] = upsample
+
+
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(cfg.paths.output_dir)
     experiment = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path)
     prepare_data(cfg)
     module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
+    if cfg.get("upsample") is not None:
+        set_upsample(module, str(cfg.upsample))
     datamodule = instantiate(cfg.data.datamodule)
     return run_evaluation(
         cfg,

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import torch
 from hydra.utils import instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
@@ -61,6 +62,21 @@ def resolve_base_focal(datamodule, resumed: dict[str, Any] | None = None) -> flo
     return here
 
 
+def resolve_precision(precision: Any, accelerator: str | None) -> Any:
+    """``trainer.precision: auto``: "bf16-mixed" where bf16 is native (a CPU with AVX-512 BF16, a CUDA
+    GPU that supports it; the networks in bf16, geometry and losses float32), else "32-true": on a CPU
+    without it, bf16 is emulated and several times slower. Anything else is passed to Lightning."""
+    if precision != "auto":
+        return precision
+    if accelerator in ("gpu", "cuda") or (accelerator == "auto" and torch.cuda.is_available()):
+        native = torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    else:
+        native = bool(torch.cpu._is_avx512_bf16_supported())
+    chosen = "bf16-mixed" if native else "32-true"
+    log.info("trainer.precision auto: %s (bf16 %s here)", chosen, "native" if native else "not native")
+    return chosen
+
+
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     select = cfg.get("select", "last")
@@ -76,8 +92,9 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     checkpointers = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
     selected_checkpoint(checkpointers, select)  # a bad choice fails now, not after hours of training
+    precision = resolve_precision(cfg.trainer.get("precision"), cfg.trainer.get("accelerator"))
     trainer: L.Trainer = instantiate(
-        cfg.trainer, logger=logger, callbacks=callbacks, default_root_dir=str(out_dir)
+        cfg.trainer, logger=logger, callbacks=callbacks, default_root_dir=str(out_dir), precision=precision
     )
     try:
         try:

@@ -15,6 +15,7 @@ A sample (what ``FisheyeDataset`` returns) is a dict:
 | ``distance`` | ``[1, H, W]`` float | optional ground-truth distance in metres, 0 = unknown |
 | ``camera`` | a ``CameraModel`` | the target camera |
 | ``source_camera`` | list of ``S`` cameras | optional: sources' cameras (default: ``camera``) |
+| ``camera_name`` | ``str`` | optional: the rig's name for the target camera (e.g. ``image_02``) |
 
 ``collate`` stacks samples into a :class:`Batch` with every optional part resolved, so the module reads
 fields and never guesses. Cameras are Python values, not tensors: they stay lists, so one batch may mix
@@ -32,7 +33,15 @@ from torch import Tensor
 from ..cameras import CameraModel
 
 REQUIRED = ("image", "sources", "poses", "mask", "camera")
-OPTIONAL = ("image_aug", "sources_aug", "cam_to_body", "source_mask", "distance", "source_camera")
+OPTIONAL = (
+    "image_aug",
+    "sources_aug",
+    "cam_to_body",
+    "source_mask",
+    "distance",
+    "source_camera",
+    "camera_name",
+)
 
 
 @dataclasses.dataclass
@@ -51,6 +60,7 @@ class Batch:
     cam_to_body: Tensor | None = None  # [B, 4, 4] camera-to-body extrinsics, when the layout has them
     distance: Tensor | None = None  # [B, 1, H, W] ground truth in metres (0 = unknown), when known
     skipped_frames: list[str] = dataclasses.field(default_factory=list)  # reasons, skip_bad_frames
+    camera_name: list[str] | None = None  # B rig names of the target cameras, when the dataset gives them
 
     def __len__(self) -> int:
         return len(self.camera)
@@ -126,4 +136,5 @@ def collate(samples: list[dict[str, Any]]) -> Batch | SkippedBatch:
         cam_to_body=stack("cam_to_body").float() if "cam_to_body" in keys else None,
         distance=stack("distance") if "distance" in keys else None,
         skipped_frames=skipped,
+        camera_name=[str(s["camera_name"]) for s in samples] if "camera_name" in keys else None,
     )

@@ -290,6 +290,7 @@ class FisheyeDataset(Dataset):
         E = torch.from_numpy(spec.cam_to_body)
         path = self.layout.image(item.sequence, item.camera, target)
         sample: dict[str, Any] = {"camera": camera, "image": self._image(path, camera, native)}
+        sample["camera_name"] = item.camera
         sources, poses = [], []
         for offset in self.offsets:
             other = frames[item.row + offset]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -73,13 +74,15 @@ class ReprojectionLoss:
 
     automask: bool = True
     alpha: float = 0.85
+    # (images, targets, alpha) -> per-pixel error; training may swap in a torch.compile'd one
+    error_fn: Callable[[Tensor, Tensor, float], Tensor] = photometric_error
 
     def photometric(self, images: Tensor, target: Tensor) -> Tensor:
         """``[B, S, 3, H, W]`` images against the ``[B, 3, H, W]`` target: ``[B, S, H, W]`` errors."""
         B, S = images.shape[:2]
         flat = images.reshape(B * S, *images.shape[2:])
         rep = target[:, None].expand(B, S, *target.shape[1:]).reshape(B * S, *target.shape[1:])
-        return photometric_error(flat, rep, self.alpha).reshape(B, S, *target.shape[2:])
+        return self.error_fn(flat, rep, self.alpha).reshape(B, S, *target.shape[2:])
 
     def identity(self, sources: Tensor, target: Tensor) -> Tensor:
         """Errors of the unwarped sources (auto-masking, and the cost of a warp that cannot reach a

@@ -90,8 +90,12 @@ class DepthNet(nn.Module):
         scales: tuple[int, ...] = (0, 1, 2, 3),
         base_focal: float | None = None,
         channels_last: bool = False,
+        upsample: str = "distance",
     ):
         super().__init__()
+        if upsample not in UPSAMPLING:
+            raise ValueError(f"upsample: {upsample!r} is not one of {', '.join(UPSAMPLING)}")
+        self.upsample = upsample
         if base_focal is not None and not (isinstance(base_focal, (int, float)) and base_focal > 0):
             raise ValueError(
                 f"base_focal={base_focal!r}: expected a focal length in pixels > 0, or None (depth_scale 1); "
@@ -121,6 +125,9 @@ class DepthNet(nn.Module):
         self.channels_last = channels_last
         if channels_last:
             self.to(memory_format=torch.channels_last)
+        # the binned head's softmax expectation; training may swap in a torch.compile'd one (a fused
+        # kernel, the same numbers), see FisheyeDepthModule's ``compile_kernels``
+        self.expectation = bin_expectation
 
     def forward(
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
@@ -136,7 +143,7 @@ class DepthNet(nn.Module):
                 continue
             y = self.heads[str(s)](x)
             if self.multi_channel:
-                distance[s], disp[s] = bin_expectation(
+                distance[s], disp[s] = self.expectation(
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
                 )
             else:
@@ -164,12 +171,29 @@ class DepthNet(nn.Module):
         at the images' size). The network runs at ``input_size`` (W, H; default: the images' size) on the
         image and camera resized alike, and its distance is upsampled back in inverse-distance space."""
         H, W = image.shape[-2:]
-        if input_size is not None and (W, H) != tuple(input_size):
-            w, h = int(input_size[0]), int(input_size[1])
-            image = F.interpolate(image, size=(h, w), mode="area")
-            cameras = [c.resize(w, h) for c in cameras]
-        out = self.for_cameras(image, cameras, scales=(0,))["distance"][0]
-        return upsample_inverse(out, (H, W))
+        if input_size is None or (W, H) == tuple(input_size):
+            return self.for_cameras(image, cameras, scales=(0,))["distance"][0]
+        w, h = int(input_size[0]), int(input_size[1])
+        image = F.interpolate(image, size=(h, w), mode="area")
+        small = [c.resize(w, h) for c in cameras]
+        if self.multi_channel and self.upsample == "logits":
+            return self.upsampled_expectation(image, small, (H, W))
+        return upsample_inverse(self.for_cameras(image, small, scales=(0,))["distance"][0], (H, W))
+
+    def upsampled_expectation(self, image: Tensor, cameras, size: tuple[int, int]) -> Tensor:
+        """The binned head's scale-0 logits upsampled bilinearly to ``size`` (H, W), then the expectation:
+        at an edge between a near and a far surface the interpolated logits keep two peaks and the
+        expectation switches between them within a pixel or two, where interpolating distances blends them."""
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        logits = self.heads["0"](self.decoder(self.encoder(image))[0])
+        with torch.autocast(logits.device.type, enabled=False):
+            logits = F.interpolate(at_least_float32(logits), size=tuple(size), mode="bilinear")
+        scale = self.depth_scale(cameras).to(logits)
+        return self.expectation(logits, scale, self.bins, self.min_distance, self.max_distance)[0]
+
+
+UPSAMPLING = ("distance", "logits")
 
 
 def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:
