@@ -27,6 +27,7 @@ from conftest import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+TABLE_EXPERIMENTS = [e for e in EXPERIMENTS if e.startswith(("ablation_", "table1_"))]
 
 
 def compose_train(overrides):
@@ -96,10 +97,22 @@ def test_trainers_share_one_base_and_clipping_has_one_name():
     cpu, gpu, ddp = (compose_train([f"trainer={t}"]).trainer for t in ("cpu", "gpu", "ddp"))
     for trainer in (cpu, gpu, ddp):
         assert trainer.gradient_clip_val == 1.0 and trainer.num_sanity_val_steps == 1
-    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 10, 10)
-    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 20, 50)
+    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 24, 10)
+    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 24, 50)
+    assert all(t.precision == "auto" for t in (cpu, gpu, ddp))
+    assert compose_train([]).model.lr_step == 18  # the decay for the last quarter of every trainer
     assert ddp.strategy == "ddp" and ddp.sync_batchnorm is True
     assert "grad_clip" not in compose_train([]).model
+
+
+@pytest.mark.parametrize("experiment", TABLE_EXPERIMENTS)
+def test_table_experiments_keep_the_papers_loss_in_float32(experiment):
+    """The default model takes the speed levers (native-resolution loss, bf16 where native); the
+    Table 1/2 rows keep Monodepth2's full-resolution loss in float32, as their kept runs did."""
+    default = compose_train([])
+    assert default.model.loss_resolution == "native" and default.model.compile_kernels is True
+    cfg = compose_train([f"+experiment={experiment}"])
+    assert cfg.model.loss_resolution == "full" and cfg.trainer.precision == "32-true"
 
 
 def test_debug_tiny_is_what_the_smoke_tests_use():
