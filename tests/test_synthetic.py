@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -148,6 +149,19 @@ def test_trajectory_speed_and_turns():
     assert np.allclose(poses[:, 2, 3], 0.73) and np.allclose(np.linalg.det(poses[:, :3, :3]), 1)
     other = make_world(12)
     assert other.pitch != world.pitch and len(other.boxes) != len(world.boxes)
+
+
+def test_left_lane_mirrors_the_cars_offset_from_the_centreline():
+    """``lane="left"``: the same route, the car 1.75 m to the left of the centreline instead of the right;
+    a bad lane name is refused before anything is written."""
+    world = make_world(11)
+    right, left = make_trajectory(world, 60, 11, 1.75), make_trajectory(world, 60, 11, -1.75)
+    # the body's y axis points to its right: the left-lane car sits 3.5 m to the left of the right-lane one
+    # (compared at the start, on the same straight, before the two lanes' arc lengths drift apart)
+    lateral = np.einsum("i,i->", left[0, :3, 3] - right[0, :3, 3], right[0, :3, 1])
+    assert lateral == pytest.approx(-3.5, abs=0.05)
+    with pytest.raises(ValueError, match="lane must be one of"):
+        generate(Path("/nonexistent/never-written"), lane="centre")
 
 
 @pytest.mark.parametrize("cam", ["image_02", "image_03"])

@@ -35,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--supersample", type=int, default=2, help="antialiasing: NxN rays per pixel")
     p.add_argument("--workers", type=int, default=0, help="worker processes (0: render in this process)")
     p.add_argument("--no-lidar", action="store_true", help="skip the Velodyne scans")
+    p.add_argument("--lane", default="right", choices=("right", "left"), help="the lane the car keeps to")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
@@ -52,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
             not a.no_lidar,
             a.overwrite,
             not a.quiet,
+            lane=a.lane,
         )
     except (FileExistsError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -276,7 +276,8 @@ def body_rotation(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarr
 
 
 def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float = 1.75) -> np.ndarray:
-    """``[n_frames, 4, 4]`` body-to-world poses of a car driving in the right lane, with turns.
+    """``[n_frames, 4, 4]`` body-to-world poses of a car driving ``lane_offset`` metres to the right of
+    the street's centreline (1.75: the right lane; negative: the left lane), with turns.
 
     Speeds vary smoothly between 0.3 and 1.5 m per frame and drop in turns; pitch and roll wobble by a
     few tenths of a degree.

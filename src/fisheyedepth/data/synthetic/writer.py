@@ -49,7 +49,9 @@ MARKER_TEXT = (
     "This folder may be deleted and rendered again; see docs/data-format.md.\n"
 )
 OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written
-CHECKED = ("rig", "frames", "size", "seed", "supersample")  # must match a finished dataset's synthetic.json
+# must match a finished dataset's synthetic.json (a key it lacks, from an older version, is not checked)
+CHECKED = ("rig", "frames", "size", "seed", "supersample", "lane")
+LANES = {"right": 1.75, "left": -1.75}  # the car's offset from the street's centreline, metres to its right
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
@@ -308,8 +310,12 @@ def generate(
     lidar: bool = True,
     overwrite: bool = False,
     progress: bool = True,
+    lane: str = "right",
 ) -> Path:
     """Render ``frames`` frames of every camera of ``rig`` (plus LiDAR) into ``out``. Returns ``out``.
+
+    ``lane``: the car keeps to the "right" lane (KITTI-360: the right cameras see the near kerb,
+    poles and facades) or the "left" one (the mirror situation, for per-camera comparisons).
 
     ``overwrite`` replaces whatever ``out`` holds once the new dataset is complete (the CLI's explicit
     ``--overwrite``); ``ensure_dataset`` is the careful variant that replaces only what this generator made.
@@ -320,11 +326,13 @@ def generate(
         raise ValueError(f"unknown rig {rig!r}; one of {RIGS}")
     if size < 16 or size % 8:
         raise ValueError(f"size must be a multiple of 8 and at least 16, got {size}")
+    if lane not in LANES:
+        raise ValueError(f"lane must be one of {LANES}, got {lane!r}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
     ranges = split_frames(frames)
     world = make_world(seed)
-    poses = make_trajectory(world, ranges["test"][1], seed)
+    poses = make_trajectory(world, ranges["test"][1], seed, LANES[lane])
     jobs = [Job(SEQUENCES[s], i - a, poses[i]) for s, (a, b) in ranges.items() for i in range(a, b)]
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -343,7 +351,14 @@ def generate(
             desc = f"rendering {rig} {size}px"
             with tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress) as bar:
                 _render(jobs, worker, workers, (tmp, seed, rig, size, supersample, lidar), bar)
-            params = {"seed": seed, "rig": rig, "size": size, "supersample": supersample, "frames": frames}
+            params = {
+                "seed": seed,
+                "rig": rig,
+                "size": size,
+                "supersample": supersample,
+                "frames": frames,
+                "lane": lane,
+            }
             meta = _metadata(worker.rig, world, ranges, params, lidar)
             (tmp / OWNER).unlink()
             (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
@@ -416,6 +431,7 @@ def ensure_dataset(
     workers: int = 0,
     lidar: bool = True,
     progress: bool = True,
+    lane: str = "right",
 ) -> Path:
     """The synthetic dataset at ``root``, rendered on first use (what ``train.py`` calls). Returns ``root``.
 
@@ -425,12 +441,29 @@ def ensure_dataset(
     ``NotASyntheticDataset`` (a ``FileExistsError``) and is left untouched.
     """
     root = Path(root)
-    asked = {"rig": rig, "frames": frames, "size": size, "seed": seed, "supersample": supersample}
+    asked = {
+        "rig": rig,
+        "frames": frames,
+        "size": size,
+        "seed": seed,
+        "supersample": supersample,
+        "lane": lane,
+    }
     if is_complete(root):
         _check_parameters(root, asked)
         return root
     if root.exists() and not _is_empty_dir(root) and not made_by_generator(root):
         raise _refusal(root)
     return generate(
-        root, rig, frames, size, seed, supersample, workers, lidar, overwrite=root.exists(), progress=progress
+        root,
+        rig,
+        frames,
+        size,
+        seed,
+        supersample,
+        workers,
+        lidar,
+        overwrite=root.exists(),
+        progress=progress,
+        lane=lane,
     )
