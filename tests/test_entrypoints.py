@@ -253,6 +253,21 @@ def test_train_eval_resume_tables(workdir):
     assert "select: differs" in budget and "model.lr_step" not in budget and "seed=" not in budget
     assert len(list((workdir / "reproduce").glob("*_runs/curves.png"))) == 1
 
+    # last: its results.json files inside run1 would be collected by the table scripts above
+    tiny_data = [o for o in TINY if o.startswith("data.") or o.startswith("eval.")]
+    heldout = run(
+        "scripts/heldout.py", str(first), "--seeds", "5",
+        "--set", f"paths.data_dir={workdir}/data", *tiny_data,
+    ).stdout  # fmt: skip
+    assert (workdir / "data" / "synthetic_kitti360_64_seed5_f12" / "synthetic.json").is_file()
+    row = next(line for line in heldout.splitlines() if line.startswith("| run1 |")).split(" | ")
+    held = json.loads((first / "heldout_kitti360_seed5" / "results.json").read_text())["results"]
+    assert row[2].rstrip(" |") == (
+        f"{held['full']['none']['abs_rel']:.3f}, {held['full']['none']['a1']:.3f} / "
+        f"{held['kitti360']['none']['abs_rel']:.3f}"
+    )
+    assert held["full"]["none"]["abs_rel"] != record["results"]["full"]["none"]["abs_rel"]  # another world
+
 
 def test_the_tested_checkpoint_is_selected_without_ground_truth():
     best = SimpleNamespace(monitor="val/photometric", best_model_path="/r/best-004.ckpt")

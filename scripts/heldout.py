@@ -1,0 +1,84 @@
+#!/usr/bin/env python
+"""Score trained runs on synthetic worlds they never saw, one Markdown row per run (BENCHMARKS.md,
+"Time to accuracy").
+
+    python scripts/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
+                              [--set KEY=VALUE ...]
+
+RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
+split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
+scored by ``eval.py`` on the world rendered with each held-out seed (rendered on first use), into
+``RUN/heldout_<rig>_seed<S>/results.json``; an existing one is reused. ``--set`` passes more Hydra
+overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers: full-range abs_rel and
+a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the held-out seeds before
+training, and never train or tune on them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def scores(path: Path) -> str:
+    """``abs_rel, a1 / kitti360 abs_rel`` of a results.json, or why there is none."""
+    try:
+        results = json.loads(path.read_text())["results"]
+        full, k360 = results["full"]["none"], results["kitti360"]["none"]
+        return f"{full['abs_rel']:.3f}, {full['a1']:.3f} / {k360['abs_rel']:.3f}"
+    except (OSError, ValueError, KeyError) as err:
+        return f"({path}: {type(err).__name__})"
+
+
+def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: list[str]) -> Path:
+    """Evaluate the run's last checkpoint on world ``seed``; returns its results.json."""
+    suffix = f"_{upsample}" if upsample else ""
+    out = run / f"heldout_{rig}_seed{seed}{suffix}"
+    if (out / "results.json").is_file():
+        return out / "results.json"
+    ckpt = run / "checkpoints" / "last.ckpt"
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"{ckpt}: no last checkpoint in this run")
+    command = [
+        sys.executable,
+        str(ROOT / "eval.py"),
+        f"ckpt_path={ckpt}",
+        f"data.generate.rig={rig}",
+        f"data.generate.seed={seed}",
+        f"hydra.run.dir={out}",
+        "eval.pictures=4",
+    ]
+    if upsample:
+        command.append(f"upsample={upsample}")
+    command += extra
+    subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+    return out / "results.json"
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1001, 1002])
+    parser.add_argument("--rig", default="kitti360")
+    parser.add_argument("--upsample", choices=("distance", "logits"))
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
+    args = parser.parse_args(argv)
+    header = ["run", "own test", *(f"world {s} (held out)" for s in args.seeds)]
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for run in args.runs:
+        cells = [run.name, scores(run / "results.json")]
+        cells += [scores(score_heldout(run, s, args.rig, args.upsample, args.set)) for s in args.seeds]
+        print("| " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
