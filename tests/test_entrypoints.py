@@ -49,12 +49,17 @@ def test_every_experiment_composes(experiment):
         "table1_dnet": (False, False, False),
         "table1_fsnet": (False, False, True),
         "table1_fsnet_rs": (False, True, True),
+        "cpu_30min": (True, True, True),  # the full model, at a larger size for longer
     }[experiment]
     assert (m.fisheye_projection, m.real_scale, m.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
         assert m.attention is False
     if experiment == "table1_dnet":
         assert "dnet" in cfg.eval.scalings
+    if experiment == "cpu_30min":
+        default = compose_train([])
+        assert list(cfg.data.datamodule.size) == [256, 256] != list(default.data.datamodule.size)
+        assert cfg.model.lr_step < cfg.trainer.max_epochs and cfg.model.loss_resolution == "native"
 
 
 @pytest.mark.parametrize(
