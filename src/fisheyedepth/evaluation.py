@@ -130,25 +130,21 @@ class Evaluator:
     def compute(self) -> dict[str, Any]:
         out: dict[str, Any] = {"protocol": dataclasses.asdict(self.protocol)}
         for scaling in self.scalings:
-            m = self.metrics[scaling]
-            out[scaling] = {k: float(v) for k, v in m.compute().items()} | {"images": int(m.images)}
+            out[scaling] = _summary(self.metrics[scaling])
             if scaling != "none" and self.ratios[scaling]:
                 out[scaling]["scale_ratio"] = float(sum(self.ratios[scaling]) / len(self.ratios[scaling]))
             out[f"{scaling}_by_angle"] = {
-                f"{lo}-{hi}": (
-                    {k: float(v) for k, v in self.by_angle[(scaling, (lo, hi))].compute().items()}
-                    | {"images": int(self.by_angle[(scaling, (lo, hi))].images)}
-                )
-                for lo, hi in ANGLE_BINS
+                f"{lo}-{hi}": _summary(self.by_angle[(scaling, (lo, hi))]) for lo, hi in ANGLE_BINS
             }
             cameras = sorted(n for s, n in self.by_camera if s == scaling)
             if cameras:
-                out[f"{scaling}_by_camera"] = {
-                    n: {k: float(v) for k, v in self.by_camera[(scaling, n)].compute().items()}
-                    | {"images": int(self.by_camera[(scaling, n)].images)}
-                    for n in cameras
-                }
+                out[f"{scaling}_by_camera"] = {n: _summary(self.by_camera[(scaling, n)]) for n in cameras}
         return out
+
+
+def _summary(metrics: DepthMetrics) -> dict[str, float | int]:
+    """One group's metrics as plain numbers, with the number of images that had pixels in it."""
+    return {k: float(v) for k, v in metrics.compute().items()} | {"images": int(metrics.images)}
 
 
 @torch.no_grad()

@@ -416,7 +416,7 @@ class FisheyeDepthModule(L.LightningModule):
             self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay
         )
         if self.hparams.lr_schedule == "cosine":
-            epochs = max(1, int(self.trainer.max_epochs or 1)) if self._trainer is not None else 1
+            epochs = max(1, self.trainer.max_epochs or 1)  # -1 or None: a run bounded by max_steps
             scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
                 optimizer, epochs, eta_min=self.hparams.lr * self.hparams.lr_gamma
             )

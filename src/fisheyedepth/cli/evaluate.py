@@ -16,7 +16,6 @@ from rich.console import Console
 from rich.table import Table
 
 from ..evaluation import evaluate
-from ..models.depth_net import UPSAMPLING
 from ..module import FisheyeDepthModule
 from ..utils import atomic_write_text
 from . import free_path, prepare_data
@@ -110,22 +109,13 @@ def experiment_of(ckpt_path: str | Path) -> str | None:
     return data.get("experiment_name") if isinstance(data, dict) else None
 
 
-def set_upsample(module: FisheyeDepthModule, upsample: str) -> None:
-    """Evaluate with another upsampling than the checkpoint's (it only changes how a distance at the
-    training size reaches the ground truth's size); recorded in ``results.json``."""
-    if upsample not in UPSAMPLING:
-        raise ValueError(f"upsample={upsample!r}: expected one of {', '.join(UPSAMPLING)}")
-    module.depth_net.upsample = upsample
-    module.hparams["upsample"] = upsample
-
-
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(cfg.paths.output_dir)
     experiment = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path)
     prepare_data(cfg)
     module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
-    if cfg.get("upsample") is not None:
-        set_upsample(module, str(cfg.upsample))
+    if cfg.get("upsample") is not None:  # only how a distance at the training size reaches the GT's size
+        module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     datamodule = instantiate(cfg.data.datamodule)
     return run_evaluation(
         cfg,

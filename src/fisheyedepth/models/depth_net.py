@@ -93,9 +93,7 @@ class DepthNet(nn.Module):
         upsample: str = "distance",
     ):
         super().__init__()
-        if upsample not in UPSAMPLING:
-            raise ValueError(f"upsample: {upsample!r} is not one of {', '.join(UPSAMPLING)}")
-        self.upsample = upsample
+        self.upsample = upsample  # checked by its setter
         if base_focal is not None and not (isinstance(base_focal, (int, float)) and base_focal > 0):
             raise ValueError(
                 f"base_focal={base_focal!r}: expected a focal length in pixels > 0, or None (depth_scale 1); "
@@ -129,19 +127,32 @@ class DepthNet(nn.Module):
         # kernel, the same numbers), see FisheyeDepthModule's ``compile_kernels``
         self.expectation = bin_expectation
 
+    @property
+    def upsample(self) -> str:
+        """How :meth:`distance` brings the network's output to a larger image: "distance" or "logits"."""
+        return self._upsample
+
+    @upsample.setter
+    def upsample(self, value: str) -> None:
+        if value not in UPSAMPLING:
+            raise ValueError(f"upsample: {value!r} is not one of {', '.join(UPSAMPLING)}")
+        self._upsample = value
+
+    def head_outputs(self, image: Tensor, scales: tuple[int, ...] | None = None) -> dict[int, Tensor]:
+        """The heads' raw outputs (bin logits or sigmoids) ``{scale: [B, C, H/2^s, W/2^s]}`` for
+        ``scales`` (default: all; the other heads are skipped)."""
+        if self.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        features = self.decoder(self.encoder(image))
+        return {s: self.heads[str(s)](x) for s, x in features.items() if scales is None or s in scales}
+
     def forward(
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
     ) -> dict[str, dict[int, Tensor]]:
         """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}`` for ``scales`` (default:
         all; inference needs only scale 0, and skips the other heads)."""
-        if self.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
-        features = self.decoder(self.encoder(image))
         distance, disp = {}, {}
-        for s, x in features.items():
-            if scales is not None and s not in scales:
-                continue
-            y = self.heads[str(s)](x)
+        for s, y in self.head_outputs(image, scales).items():
             if self.multi_channel:
                 distance[s], disp[s] = self.expectation(
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
@@ -184,9 +195,7 @@ class DepthNet(nn.Module):
         """The binned head's scale-0 logits upsampled bilinearly to ``size`` (H, W), then the expectation:
         at an edge between a near and a far surface the interpolated logits keep two peaks and the
         expectation switches between them within a pixel or two, where interpolating distances blends them."""
-        if self.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
-        logits = self.heads["0"](self.decoder(self.encoder(image))[0])
+        logits = self.head_outputs(image, (0,))[0]
         with torch.autocast(logits.device.type, enabled=False):
             logits = F.interpolate(at_least_float32(logits), size=tuple(size), mode="bilinear")
         scale = self.depth_scale(cameras).to(logits)
