@@ -1,32 +1,176 @@
 #!/usr/bin/env python
-"""Inference speed at a fixed input size for PyTorch eager, TorchScript and ONNX Runtime, side by side.
+"""Deployment speed and accuracy, every runtime side by side in one run (BENCHMARKS.md "Inference").
 
-Frames per second of the full FisheyeDepth network (ResNet-18, multi-channel head), batch 1, measured in
-interleaved rounds on the same inputs; results into BENCHMARKS.md. Goal: >= 10 fps at 384x384 on 2 CPU
-threads (the paper reports "over 10 FPS" with ONNX on a Jetson AGX Orin GPU).
+Speed: frames per second of the full network (ResNet-18, 64-bin head), batch 1, at ``--size``, in
+interleaved rounds on the same input. Rows: today's PyTorch path before this benchmark's levers (NCHW,
+the softmax expectation written out, as it ran until the fused expectation), then each lever: the fused
+expectation with channels_last, bf16 autocast, ONNX Runtime float32 (the old graph and the fused one),
+and static int8. Goal: >= 10 fps at 384x384 on 2 threads.
 
-Usage: python scripts/bench_inference.py [--size 384] [--threads 2] [--rounds 20] [--no-write]
+Accuracy (``--ckpt`` and ``--data``): each path made from that checkpoint at its training size, scored on
+the ``--split`` split of ``--data`` (full range, unscaled). Goal: abs_rel at most 0.01 above float32.
+
+Usage: python scripts/bench_inference.py [--size 384] [--threads 2] [--rounds 20]
+           [--ckpt CKPT --data DATASET [--split test]] [--calibration DIR] [--no-write]
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import platform
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
+from fisheyedepth.cli.export import calibration_images
+from fisheyedepth.data import FisheyeDataModule
+from fisheyedepth.evaluation import evaluate
 from fisheyedepth.inference import ExportableNet
+from fisheyedepth.models.heads import at_least_float32, distance_to_sigmoid
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.runtimes import (
+    OnnxRuntime,
+    TorchRuntime,
+    add_metadata,
+    onnx_metadata,
+    onnx_session,
+    quantize_int8,
+)
 
 from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_inference:start -->", "<!-- bench_inference:end -->"
+BLOCK = 3  # timed frames per runner and round: a deployment runs one runtime frame after frame
+DEFAULT_CALIBRATION = ROOT / "data" / "synthetic_kitti360_256_seed0_f200" / "data_2d_raw"
+
+
+def softmax_expectation(logits, depth_scale, bins, min_distance, max_distance):
+    """The bin expectation as it ran before the fused one: softmax, product with the bins, sum."""
+    with torch.autocast(logits.device.type, enabled=False):
+        logits = at_least_float32(logits)
+        p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)
+        d = (p * bins.to(logits)[None, :, None, None]).sum(1, keepdim=True)
+        scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
+        return d * scale, distance_to_sigmoid(d, min_distance, max_distance)
+
+
+def load(ckpt: str | None) -> FisheyeDepthModule:
+    torch.manual_seed(0)
+    return FisheyeDepthModule.from_checkpoint(ckpt) if ckpt else FisheyeDepthModule()
+
+
+def old_path(module: FisheyeDepthModule) -> ExportableNet:
+    """Today's path before the levers: NCHW weights, the softmax expectation."""
+    net = module.depth_net
+    net.expectation, net.channels_last = softmax_expectation, False
+    net.to(memory_format=torch.contiguous_format)
+    return ExportableNet(net).eval()
+
+
+def onnx_bytes(
+    net: ExportableNet, size: tuple[int, int], base_focal, quantize=None, calibration=None
+) -> bytes:
+    buffer = io.BytesIO()
+    torch.onnx.export(
+        net,
+        (torch.rand(1, 3, size[1], size[0]),),
+        buffer,
+        input_names=["image"],
+        output_names=["distance"],
+        dynamic_axes={"image": {0: "batch"}, "distance": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    data = buffer.getvalue()
+    if quantize:
+        data = quantize_int8(data, calibration)
+    return add_metadata(data, onnx_metadata(size, net.depth_scale, base_focal, quantize))
+
+
+def calibration_set(folder: Path | None, size: tuple[int, int], count: int = 32) -> list[np.ndarray]:
+    if folder is not None and folder.is_dir():
+        return calibration_images(folder, size, count)
+    print(f"(no calibration folder {folder}: int8 ranges from random images, its accuracy is not meaningful)")
+    gen = np.random.default_rng(0)
+    return [gen.random((1, 3, size[1], size[0]), dtype=np.float32) for _ in range(count)]
+
+
+def speed(args) -> tuple[dict[str, float], dict[str, str]]:
+    size = (args.size, args.size)
+    x = torch.rand(1, 3, args.size, args.size)
+    calibration = calibration_set(args.calibration, size)
+    old = old_path(load(args.ckpt))
+    fused = TorchRuntime(load(args.ckpt))  # fused expectation, channels_last
+    net = ExportableNet(fused.module.depth_net).eval()
+    focal = fused.module.depth_net.base_focal
+    runners, notes = {}, {}
+    runners["PyTorch eager, before (NCHW, softmax expectation)"] = lambda: old(x)
+    notes["PyTorch eager, before (NCHW, softmax expectation)"] = (
+        "today's `predict.py` path before this change"
+    )
+    runners["PyTorch eager, fused expectation + channels_last"] = lambda: net(x)
+    notes["PyTorch eager, fused expectation + channels_last"] = "`predict.py` (float32, the same numbers)"
+
+    def bf16():
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return net(x)
+
+    runners["PyTorch eager, + bf16 autocast"] = bf16
+    notes["PyTorch eager, + bf16 autocast"] = "`predict.py precision=bf16`"
+    feed = {"image": x.numpy()}
+    sessions = {
+        "ONNX Runtime float32, before (softmax graph)": (onnx_bytes(old, size, focal), "today's export"),
+        "ONNX Runtime float32, fused graph": (onnx_bytes(net, size, focal), "`export.py` + `runtime=onnx`"),
+        "ONNX Runtime int8 (QDQ, head float32)": (
+            onnx_bytes(net, size, focal, "int8", calibration),
+            "`export.py quantize=int8` + `runtime=onnx`",
+        ),
+    }
+    for name, (data, note) in sessions.items():
+        session = onnx_session(data, args.threads)
+        runners[name] = lambda s=session: s.run(None, feed)
+        notes[name] = note
+    times = {name: [] for name in runners}
+    with torch.no_grad():
+        for run in runners.values():  # warm-up
+            for _ in range(3):
+                run()
+        names = list(runners)
+        for r in range(args.rounds):  # each round: every runner in turn, a block of BLOCK frames each
+            for name in names[r % len(names) :] + names[: r % len(names)]:
+                runners[name]()  # untimed: the previous runner's idle threads settle
+                for _ in range(BLOCK):
+                    t0 = time.perf_counter()
+                    runners[name]()
+                    times[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(ts) for name, ts in times.items()}, notes
+
+
+def accuracy(args, tmp: Path) -> dict[str, dict[str, float]]:
+    """Each path made from ``--ckpt`` at its training size, on the test split of ``--data``."""
+    module = load(args.ckpt)
+    size = tuple(module.hparams["input_size"])
+    dm = FisheyeDataModule(args.data, "kitti360", {args.split: f"splits/{args.split}.txt"}, batch_size=4)
+    train_images = Path(args.calibration) if args.calibration else None
+    calibration = calibration_set(train_images, size)
+    net = ExportableNet(TorchRuntime(module).module.depth_net).eval()
+    paths = {"PyTorch float32": TorchRuntime(load(args.ckpt))}
+    paths["PyTorch bf16"] = TorchRuntime(load(args.ckpt), precision="bf16")
+    for name, quantize in (("ONNX Runtime float32", None), ("ONNX Runtime int8", "int8")):
+        path = tmp / f"{quantize or 'fp32'}.onnx"
+        path.write_bytes(onnx_bytes(net, size, module.depth_net.base_focal, quantize, calibration))
+        paths[name] = OnnxRuntime(path, args.threads)
+    out = {}
+    for name, runtime in paths.items():
+        res = evaluate(runtime, dm.dataloader(args.split), size, ["full"], ("none",))
+        out[name] = res["full"]["none"]
+    return out
 
 
 def main(argv=None) -> int:
@@ -36,67 +180,63 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=int, default=384)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=20)
+    parser.add_argument("--ckpt", help="a trained checkpoint (default: an untrained network, for speed only)")
+    parser.add_argument("--data", help="a dataset with ground truth: score every path on its --split")
+    parser.add_argument("--split", default="test")
+    parser.add_argument(
+        "--calibration", type=Path, default=DEFAULT_CALIBRATION, help="training images for int8"
+    )
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
+    if args.data and not args.ckpt:
+        parser.error("--data needs --ckpt (accuracy is that of a trained network)")
     torch.set_num_threads(args.threads)
-    torch.manual_seed(0)
-    net = ExportableNet(FisheyeDepthModule().depth_net).eval()
-    x = torch.rand(1, 3, args.size, args.size)
-    runners = {}
-    with torch.no_grad():
-        runners["PyTorch eager"] = lambda: net(x)
-        scripted = torch.jit.optimize_for_inference(torch.jit.trace(net, x).eval())
-        runners["TorchScript (traced, optimised for inference)"] = lambda: scripted(x)
-    try:
-        import onnxruntime as ort
-
-        tmp = Path(tempfile.mkdtemp()) / "m.onnx"
-        torch.onnx.export(
-            net,
-            (x,),
-            str(tmp),
-            input_names=["image"],
-            output_names=["distance"],
-            opset_version=17,
-            dynamo=False,
-        )
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads, opts.inter_op_num_threads = args.threads, 1
-        session = ort.InferenceSession(str(tmp), opts, providers=["CPUExecutionProvider"])
-        feed = {"image": x.numpy()}
-        runners["ONNX Runtime (CPU)"] = lambda: session.run(None, feed)
-    except ImportError:
-        pass
-    times = {name: [] for name in runners}
-    with torch.no_grad():
-        for run in runners.values():  # warm-up
-            for _ in range(3):
-                run()
-        names = list(runners)
-        for r in range(args.rounds):
-            for name in names[r % len(names) :] + names[: r % len(names)]:
-                t0 = time.perf_counter()
-                runners[name]()
-                times[name].append(time.perf_counter() - t0)
+    medians, notes = speed(args)
+    base = medians["PyTorch eager, before (NCHW, softmax expectation)"]
+    command = "python scripts/bench_inference.py"
+    command += f" --size {args.size} --threads {args.threads} --rounds {args.rounds}"
+    if args.ckpt:
+        command += f" --ckpt {args.ckpt}"
+    if args.data:
+        command += f" --data {args.data} --split {args.split}"
     lines = [
         START,
         "## Inference (`scripts/bench_inference.py`)",
         "",
-        f"Command: `python scripts/bench_inference.py --size {args.size} --threads {args.threads} "
-        f"--rounds {args.rounds}`  ",
+        f"Command: `{command}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}, "
         f"{args.threads} threads; {time.strftime('%Y-%m-%d')}. Full model (ResNet-18, 64-bin head), batch 1, "
-        f"{args.size}x{args.size}, "
-        "median over interleaved rounds.",
+        f"{args.size}x{args.size}, median over {args.rounds} interleaved rounds "
+        f"({BLOCK} frames per runtime each).",
         "",
-        "| runtime | ms / frame | fps | goal >= 10 fps |",
-        "|---|---|---|---|",
+        "| runtime | what runs it | ms / frame | fps | speed-up | goal >= 10 fps |",
+        "|---|---|---|---|---|---|",
     ]
-    for name, ts in times.items():
-        med = statistics.median(ts)
+    for name, med in medians.items():
         lines.append(
-            f"| {name} | {med * 1e3:.1f} | {1 / med:.1f} | {'met' if 1 / med >= 10 else 'NOT met'} |"
+            f"| {name} | {notes[name]} | {med * 1e3:.1f} | {1 / med:.1f} | {base / med:.2f}x | "
+            f"{'met' if 1 / med >= 10 else 'NOT met'} |"
         )
+    if args.data:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            scores = accuracy(args, Path(tmp))
+        ref = scores["PyTorch float32"]["abs_rel"]
+        lines += [
+            "",
+            f"Accuracy of each path made from that checkpoint, at its training size, on `{args.data}` "
+            f"({args.split} split, full range, no scaling). Goal: abs_rel at most 0.01 above float32.",
+            "",
+            "| path | abs_rel | a1 | rmse (m) | abs_rel - float32 | goal |",
+            "|---|---|---|---|---|---|",
+        ]
+        for name, m in scores.items():
+            delta = m["abs_rel"] - ref
+            lines.append(
+                f"| {name} | {m['abs_rel']:.4f} | {m['a1']:.4f} | {m['rmse']:.3f} | {delta:+.4f} | "
+                f"{'met' if delta <= 0.01 else 'NOT met'} |"
+            )
     lines.append(END)
     publish("\n".join(lines) + "\n", ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
     return 0

@@ -422,3 +422,20 @@ def test_precision_auto_is_bf16_only_where_bf16_is_native(monkeypatch):
     assert resolve_precision("16-mixed", "cpu") == "16-mixed" and resolve_precision(None, "cpu") is None
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert resolve_precision("auto", "gpu") == "32-true"  # no GPU here: nothing claims bf16
+
+
+def test_the_data_module_loads_the_sources_the_model_warps(tmp_path):
+    """``model.source_offsets`` reaches the data module (it once did not: ``[-2,2]`` trained on the +-1
+    neighbours); a contradicting ``data.datamodule.offsets`` is refused, naming both."""
+    from fisheyedepth.cli.train import source_offsets
+
+    cfg = compose_train(["model.source_offsets=[-2,2]", f"paths.data_dir={tmp_path}"])
+    assert source_offsets(cfg) == [-2, 2]
+    datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg))
+    assert datamodule.offsets == (-2, 2)
+    assert source_offsets(compose_train([])) == [-1, 1]
+    clash = compose_train(["model.source_offsets=[-2,2]", "+data.datamodule.offsets=[-1,1]"])
+    with pytest.raises(
+        ValueError, match=r"data.datamodule.offsets=\[-1, 1\] differs from model.source_offsets=\[-2, 2\]"
+    ):
+        source_offsets(clash)

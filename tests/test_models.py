@@ -110,6 +110,43 @@ def test_gather_output_is_a_monotone_expectation_within_the_bins():
     assert torch.isfinite(out).all() and torch.isfinite(wild.grad).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_fused_bin_expectation_equals_the_softmax_written_out(dtype, channels_last):
+    """The fused form (exp of the clamped logits, one 1x1 convolution) against the paper's
+    ``sum_k softmax(l)_k b_k``: values and gradients, at the clamp's edges and beyond them."""
+    bins = distance_bins(64, 0.5, 150.0).to(dtype)
+    gen = torch.Generator().manual_seed(3)
+    logits = torch.randn(2, 64, 5, 7, generator=gen, dtype=dtype) * 6.0  # many beyond +-10
+    logits[0, :, 0, 0] = 10.0
+    logits[0, :, 0, 1] = -10.0
+    logits[1, 5, 2, 2] = 1e4
+    if channels_last:
+        logits = logits.contiguous(memory_format=torch.channels_last)
+    a = logits.clone().requires_grad_(True)
+    b = logits.clone().requires_grad_(True)
+    fused, disp = bin_expectation(a, torch.tensor([1.0, 2.5]), bins, 0.5, 150.0)
+    p = torch.softmax(b.clamp(-10.0, 10.0), dim=1)
+    written = (p * bins[None, :, None, None]).sum(1, keepdim=True) * torch.tensor([1.0, 2.5]).to(
+        dtype
+    ).reshape(-1, 1, 1, 1)
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
+    assert fused.dtype == dtype
+    assert torch.allclose(fused, written, rtol=tol, atol=0)
+    assert fused[0, 0, 0, 0].item() == pytest.approx(float(bins.mean()), rel=tol)  # equal logits: the mean
+    assert torch.allclose(
+        disp,
+        (1 / (fused / torch.tensor([1.0, 2.5]).to(dtype).reshape(-1, 1, 1, 1)) - 1 / 150.0) / (2 - 1 / 150.0),
+        rtol=1e-5,
+    )
+    weights = torch.rand(fused.shape, generator=gen, dtype=dtype)
+    (fused * weights).sum().backward()
+    (written * weights).sum().backward()
+    grad_tol = (1e-4, 1e-5) if dtype == torch.float32 else (1e-10, 1e-12)  # (rtol, atol)
+    assert torch.allclose(a.grad, b.grad, rtol=grad_tol[0], atol=grad_tol[1])
+    assert a.grad[1, 5, 2, 2].item() == 0.0  # clamped: no gradient, as the softmax of the clamp
+
+
 def test_bin_expectation_stays_float32_under_bf16_autocast():
     bins = distance_bins(64, 0.5, 150.0)
     logits = torch.randn(1, 64, 4, 4, generator=torch.Generator().manual_seed(0))

@@ -22,6 +22,7 @@ from torch.nn import functional as F
 from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
 from .metrics import DepthMetrics
+from .runtimes import OnnxRuntime, TorchRuntime
 from .viz import panel
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
@@ -149,7 +150,7 @@ def _summary(metrics: DepthMetrics) -> dict[str, float | int]:
 
 @torch.no_grad()
 def evaluate(
-    module,
+    model,
     loader,
     train_size: tuple[int, int] | None,
     protocols: list[str],
@@ -158,8 +159,11 @@ def evaluate(
     pictures: Path | None = None,
     n_pictures: int = 4,
 ) -> dict[str, Any]:
-    """Run ``module`` over a loader of native-resolution samples with ground truth ``distance``."""
-    module.eval()
+    """Run ``model`` over a loader of native-resolution samples with ground truth ``distance``. ``model``:
+    a trained module (run in float32 at ``train_size``) or a runtime of :mod:`fisheyedepth.runtimes`
+    (an exported file, bf16), which brings its own input size."""
+    if not isinstance(model, (TorchRuntime, OnnxRuntime)):
+        model = TorchRuntime(model, train_size, device=model.device)
     rays = RayCache()  # one per run, shared by the protocols
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
     written = 0
@@ -168,7 +172,7 @@ def evaluate(
             continue
         if batch.distance is None:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
-        pred = module.depth_net.distance(batch.image.to(module.device), batch.camera, train_size)
+        pred = model.distance(batch.image, batch.camera).float()
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
         names = batch.camera_name or [None] * len(batch)
         for i, cam in enumerate(batch.camera):

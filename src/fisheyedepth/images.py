@@ -9,6 +9,7 @@ the caller can warn (training) or count and name the file (prediction).
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,33 +107,57 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     return files
 
 
-class FrameSource:
-    """Frames of a folder of images or of a video file, decoded one at a time (memory stays flat in the
-    number of frames). ``names`` are known before anything is decoded."""
+def is_live(source: str | os.PathLike) -> bool:
+    """A live camera: a device file (``/dev/video0``) or a camera index (``0``)."""
+    text = str(source)
+    if text.isdigit():
+        return True
+    try:
+        return stat.S_ISCHR(os.stat(text).st_mode)
+    except OSError:
+        return False
 
-    def __init__(self, source: str | os.PathLike):
+
+class FrameSource:
+    """Frames of a folder of images, a video file or a live camera (``/dev/video0``, or an index such as
+    ``0``), decoded one at a time (memory stays flat in the number of frames). ``names`` are known before
+    anything is decoded, except for a live camera (its frames are named as they come). ``max_frames``
+    stops after that many frames (a live camera otherwise runs until interrupted)."""
+
+    def __init__(self, source: str | os.PathLike, max_frames: int | None = None):
+        if max_frames is not None and int(max_frames) < 1:
+            raise ValueError(f"max_frames: {max_frames!r}, expected a number of frames >= 1 (or null)")
+        self.max_frames = None if max_frames is None else int(max_frames)
         self.source = Path(source)
-        if self.source.is_dir():
-            self.files: list[Path] | None = list_images(self.source)
+        self.live = is_live(source)
+        self.files: list[Path] | None = None
+        if self.live:
+            self.capture = int(str(source)) if str(source).isdigit() else str(self.source)
+            self.count = 0  # unknown
+        elif self.source.is_dir():
+            self.files = list_images(self.source)[: self.max_frames]
             self.count = len(self.files)
         elif self.source.is_file():
-            self.files = None
-            video = cv2.VideoCapture(str(self.source))
+            self.capture = str(self.source)
+            video = cv2.VideoCapture(self.capture)
             try:
                 if not video.isOpened():
                     raise ImageError(f"{self.source}: not a readable video (or an image folder)")
                 self.count = max(int(video.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
             finally:
                 video.release()
+            if self.max_frames is not None:
+                self.count = min(self.count, self.max_frames)
         else:
-            raise FileNotFoundError(f"{self.source}: no such image folder or video")
+            raise FileNotFoundError(f"{self.source}: no such image folder, video or camera")
 
     @staticmethod
     def video_name(index: int) -> str:
         return f"frame_{index:06d}"
 
     def names(self) -> list[str]:
-        """Output stems; for a video, from its frame count (containers may miscount by a few frames)."""
+        """Output stems; for a video, from its frame count (containers may miscount by a few frames);
+        none for a live camera."""
         if self.files is not None:
             return [p.stem for p in self.files]
         return [self.video_name(i) for i in range(self.count)]
@@ -150,10 +175,12 @@ class FrameSource:
                 else:
                     yield Frame(path.stem, path, image.bgr, image.channels)
             return
-        video = cv2.VideoCapture(str(self.source))
+        video = cv2.VideoCapture(self.capture)
         try:
+            if self.live and not video.isOpened():
+                raise ImageError(f"{self.source}: the camera could not be opened")
             index = 0
-            while True:
+            while self.max_frames is None or index < self.max_frames:
                 ok, bgr = video.read()
                 if not ok:
                     break

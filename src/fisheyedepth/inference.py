@@ -18,6 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
+from .runtimes import OnnxRuntime, TorchRuntime
 from .utils import atomic_write_bytes
 from .viz import colourise
 
@@ -37,31 +38,42 @@ class ExportableNet(nn.Module):
 
 
 class DistancePredictor:
-    def __init__(self, module, camera: CameraModel, input_size: tuple[int, int] | None = None, device="cpu"):
-        self.module = module.eval().to(device)
+    """Distance for images of one camera at the camera's own size, by a trained module (run by a
+    :class:`~fisheyedepth.runtimes.TorchRuntime`) or any runtime (an exported ONNX file)."""
+
+    def __init__(
+        self,
+        model,
+        camera: CameraModel,
+        input_size: tuple[int, int] | None = None,
+        device="cpu",
+        precision: str = "fp32",
+    ):
+        if isinstance(model, (TorchRuntime, OnnxRuntime)):
+            self.runtime = model
+        else:
+            self.runtime = TorchRuntime(model, input_size, precision, device)
         self.device = torch.device(device)
-        size = input_size or module.hparams.get("input_size") or (camera.width, camera.height)
+        size = self.runtime.input_size or (camera.width, camera.height)
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera
-        self.has_ray = compute_rays(camera, self.device).valid  # [H, W]: pixels the model gives a ray
+        self.has_ray = compute_rays(camera, torch.device("cpu")).valid  # [H, W]: pixels the model gives a ray
 
-    @torch.no_grad()
     def __call__(self, images: Tensor) -> Tensor:
         """``[B, 3, H, W]`` float RGB at the camera's size -> distance ``[B, 1, H, W]`` in metres; NaN at
         pixels without a ray in the camera model (outside a fisheye's image circle)."""
         H, W = images.shape[-2:]
         if (W, H) != (self.camera.width, self.camera.height):
             raise ValueError(f"images are {W}x{H}, the camera is {self.camera.width}x{self.camera.height}")
-        cameras = [self.camera] * images.shape[0]
-        distance = self.module.depth_net.distance(images.to(self.device), cameras, self.input_size)
+        distance = self.runtime.distance(images, [self.camera] * images.shape[0]).cpu()
         return distance.masked_fill(~self.has_ray, float("nan"))
 
     def exportable(self) -> ExportableNet:
         """The network at ``input_size`` with this camera's ``depth_scale`` frozen in."""
-        net_camera = self.camera.resize(*self.input_size)
-        return ExportableNet(
-            self.module.depth_net, float(self.module.depth_net.depth_scale([net_camera])[0])
-        ).eval()
+        if not isinstance(self.runtime, TorchRuntime):
+            raise TypeError("exportable: only a PyTorch module can be exported")
+        net = self.runtime.module.depth_net
+        return ExportableNet(net, float(net.depth_scale([self.camera.resize(*self.input_size)])[0])).eval()
 
 
 def distance_png(distance: np.ndarray, scale: str = "mm") -> np.ndarray:
@@ -209,20 +221,20 @@ def check_aspect(frame_path: Path, size: tuple[int, int], camera: CameraModel, c
 class FramePrediction:
     """Frames of one source -> files: frames are batched while they share one size, each size gets a
     :class:`DistancePredictor` with the calibration resized to it, and a :class:`PredictionWriter`
-    writes every frame. ``add`` frames, then ``flush`` once at the end; ``written`` counts frames."""
+    writes every frame. ``add`` frames, then ``flush`` once at the end; ``written`` counts frames.
+    ``runtime``: a :class:`~fisheyedepth.runtimes.TorchRuntime` or an ``OnnxRuntime``.
+    ``batch_size`` 1 writes each frame as soon as it is decoded (a live camera)."""
 
     def __init__(
         self,
-        module,
+        runtime,
         camera: CameraModel,
         calibration: str | os.PathLike,
         writer: PredictionWriter,
         batch_size: int = 4,
-        input_size: tuple[int, int] | None = None,
-        device: str = "cpu",
     ):
-        self.module, self.camera, self.calibration, self.writer = module, camera, calibration, writer
-        self.batch_size, self.input_size, self.device = batch_size, input_size, device
+        self.runtime, self.camera, self.calibration, self.writer = runtime, camera, calibration, writer
+        self.batch_size = batch_size
         self.predictors: dict[tuple[int, int], DistancePredictor] = {}
         self.pending: list = []
         self.written = 0
@@ -233,7 +245,7 @@ class FramePrediction:
             check_aspect(frame.path, (w, h), self.camera, self.calibration)
             same = (w, h) == (self.camera.width, self.camera.height)
             camera = self.camera if same else self.camera.resize(w, h)
-            self.predictors[(w, h)] = DistancePredictor(self.module, camera, self.input_size, self.device)
+            self.predictors[(w, h)] = DistancePredictor(self.runtime, camera)
         return self.predictors[(w, h)]
 
     def add(self, frame) -> None:

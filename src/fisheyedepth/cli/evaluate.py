@@ -17,6 +17,7 @@ from rich.table import Table
 
 from ..evaluation import evaluate
 from ..module import FisheyeDepthModule
+from ..runtimes import OnnxRuntime, TorchRuntime
 from ..utils import atomic_write_text
 from . import free_path, prepare_data
 
@@ -53,7 +54,7 @@ def print_table(results: dict[str, Any], title: str) -> None:
 
 def run_evaluation(
     cfg: DictConfig,
-    module: FisheyeDepthModule,
+    model,
     datamodule,
     out_dir: Path,
     ckpt: str | None,
@@ -61,12 +62,17 @@ def run_evaluation(
     split: str = "test",
 ) -> dict[str, Any]:
     """Evaluate ``split`` at the ground truth's native resolution, the network at the size it was
-    trained at (its checkpoint's ``input_size``); write ``results.json``."""
-    train_size = module.hparams.get("input_size") or datamodule.size
+    trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
+    trained module, or a runtime (an ONNX file, bf16) of :mod:`fisheyedepth.runtimes`."""
+    if isinstance(model, (TorchRuntime, OnnxRuntime)):
+        train_size, runtime = model.input_size, model
+    else:
+        train_size = model.hparams.get("input_size") or datamodule.size
+        runtime = TorchRuntime(model, train_size, device=model.device)
     native = instantiate(cfg.data.datamodule, size=None, augment=None, batch_size=4, num_workers=0)
     loader = native.dataloader(split)
     results = evaluate(
-        module,
+        runtime,
         loader,
         train_size,
         list(cfg.eval.protocols),
@@ -75,13 +81,17 @@ def run_evaluation(
         out_dir / "predictions",
         int(cfg.eval.pictures),
     )
+    if isinstance(runtime, OnnxRuntime):
+        described = {"runtime": "onnx", "file": str(runtime.path), "quantize": runtime.quantize}
+    else:
+        hp = runtime.module.hparams
+        described = {k: hp[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")}
+        described |= {"upsample": runtime.module.depth_net.upsample, "runtime": "torch"}
+        described |= {"precision": runtime.precision}
     record = {
         "experiment": cfg.get("experiment_name"),
         "checkpoint": ckpt,
-        "model": {
-            k: module.hparams[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")
-        }
-        | {"upsample": module.depth_net.upsample},
+        "model": described,
         "data": str(cfg.data.datamodule.root),
         "split": split,
         "train_size": list(train_size) if train_size else None,
@@ -110,19 +120,27 @@ def experiment_of(ckpt_path: str | Path) -> str | None:
 
 
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
+    """``ckpt_path`` in PyTorch (``precision`` fp32 or bf16), or ``runtime=onnx model=FILE.onnx``."""
     out_dir = Path(cfg.paths.output_dir)
-    experiment = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path)
+    runtime = str(cfg.get("runtime", "torch"))
     prepare_data(cfg)
-    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
-    if cfg.get("upsample") is not None:  # only how a distance at the training size reaches the GT's size
-        module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     datamodule = instantiate(cfg.data.datamodule)
+    if runtime == "onnx":
+        if not cfg.get("model"):
+            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
+        model = OnnxRuntime(cfg.model, cfg.get("threads"))
+        experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model).stem, None
+    elif runtime == "torch":
+        if not cfg.get("ckpt_path"):
+            raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
+        module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
+        if cfg.get("upsample") is not None:  # only how a distance at the training size reaches the GT's size
+            module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
+        size = module.hparams.get("input_size") or datamodule.size
+        model = TorchRuntime(module, size, str(cfg.get("precision", "fp32")), cfg.get("device", "cpu"))
+        experiment, ckpt = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path), str(cfg.ckpt_path)
+    else:
+        raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
     return run_evaluation(
-        cfg,
-        module,
-        datamodule,
-        out_dir,
-        str(cfg.ckpt_path),
-        {"experiment": experiment},
-        str(cfg.get("split", "test")),
+        cfg, model, datamodule, out_dir, ckpt, {"experiment": experiment}, str(cfg.get("split", "test"))
     )

@@ -1,5 +1,8 @@
-"""``python export.py ckpt_path=... format=onnx|torchscript [size=[W,H]] [camera=CALIB]``: the network at
-one input size, traced, checked against PyTorch, written atomically with a ``.json`` record."""
+"""``python export.py ckpt_path=... format=onnx|torchscript [size=[W,H]] [camera=CALIB]
+[quantize=int8 calibration=DIR]``: the network at one input size, traced, checked against PyTorch, written
+atomically with a ``.json`` record. An ONNX file carries its input size, depth scale and base focal in its
+metadata, so ``predict.py runtime=onnx model=FILE`` and ``eval.py runtime=onnx model=FILE`` need no
+checkpoint."""
 
 from __future__ import annotations
 
@@ -8,21 +11,53 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
+import numpy as np
 import torch
 from omegaconf import DictConfig
 from rich.console import Console
 
 from ..cameras import PinholeCamera, load_camera
+from ..images import IMAGE_SUFFIXES, read_image
 from ..inference import DistancePredictor
 from ..module import FisheyeDepthModule
+from ..runtimes import add_metadata, onnx_metadata, onnx_session, quantize_int8
 from ..utils import atomic_write_bytes, atomic_write_text
 
 EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
+QUANTIZE = ("int8",)
+# Parity of an exported file with the PyTorch network it was made from, on probe images: the largest
+# relative difference in distance allowed (float32 paths), or the median (int8, an approximation by
+# design; its accuracy on a test split is in BENCHMARKS.md "Inference"). A file outside is not written.
+PARITY = {"torchscript": ("max", 1e-4), "onnx": ("max", 1e-4), "onnx-int8": ("median", 0.03)}
+
+
+def calibration_images(folder: str | Path, size: tuple[int, int], count: int) -> list[np.ndarray]:
+    """``count`` images spread evenly over the images under ``folder`` (recursively, in name order), as
+    ``[1, 3, H, W]`` float32 RGB at ``size`` (W, H): the int8 ranges are measured on them."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileNotFoundError(f"calibration: {root} is not a folder of (training) images")
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise FileNotFoundError(f"calibration: no images ({' '.join(IMAGE_SUFFIXES)}) under {root}")
+    picked = [files[i] for i in np.linspace(0, len(files) - 1, min(count, len(files))).round().astype(int)]
+    images = []
+    for path in picked:
+        bgr = read_image(path).bgr
+        rgb = cv2.resize(bgr, tuple(size), interpolation=cv2.INTER_AREA)[..., ::-1]
+        images.append(np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0)
+    return images
 
 
 def export(cfg: DictConfig) -> dict[str, Any]:
     if cfg.format not in EXPORT_FORMATS:
         raise ValueError(f"format: {cfg.format!r} is not one of {', '.join(EXPORT_FORMATS)}")
+    quantize = cfg.get("quantize")
+    if quantize is not None and (quantize not in QUANTIZE or cfg.format != "onnx"):
+        raise ValueError(f"quantize: {quantize!r}; only quantize=int8 with format=onnx (or null)")
+    if quantize and not cfg.get("calibration"):
+        raise ValueError("calibration: quantize=int8 needs a folder of training images, calibration=DIR")
     module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
     size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
     if len(size) != 2:
@@ -35,21 +70,19 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         focal = module.depth_net.base_focal or 1.0
         camera = PinholeCamera(width=size[0], height=size[1], fx=focal, fy=focal, cx=0.0, cy=0.0)
     net = DistancePredictor(module, camera, size).exportable()
-    suffix = EXPORT_FORMATS[cfg.format]
-    path = (
-        Path(cfg.output)
-        if cfg.get("output")
-        else Path(cfg.paths.output_dir) / f"fisheyedepth_{size[0]}x{size[1]}{suffix}"
-    )
+    name = f"fisheyedepth_{size[0]}x{size[1]}{'_' + quantize if quantize else ''}{EXPORT_FORMATS[cfg.format]}"
+    path = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir) / name
     if path.exists() and not cfg.overwrite:
         raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
     path.parent.mkdir(parents=True, exist_ok=True)
     example = torch.rand(1, 3, size[1], size[0], generator=torch.Generator().manual_seed(0))
+    probe = torch.rand(2, 3, size[1], size[0], generator=torch.Generator().manual_seed(1))
     buffer = io.BytesIO()  # serialised in memory, verified, then written atomically
     if cfg.format == "torchscript":
         torch.jit.save(torch.jit.trace(net, example), buffer)  # ScriptModule.save takes file names only
         exported = torch.jit.load(io.BytesIO(buffer.getvalue()))
         run = lambda x: exported(x)  # noqa: E731
+        data = buffer.getvalue()
     else:
         torch.onnx.export(
             net,
@@ -61,26 +94,42 @@ def export(cfg: DictConfig) -> dict[str, Any]:
             opset_version=17,
             dynamo=False,
         )
+        data = buffer.getvalue()
+        if quantize:
+            calibration = calibration_images(cfg.calibration, size, int(cfg.calibration_frames))
+            data = quantize_int8(data, calibration)
+            probe = torch.from_numpy(np.concatenate(calibration[1::2][:4]))  # real images, not noise
+        data = add_metadata(data, onnx_metadata(size, net.depth_scale, module.depth_net.base_focal, quantize))
         try:
-            import onnxruntime as ort
+            session = onnx_session(data)
         except ImportError:
             run = None
         else:
-            session = ort.InferenceSession(buffer.getvalue(), providers=["CPUExecutionProvider"])
             run = lambda x: torch.from_numpy(session.run(None, {"image": x.numpy()})[0])  # noqa: E731
-    atomic_write_bytes(path, buffer.getvalue())
     record: dict[str, Any] = {
         "format": cfg.format,
+        "quantize": quantize,
         "path": str(path),
         "size": list(size),
         "depth_scale": net.depth_scale,
+        "base_focal": module.depth_net.base_focal,
         "checkpoint": str(cfg.ckpt_path),
     }
     if run is not None:
-        probe = torch.rand(2, 3, size[1], size[0], generator=torch.Generator().manual_seed(1))
         with torch.no_grad():
             ref, got = net(probe), run(probe)
-        record["max_relative_difference"] = float(((got - ref).abs() / ref.abs().clamp_min(1e-6)).max())
+        rel = ((got - ref).abs() / ref.abs().clamp_min(1e-6)).flatten()
+        record["max_relative_difference"] = float(rel.max())
+        record["median_relative_difference"] = float(rel.median())
+        kind = "onnx-int8" if quantize else cfg.format
+        statistic, tolerance = PARITY[kind]
+        record["parity"] = {"statistic": statistic, "tolerance": tolerance}
+        if record[f"{statistic}_relative_difference"] > tolerance:
+            raise ValueError(
+                f"{path}: not written, the exported network differs from PyTorch by "
+                f"{record[f'{statistic}_relative_difference']:.2e} ({statistic} relative), over {tolerance}"
+            )
+    atomic_write_bytes(path, data)
     atomic_write_text(path.with_suffix(path.suffix + ".json"), json.dumps(record, indent=2) + "\n")
     Console(width=130).print(record)
     return record

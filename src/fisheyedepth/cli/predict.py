@@ -1,5 +1,7 @@
-"""``python predict.py ckpt_path=... input=DIR_OR_VIDEO camera=CALIB``: metric distance for every frame,
-written beside a ``summary.json``; unreadable frames are skipped and listed, nothing is overwritten."""
+"""``python predict.py ckpt_path=... input=DIR_OR_VIDEO_OR_CAMERA camera=CALIB``: metric distance for every
+frame, written as it comes, beside a ``summary.json``; unreadable frames are skipped and listed, nothing is
+overwritten. ``runtime=onnx model=FILE.onnx`` runs an exported file (float32 or int8) instead of a
+checkpoint; ``precision=bf16`` runs a checkpoint in bf16."""
 
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ from ..cameras import load_camera
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
 from ..module import FisheyeDepthModule
+from ..runtimes import OnnxRuntime, TorchRuntime
 from ..utils import atomic_write_text
 from . import free_path, run_command
 
@@ -28,33 +31,31 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     writer = PredictionWriter(
         out, cfg.z_depth, cfg.point_cloud, str(cfg.png_scale), cfg.vmin, cfg.vmax, cfg.overwrite
     )
-    source = FrameSource(cfg.input)  # lists the inputs without decoding any
+    source = FrameSource(cfg.input, cfg.get("max_frames"))  # lists the inputs without decoding any
     writer.check_free(source.names())
-    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
-    run = FramePrediction(
-        module,
-        load_camera(cfg.camera),
-        cfg.camera,
-        writer,
-        int(cfg.batch_size),
-        cfg.get("size"),
-        cfg.get("device", "cpu"),
-    )
+    runtime = make_runtime(cfg)
+    batch_size = 1 if source.live else int(cfg.batch_size)  # a live frame is written as it comes
+    run = FramePrediction(runtime, load_camera(cfg.camera), cfg.camera, writer, batch_size)
     unreadable: list[str] = []
     grayscale: list[str] = []
     t0 = time.perf_counter()
-    for frame in tqdm(source, total=len(source) or None, desc="predicting", unit="frame"):
-        if frame.bgr is None:
-            unreadable.append(str(frame.path))
-            log.warning("%s, skipped", frame.error)
-            continue
-        if frame.channels == 1:
-            grayscale.append(str(frame.path))
-            if len(grayscale) == 1:
-                log.warning(
-                    "%s: grayscale image, replicated to 3 channels (and any others: summary)", frame.path
-                )
-        run.add(frame)
+    interrupted = False
+    try:
+        for frame in tqdm(source, total=len(source) or None, desc="predicting", unit="frame"):
+            if frame.bgr is None:
+                unreadable.append(str(frame.path))
+                log.warning("%s, skipped", frame.error)
+                continue
+            if frame.channels == 1:
+                grayscale.append(str(frame.path))
+                if len(grayscale) == 1:
+                    log.warning(
+                        "%s: grayscale image, replicated to 3 channels (and any others: summary)", frame.path
+                    )
+            run.add(frame)
+    except KeyboardInterrupt:  # a live camera ends with Ctrl-C: what was predicted is kept and summarised
+        interrupted = True
+        log.warning("interrupted: %d frames written", run.written)
     run.flush()
     done, seconds = run.written, time.perf_counter() - t0
     summary = {
@@ -63,6 +64,9 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         "skipped": len(unreadable),
         "unreadable": unreadable,
         "grayscale": grayscale,
+        "runtime": runtime_name(runtime),
+        "input_size": list(runtime.input_size) if runtime.input_size else None,
+        "interrupted": interrupted,
         "seconds": round(seconds, 3),
         "fps": round(done / seconds, 2) if seconds > 0 else None,
         "output": str(out),
@@ -78,6 +82,35 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         f"{f', {len(grayscale)} grayscale' if grayscale else ''}; outputs in {out} ({summary_path.name})"
     )
     return summary
+
+
+def make_runtime(cfg: DictConfig):
+    """``runtime=torch`` (``ckpt_path``, ``precision``, ``device``, ``size``) or ``runtime=onnx`` (``model``:
+    an ``export.py`` file, which fixes the input size; ``threads``)."""
+    runtime = str(cfg.get("runtime", "torch"))
+    if runtime == "torch":
+        if not cfg.get("ckpt_path"):
+            raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
+        module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
+        size = cfg.get("size")
+        return TorchRuntime(
+            module, tuple(size) if size else None, str(cfg.precision), cfg.get("device", "cpu")
+        )
+    if runtime == "onnx":
+        if not cfg.get("model"):
+            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
+        onnx = OnnxRuntime(cfg.model, cfg.get("threads"))
+        size = cfg.get("size")
+        if size and tuple(size) != tuple(onnx.input_size):
+            raise ValueError(f"size: {list(size)}, but {cfg.model} was exported at {list(onnx.input_size)}")
+        return onnx
+    raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
+
+
+def runtime_name(runtime) -> str:
+    if isinstance(runtime, OnnxRuntime):
+        return f"onnx ({'int8' if runtime.quantize == 'int8' else 'float32'}): {runtime.path}"
+    return f"torch ({runtime.precision})"
 
 
 def main() -> None:

@@ -77,13 +77,27 @@ def resolve_precision(precision: Any, accelerator: str | None) -> Any:
     return chosen
 
 
+def source_offsets(cfg: DictConfig) -> list[int]:
+    """The source frames of every target: ``model.source_offsets``, which the data module must load
+    (the module's warps and PoseNet follow them). A different ``data.datamodule.offsets`` is refused:
+    it once let ``model.source_offsets=[-2,2]`` train silently on the +-1 neighbours."""
+    offsets = [int(o) for o in cfg.model.source_offsets]
+    data_offsets = cfg.data.datamodule.get("offsets")
+    if data_offsets is not None and [int(o) for o in data_offsets] != offsets:
+        raise ValueError(
+            f"data.datamodule.offsets={list(data_offsets)} differs from model.source_offsets={offsets}; "
+            "set model.source_offsets only (the data module loads what the model warps)"
+        )
+    return offsets
+
+
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     select = cfg.get("select", "last")
     resumed = check_resumable(cfg.ckpt_path) if cfg.get("ckpt_path") else None
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
-    datamodule = instantiate(cfg.data.datamodule)
+    datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg))
     resolved = {}
     if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
         resolved["base_focal"] = resolve_base_focal(datamodule, resumed)

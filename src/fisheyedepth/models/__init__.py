@@ -1,6 +1,6 @@
 """Networks: ResNet encoders, the depth network with multi-channel or sigmoid heads, and PoseNet."""
 
-from .depth_net import DepthDecoder, DepthNet, upsample_inverse
+from .depth_net import DepthDecoder, DepthNet, depth_scale, distance_at_size, upsample_inverse
 from .heads import MultiChannelHead, SigmoidHead, bin_expectation, distance_bins, sigmoid_to_distance
 from .posenet import PoseNet
 from .resnet import ResNetEncoder, WeightsError
@@ -13,6 +13,8 @@ __all__ = [
     "ResNetEncoder",
     "SigmoidHead",
     "WeightsError",
+    "depth_scale",
+    "distance_at_size",
     "distance_bins",
     "bin_expectation",
     "sigmoid_to_distance",

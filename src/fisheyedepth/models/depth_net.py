@@ -167,9 +167,7 @@ class DepthNet(nn.Module):
 
     def depth_scale(self, cameras) -> Tensor:
         """Per-sample ``paraxial focal / base_focal`` ``[B]`` (1 when ``base_focal`` is unset)."""
-        if self.base_focal is None:
-            return torch.ones(len(cameras))
-        return torch.tensor([min(cam.paraxial_focal()) / self.base_focal for cam in cameras])
+        return depth_scale(cameras, self.base_focal)
 
     def for_cameras(
         self, image: Tensor, cameras, scales: tuple[int, ...] | None = None
@@ -182,14 +180,15 @@ class DepthNet(nn.Module):
         at the images' size). The network runs at ``input_size`` (W, H; default: the images' size) on the
         image and camera resized alike, and its distance is upsampled back in inverse-distance space."""
         H, W = image.shape[-2:]
-        if input_size is None or (W, H) == tuple(input_size):
-            return self.for_cameras(image, cameras, scales=(0,))["distance"][0]
-        w, h = int(input_size[0]), int(input_size[1])
-        image = F.interpolate(image, size=(h, w), mode="area")
-        small = [c.resize(w, h) for c in cameras]
-        if self.multi_channel and self.upsample == "logits":
-            return self.upsampled_expectation(image, small, (H, W))
-        return upsample_inverse(self.for_cameras(image, small, scales=(0,))["distance"][0], (H, W))
+        if self.multi_channel and self.upsample == "logits" and input_size and (W, H) != tuple(input_size):
+            w, h = int(input_size[0]), int(input_size[1])
+            small = F.interpolate(image, size=(h, w), mode="area")
+            return self.upsampled_expectation(small, [c.resize(w, h) for c in cameras], (H, W))
+
+        def run(images: Tensor, small_cameras) -> Tensor:
+            return self.for_cameras(images, small_cameras, scales=(0,))["distance"][0]
+
+        return distance_at_size(run, image, cameras, input_size)
 
     def upsampled_expectation(self, image: Tensor, cameras, size: tuple[int, int]) -> Tensor:
         """The binned head's scale-0 logits upsampled bilinearly to ``size`` (H, W), then the expectation:
@@ -203,6 +202,26 @@ class DepthNet(nn.Module):
 
 
 UPSAMPLING = ("distance", "logits")
+
+
+def depth_scale(cameras, base_focal: float | None) -> Tensor:
+    """Per-camera ``paraxial focal / base_focal`` ``[B]``, the factor on the network's distance that lets
+    cameras of different focal lengths share one network; 1 for every camera when ``base_focal`` is None."""
+    if base_focal is None:
+        return torch.ones(len(cameras))
+    return torch.tensor([min(cam.paraxial_focal()) / base_focal for cam in cameras])
+
+
+def distance_at_size(run, image: Tensor, cameras, input_size: tuple[int, int] | None) -> Tensor:
+    """``run(images, cameras) -> distance`` (a network, in any runtime) applied at ``input_size`` (W, H):
+    the images area-resized and the cameras resized alike, the distance upsampled back to the images'
+    size in inverse-distance space. ``input_size`` None or equal to the images' size: run as they are."""
+    H, W = image.shape[-2:]
+    if input_size is None or (W, H) == tuple(input_size):
+        return run(image, cameras)
+    w, h = int(input_size[0]), int(input_size[1])
+    small = F.interpolate(image, size=(h, w), mode="area")
+    return upsample_inverse(run(small, [c.resize(w, h) for c in cameras]), (H, W))
 
 
 def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:

@@ -1,0 +1,197 @@
+"""Runtimes: what turns images of a calibrated camera into metric distance once the network is trained.
+
+- :class:`TorchRuntime`: a trained :class:`~fisheyedepth.module.FisheyeDepthModule` in PyTorch, float32 or
+  bf16 (autocast; fast only on CPUs with native bf16, such as AVX-512 BF16), channels_last.
+- :class:`OnnxRuntime`: a file written by ``export.py`` (float32, or int8 with ``quantize=int8``) in ONNX
+  Runtime with every graph optimisation on.
+
+Both have ``input_size`` (W, H), the size the network runs at, and ``distance(images, cameras)``:
+``[B, 3, H, W]`` float RGB in [0, 1] at the cameras' size -> ``[B, 1, H, W]`` metres. Each camera gets its
+own ``depth_scale`` (paraxial focal / the checkpoint's base focal) in both, so an exported file serves
+every camera of a rig. BENCHMARKS.md "Inference" compares their speed and accuracy.
+
+The export side lives here too: :func:`onnx_metadata` (what a file carries so that it runs without its
+checkpoint) and :func:`quantize_int8` (static QDQ int8 of the encoder, decoder and attention, calibrated
+on training images; the head's logits and the bin expectation stay float32).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .models import depth_scale, distance_at_size
+
+PRECISIONS = ("fp32", "bf16")
+META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
+# Nodes quantized to int8: everything up to the head's logits. The logits' 3x3 convolution and the bin
+# expectation (exp, a 1x1 convolution with the bins, a division) stay float32: quantizing them moves the
+# distance by about 100 % (every bin's weight is rounded), against a median 0.7 % without them.
+INT8_SCOPES = ("/depth_net/encoder/", "/depth_net/decoder/", "/depth_net/heads.0/attention/")
+
+
+def _import_ort():
+    try:
+        import onnxruntime as ort
+    except ImportError as err:  # an optional dependency: pip install 'fisheyedepth[export]'
+        raise ImportError(
+            "ONNX Runtime is not installed: pip install 'fisheyedepth[export]' (onnx, onnxruntime)"
+        ) from err
+    return ort
+
+
+def onnx_session(model: bytes | str | os.PathLike, threads: int | None = None):
+    """An ONNX Runtime CPU session: every graph optimisation on (constant folding, Conv+BN and
+    Conv+activation fusion, NCHWc layouts for AVX-512; also ORT's default), one inference at a time on
+    ``threads`` threads (default: torch's, i.e. this process's cores) and no inter-op pool."""
+    ort = _import_ort()
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.intra_op_num_threads = int(threads or torch.get_num_threads())
+    opts.inter_op_num_threads = 1
+    source = model if isinstance(model, bytes) else str(model)
+    return ort.InferenceSession(source, opts, providers=["CPUExecutionProvider"])
+
+
+def onnx_metadata(
+    input_size: tuple[int, int], depth_scale: float, base_focal: float | None, quantize: str | None
+):
+    """The key/value strings an exported file carries: with them ``predict.py runtime=onnx`` and
+    ``eval.py runtime=onnx`` need no checkpoint."""
+    return {
+        META + "input_size": f"{int(input_size[0])},{int(input_size[1])}",
+        META + "depth_scale": repr(float(depth_scale)),
+        META + "base_focal": "none" if base_focal is None else repr(float(base_focal)),
+        META + "quantize": quantize or "none",
+    }
+
+
+def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:
+    """``onnx_bytes`` with ``metadata`` in the model's ``metadata_props``."""
+    import onnx
+
+    model = onnx.load_from_string(onnx_bytes)
+    for key, value in metadata.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    return model.SerializeToString()
+
+
+class TorchRuntime:
+    """A trained module in PyTorch: ``precision`` fp32 or bf16 (autocast around the network; the bin
+    expectation and everything after it stay float32), weights in channels_last (the same numbers,
+    1.4x faster at 384x384 on the CPU of BENCHMARKS.md)."""
+
+    def __init__(
+        self, module, input_size: tuple[int, int] | None = None, precision: str = "fp32", device="cpu"
+    ):
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+        self.module = module.eval().to(device)
+        self.device = torch.device(device)
+        self.precision = precision
+        net = self.module.depth_net
+        if not net.channels_last:
+            net.to(memory_format=torch.channels_last)
+            net.channels_last = True
+        size = input_size or module.hparams.get("input_size")
+        self.input_size = None if size is None else (int(size[0]), int(size[1]))
+
+    @torch.no_grad()
+    def distance(self, images: Tensor, cameras) -> Tensor:
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+            return self.module.depth_net.distance(images.to(self.device), cameras, self.input_size)
+
+
+class OnnxRuntime:
+    """A file written by ``export.py`` in ONNX Runtime. The file's ``depth_scale`` (frozen at export) is
+    replaced by each camera's own, from the base focal the file carries."""
+
+    def __init__(self, path: str | os.PathLike, threads: int | None = None):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{self.path}: no such ONNX file")
+        _import_ort()
+        try:
+            self.session = onnx_session(self.path, threads)
+        except Exception as err:  # onnxruntime raises its own exception types for unreadable files
+            raise ValueError(
+                f"{self.path}: not a readable ONNX model ({str(err).splitlines()[0][:200]})"
+            ) from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        self.input_size = tuple(int(v) for v in self._field(meta, "input_size").split(","))
+        self.file_scale = float(self._field(meta, "depth_scale"))
+        focal = self._field(meta, "base_focal")
+        self.base_focal = None if focal == "none" else float(focal)
+        self.quantize = meta.get(META + "quantize", "none")
+        self.input_name = self.session.get_inputs()[0].name
+
+    def _field(self, meta: dict[str, str], key: str) -> str:
+        if META + key not in meta:
+            raise ValueError(
+                f"{self.path}: metadata field '{META + key}' is missing; export the file with export.py "
+                "(it records the input size and the depth scale)"
+            )
+        return meta[META + key]
+
+    def run(self, images: Tensor) -> Tensor:
+        """The file as it is: ``[B, 3, h, w]`` at ``input_size`` -> distance with the file's depth_scale."""
+        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
+        return torch.from_numpy(self.session.run(None, {self.input_name: array})[0])
+
+    def distance(self, images: Tensor, cameras) -> Tensor:
+        def run(small: Tensor, small_cameras) -> Tensor:
+            scale = depth_scale(small_cameras, self.base_focal) / self.file_scale
+            return self.run(small) * scale.reshape(-1, 1, 1, 1)
+
+        return distance_at_size(run, images.cpu(), cameras, self.input_size)
+
+
+def quantize_int8(onnx_bytes: bytes, calibration: Iterable[np.ndarray], input_name: str = "image") -> bytes:
+    """Static int8 QDQ quantization of an exported float32 file: weights per output channel (int8),
+    activations per tensor (uint8) with min/max ranges from ``calibration`` (``[1, 3, h, w]`` float32
+    images at the export size, training images). Only the nodes under :data:`INT8_SCOPES` are quantized."""
+    _import_ort()
+    import onnx
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    model = onnx.load_from_string(onnx_bytes)
+    nodes = [n.name for n in model.graph.node if n.name.startswith(INT8_SCOPES)]
+    if not nodes:
+        raise ValueError(
+            "quantize=int8: the graph has no encoder/decoder nodes to quantize (not an export.py file?)"
+        )
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self.images = iter(calibration)
+
+        def get_next(self):
+            image = next(self.images, None)
+            return None if image is None else {input_name: image}
+
+    with tempfile.TemporaryDirectory() as tmp:  # the quantizer reads and writes files
+        src, pre, dst = Path(tmp) / "fp32.onnx", Path(tmp) / "pre.onnx", Path(tmp) / "int8.onnx"
+        src.write_bytes(onnx_bytes)
+        # ONNX Runtime's own graph optimisations first (shape inference, fusions), so that each
+        # quantized convolution and its activation become one int8 kernel
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+        quantize_static(
+            str(pre),
+            str(dst),
+            Reader(),
+            quant_format=QuantFormat.QDQ,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            nodes_to_quantize=nodes,
+        )
+        return dst.read_bytes()

@@ -1,0 +1,287 @@
+"""Deployment runtimes: ONNX (float32 and int8) and bf16 against PyTorch float32, their files' metadata,
+eval.py and predict.py on an exported file, and live cameras (written as they come, Ctrl-C kept)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from fisheyedepth.cameras import load_camera
+from fisheyedepth.cli.evaluate import eval_checkpoint
+from fisheyedepth.cli.export import export
+from fisheyedepth.cli.predict import predict
+from fisheyedepth.images import FrameSource, ImageError, is_live
+from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime
+
+from conftest import TRAIN_SEQ
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_cfg(name: str, **values):
+    """A command's config as Hydra would compose it (its own keys), without Hydra's runtime."""
+    cfg = OmegaConf.load(ROOT / "conf" / f"{name}.yaml")
+    for hydra_only in ("defaults", "hydra"):
+        cfg.pop(hydra_only, None)
+    return OmegaConf.merge(cfg, {k: str(v) if isinstance(v, Path) else v for k, v in values.items()})
+
+
+def export_file(checkpoint, tmp_path, name="m.onnx", **values):
+    cfg = load_cfg(
+        "export",
+        ckpt_path=checkpoint,
+        size=[64, 64],
+        output=tmp_path / name,
+        paths={"output_dir": str(tmp_path)},
+    )
+    return export(OmegaConf.merge(cfg, values))
+
+
+def images_of(kitti_data, camera="image_02", n=3):
+    files = sorted((kitti_data / "data_2d_raw" / TRAIN_SEQ / camera / "data_rgb").glob("*.png"))[:n]
+    rgb = np.stack([cv2.imread(str(p))[..., ::-1] for p in files])
+    return torch.from_numpy(rgb.copy()).permute(0, 3, 1, 2).float() / 255.0
+
+
+@pytest.fixture(scope="module")
+def onnx_files(checkpoint, kitti_data, tmp_path_factory):
+    pytest.importorskip("onnxruntime")
+    tmp = tmp_path_factory.mktemp("onnx")
+    fp32 = export_file(checkpoint, tmp, "fp32.onnx")
+    int8 = export_file(
+        checkpoint,
+        tmp,
+        "int8.onnx",
+        quantize="int8",
+        calibration=str(kitti_data / "data_2d_raw"),
+        calibration_frames=8,
+    )
+    return fp32, int8
+
+
+def test_onnx_file_serves_every_camera_of_the_rig_as_pytorch_does(onnx_files, checkpoint, kitti_data):
+    """The file freezes one depth_scale; the runtime gives each camera its own from the base focal the
+    file carries: both cameras at their native 256 px, and one with 1.5x the focal length, match
+    PyTorch float32 to 1e-4."""
+    record, _ = onnx_files
+    assert record["parity"] == {"statistic": "max", "tolerance": 1e-4}
+    assert record["max_relative_difference"] < 1e-4
+    onnx = OnnxRuntime(record["path"], threads=1)
+    assert onnx.input_size == (64, 64) and onnx.base_focal == 20.0 and onnx.quantize == "none"
+    torch_rt = TorchRuntime(FisheyeDepthModule.from_checkpoint(checkpoint))
+    outputs = {}
+    for name in ("image_02", "image_03", "longer"):
+        camera = load_camera(kitti_data / "calibration" / f"{'image_02' if name == 'longer' else name}.yaml")
+        if name == "longer":
+            camera = dataclasses.replace(camera, gamma1=camera.gamma1 * 1.5, gamma2=camera.gamma2 * 1.5)
+        images = images_of(kitti_data, "image_02", 2)
+        ref = torch_rt.distance(images, [camera] * 2)
+        outputs[name] = got = onnx.distance(images, [camera] * 2)
+        assert got.shape == ref.shape == (2, 1, 256, 256)
+        assert float(((got - ref).abs() / ref).max()) < 1e-4
+    assert torch.allclose(outputs["longer"], 1.5 * outputs["image_02"], rtol=1e-4)
+
+
+def test_int8_file_is_close_to_float32_and_scores_within_0_01(onnx_files, kitti_data, tmp_path):
+    """int8 (encoder, decoder, attention) against the float32 file on the test split: the export's median
+    relative difference under its written tolerance (3 %), and abs_rel within 0.01 of float32."""
+    fp32, int8 = onnx_files
+    assert int8["quantize"] == "int8" and int8["parity"] == {"statistic": "median", "tolerance": 0.03}
+    assert 0 < int8["median_relative_difference"] < 0.03
+    assert OnnxRuntime(int8["path"]).quantize == "int8"
+    scores = {}
+    for name, record in (("fp32", fp32), ("int8", int8)):
+        cfg = load_cfg(
+            "eval",
+            runtime="onnx",
+            model=record["path"],
+            paths={"output_dir": str(tmp_path / name)},
+            data={"generate": None, "datamodule": _datamodule(kitti_data)},
+        )
+        cfg.eval.pictures = 1
+        result = eval_checkpoint(cfg)
+        assert result["model"]["runtime"] == "onnx" and result["model"]["quantize"] == (
+            "int8" if name == "int8" else "none"
+        )
+        scores[name] = result["results"]["full"]["none"]["abs_rel"]
+    assert all(0 < s < 2 for s in scores.values())
+    assert abs(scores["int8"] - scores["fp32"]) < 0.01, scores
+
+
+def _datamodule(kitti_data):
+    base = OmegaConf.load(ROOT / "conf" / "data" / "synthetic.yaml").datamodule
+    values = {
+        "root": str(kitti_data),
+        "size": [64, 64],
+        "num_workers": 0,
+        "cache_dir": str(kitti_data / "cache"),
+    }
+    return OmegaConf.merge(base, values)
+
+
+def test_eval_of_the_checkpoint_agrees_with_eval_of_its_float32_file(
+    onnx_files, checkpoint, kitti_data, tmp_path
+):
+    fp32, _ = onnx_files
+    data = {"generate": None, "datamodule": _datamodule(kitti_data)}
+    by_file = eval_checkpoint(
+        load_cfg(
+            "eval", runtime="onnx", model=fp32["path"], paths={"output_dir": str(tmp_path / "f")}, data=data
+        )
+    )
+    by_ckpt = eval_checkpoint(
+        load_cfg("eval", ckpt_path=checkpoint, paths={"output_dir": str(tmp_path / "c")}, data=data)
+    )
+    a, b = by_file["results"]["full"]["none"], by_ckpt["results"]["full"]["none"]
+    assert a["abs_rel"] == pytest.approx(b["abs_rel"], rel=1e-4) and a["a1"] == pytest.approx(
+        b["a1"], abs=1e-3
+    )
+    assert by_ckpt["model"]["runtime"] == "torch" and by_ckpt["model"]["precision"] == "fp32"
+    assert by_file["checkpoint"] is None and by_file["model"]["file"] == fp32["path"]
+
+
+def test_bf16_runtime_stays_close_to_float32(checkpoint, kitti_data):
+    module = FisheyeDepthModule.from_checkpoint(checkpoint)
+    camera = load_camera(kitti_data / "calibration" / "image_02.yaml")
+    images = images_of(kitti_data)
+    ref = TorchRuntime(module).distance(images, [camera] * 3)
+    got = TorchRuntime(FisheyeDepthModule.from_checkpoint(checkpoint), precision="bf16").distance(
+        images, [camera] * 3
+    )
+    assert got.dtype == torch.float32  # the expectation and the upsampling stay float32
+    rel = ((got - ref).abs() / ref).flatten()
+    assert 0 < float(rel.median()) < 0.02 and float(rel.max()) < 0.2
+    with pytest.raises(ValueError, match="precision: 'fp16'"):
+        TorchRuntime(module, precision="fp16")
+
+
+def test_onnx_files_without_metadata_or_unreadable_are_named(tmp_path, checkpoint):
+    pytest.importorskip("onnxruntime")
+    bare = tmp_path / "bare.onnx"
+    net = torch.nn.Conv2d(3, 1, 1)
+    torch.onnx.export(net, (torch.rand(1, 3, 8, 8),), str(bare), input_names=["image"], dynamo=False)
+    with pytest.raises(ValueError, match=r"bare.onnx: metadata field 'fisheyedepth.input_size' is missing"):
+        OnnxRuntime(bare)
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"not a model")
+    with pytest.raises(ValueError, match=r"junk.onnx: not a readable ONNX model"):
+        OnnxRuntime(junk)
+    with pytest.raises(FileNotFoundError, match="nothing.onnx"):
+        OnnxRuntime(tmp_path / "nothing.onnx")
+
+
+def test_export_refuses_bad_quantize_options(checkpoint, tmp_path):
+    with pytest.raises(ValueError, match="calibration: quantize=int8 needs a folder"):
+        export_file(checkpoint, tmp_path, quantize="int8")
+    with pytest.raises(ValueError, match="quantize: 'int4'"):
+        export_file(checkpoint, tmp_path, quantize="int4", calibration=str(tmp_path))
+    with pytest.raises(ValueError, match="quantize: 'int8'; only quantize=int8 with format=onnx"):
+        export_file(
+            checkpoint, tmp_path, "m.pt", format="torchscript", quantize="int8", calibration=str(tmp_path)
+        )
+    pytest.importorskip("onnxruntime")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="calibration: no images"):
+        export_file(checkpoint, tmp_path, quantize="int8", calibration=str(tmp_path / "empty"))
+    assert not (tmp_path / "m.onnx").exists()
+
+
+def test_predict_runs_an_exported_file_like_its_checkpoint(onnx_files, checkpoint, kitti_data, tmp_path):
+    fp32, _ = onnx_files
+    src = kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb"
+    calib = kitti_data / "calibration" / "image_02.yaml"
+    common = {"input": str(src), "camera": str(calib), "max_frames": 2, "paths": {"output_dir": "unused"}}
+    by_file = predict(
+        load_cfg("predict", runtime="onnx", model=fp32["path"], output=tmp_path / "f", **common)
+    )
+    by_ckpt = predict(load_cfg("predict", ckpt_path=checkpoint, output=tmp_path / "c", **common))
+    assert by_file["frames"] == by_ckpt["frames"] == 2  # max_frames
+    assert by_file["runtime"].startswith("onnx (float32)") and by_ckpt["runtime"] == "torch (fp32)"
+    assert by_file["input_size"] == [64, 64] and by_file["fps"] > 0
+    assert json.loads((tmp_path / "f" / "summary.json").read_text())["fps"] == by_file["fps"]
+    for npy in sorted((tmp_path / "c").glob("*_distance.npy")):
+        a, b = np.load(npy), np.load(tmp_path / "f" / npy.name)
+        ok = np.isfinite(a)
+        assert np.array_equal(ok, np.isfinite(b)) and np.allclose(a[ok], b[ok], rtol=1e-4)
+    with pytest.raises(ValueError, match="size: \\[32, 32\\], but .*fp32.onnx was exported at \\[64, 64\\]"):
+        predict(
+            load_cfg(
+                "predict", runtime="onnx", model=fp32["path"], size=[32, 32], output=tmp_path / "s", **common
+            )
+        )
+    with pytest.raises(ValueError, match="model: runtime=onnx needs the exported file"):
+        predict(load_cfg("predict", runtime="onnx", output=tmp_path / "m", **common))
+    with pytest.raises(ValueError, match="ckpt_path: required with runtime=torch"):
+        predict(load_cfg("predict", output=tmp_path / "n", **common))
+
+
+class FakeCamera:
+    """``cv2.VideoCapture`` of a live camera: ``frames`` frames, then (optionally) Ctrl-C."""
+
+    def __init__(self, frames, interrupt=False):
+        self.frames, self.interrupt, self.read_count = frames, interrupt, 0
+        self.opened_with = None
+
+    def __call__(self, arg):
+        self.opened_with = arg
+        return self
+
+    def isOpened(self):  # noqa: N802 (OpenCV's name)
+        return True
+
+    def read(self):
+        if self.read_count >= len(self.frames):
+            if self.interrupt:
+                raise KeyboardInterrupt
+            return False, None
+        self.read_count += 1
+        return True, self.frames[self.read_count - 1].copy()
+
+    def release(self):
+        pass
+
+
+def test_a_live_camera_is_written_frame_by_frame_and_ctrl_c_keeps_them(
+    checkpoint, kitti_data, tmp_path, monkeypatch
+):
+    assert is_live("0") and is_live("/dev/null") and not is_live(tmp_path) and not is_live("clip.avi")
+    with pytest.raises(ImageError, match="/dev/null: the camera could not be opened"):
+        list(FrameSource("/dev/null"))
+    src = sorted((kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb").glob("*.png"))
+    frames = [cv2.imread(str(p)) for p in src[:3]]
+    camera = FakeCamera(frames, interrupt=True)
+    monkeypatch.setattr(cv2, "VideoCapture", camera)
+    written_before_next_read = []
+    original_read = camera.read
+
+    def read():  # when a frame is read, every earlier frame is already on disk (no batching)
+        written_before_next_read.append(len(list((tmp_path / "live").glob("*_distance.npy"))))
+        return original_read()
+
+    camera.read = read
+    calib = kitti_data / "calibration" / "image_02.yaml"
+    summary = predict(
+        load_cfg("predict", ckpt_path=checkpoint, input="0", camera=str(calib), output=tmp_path / "live",
+                 paths={"output_dir": "unused"})
+    )  # fmt: skip
+    assert camera.opened_with == 0  # the index, as OpenCV takes it
+    assert written_before_next_read == [0, 1, 2, 3]
+    assert summary["frames"] == 3 and summary["interrupted"] is True
+    assert json.loads((tmp_path / "live" / "summary.json").read_text())["frames"] == 3
+    # max_frames ends a live run without Ctrl-C
+    monkeypatch.setattr(cv2, "VideoCapture", FakeCamera(frames))
+    summary = predict(
+        load_cfg("predict", ckpt_path=checkpoint, input="0", camera=str(calib), output=tmp_path / "two",
+                 max_frames=2, paths={"output_dir": "unused"})
+    )  # fmt: skip
+    assert summary["frames"] == 2 and summary["interrupted"] is False
+    with pytest.raises(ValueError, match="max_frames: 0"):
+        FrameSource("0", max_frames=0)
