@@ -72,6 +72,7 @@ def test_every_experiment_composes(experiment):
         ("logger", "wandb"),
         ("logger", "none"),
         ("model", "monodepth2"),
+        ("model", "fisheyedepth_lite"),
     ],
 )
 def test_config_groups_compose(group, option):

@@ -83,6 +83,31 @@ def test_depth_net_shapes_ranges_and_gradients(multi_channel):
     assert any(g.abs().sum() > 0 for g in grads)
 
 
+def test_lite_variant_is_the_same_network_with_fewer_channels_and_bins(tmp_path):
+    """``model=fisheyedepth_lite``: half the decoder's channels and 32 bins; a checkpoint of it loads
+    back as itself (the width is a stored hyperparameter)."""
+    from fisheyedepth.module import FisheyeDepthModule
+
+    full = FisheyeDepthModule()
+    lite = FisheyeDepthModule(decoder_width=0.5, n_bins=32)
+    assert lite.depth_net.decoder.channels == (8, 16, 32, 64, 128)
+    assert full.depth_net.decoder.channels == (16, 32, 64, 128, 256)
+    assert lite.depth_net.heads["0"].logits[1].out_channels == 32
+
+    def head_and_decoder(net):
+        return sum(p.numel() for part in (net.decoder, net.heads) for p in part.parameters())
+
+    assert head_and_decoder(lite.depth_net) < 0.4 * head_and_decoder(full.depth_net)
+    out = lite.depth_net(torch.rand(1, 3, 64, 64), 1.0)
+    assert out["distance"][0].shape == (1, 1, 64, 64) and torch.isfinite(out["distance"][0]).all()
+    path = tmp_path / "lite.ckpt"
+    torch.save({"state_dict": lite.state_dict(), "hyper_parameters": dict(lite.hparams)}, path)
+    back = FisheyeDepthModule.from_checkpoint(path)
+    assert back.depth_net.decoder.channels == (8, 16, 32, 64, 128)
+    with pytest.raises(ValueError, match="decoder_width: 0"):
+        FisheyeDepthModule(decoder_width=0)
+
+
 def test_gather_output_is_a_monotone_expectation_within_the_bins():
     bins = distance_bins(64, 0.5, 150.0)
     assert bins[0].item() == pytest.approx(0.5) and bins[-1].item() == pytest.approx(150.0)

@@ -76,6 +76,7 @@ class FisheyeDepthModule(L.LightningModule):
         compile_kernels: bool = False,
         lr_schedule: str = "step",
         upsample: str = "distance",
+        decoder_width: float = 1.0,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -93,6 +94,8 @@ class FisheyeDepthModule(L.LightningModule):
         ``upsample``: how a distance at the training size reaches a larger image at evaluation and
         prediction: "distance" (bilinear in inverse distance, the reference's) or "logits" (the binned
         head's logits upsampled, then the expectation: sharper edges; the sigmoid head ignores it).
+        ``decoder_width``: Monodepth2's decoder channels times this factor (1: the paper's network; 0.5
+        with 32 bins: ``model=fisheyedepth_lite``, the robot variant of BENCHMARKS.md "Inference").
         ``lr_schedule``: "step" (Monodepth2: x ``lr_gamma`` after ``lr_step`` epochs) or "cosine"
         (cosine annealing to ``lr * lr_gamma`` over the run's ``max_epochs``).
         ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
@@ -124,6 +127,7 @@ class FisheyeDepthModule(L.LightningModule):
             base_focal,
             channels_last,
             upsample,
+            decoder_width,
         )
         if pose_translation_scale is None:  # Monodepth2's first parallax for this head's first distance
             pose_translation_scale = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance

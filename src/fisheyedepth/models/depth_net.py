@@ -20,7 +20,14 @@ from .heads import (
 )
 from .resnet import ResNetEncoder
 
-DECODER_CHANNELS = (16, 32, 64, 128, 256)
+DECODER_CHANNELS = (16, 32, 64, 128, 256)  # Monodepth2's, full to 1/16 resolution
+
+
+def decoder_channels(width: float = 1.0) -> tuple[int, ...]:
+    """Monodepth2's decoder channels times ``width`` (at least 4 each): 0.5 is the robot variant's."""
+    if not 0 < width <= 4:
+        raise ValueError(f"decoder_width: {width!r}, expected a factor in (0, 4] on Monodepth2's channels")
+    return tuple(max(4, round(c * width)) for c in DECODER_CHANNELS)
 
 
 class ConvBlock(nn.Module):
@@ -39,15 +46,20 @@ class DepthDecoder(nn.Module):
     """Monodepth2's decoder: per level an up-convolution, nearest 2x upsampling, the skip connection and a
     second convolution; heads read the features at scales 0..3 (full, 1/2, 1/4, 1/8 resolution)."""
 
-    def __init__(self, encoder_channels: list[int], scales: tuple[int, ...] = (0, 1, 2, 3)):
+    def __init__(
+        self,
+        encoder_channels: list[int],
+        scales: tuple[int, ...] = (0, 1, 2, 3),
+        channels: tuple[int, ...] = DECODER_CHANNELS,
+    ):
         super().__init__()
-        self.scales = scales
+        self.scales, self.channels = scales, tuple(channels)
         self.up0, self.up1 = nn.ModuleList(), nn.ModuleList()
         for i in range(4, -1, -1):
-            in_ch = encoder_channels[-1] if i == 4 else DECODER_CHANNELS[i + 1]
-            self.up0.append(ConvBlock(in_ch, DECODER_CHANNELS[i]))
+            in_ch = encoder_channels[-1] if i == 4 else channels[i + 1]
+            self.up0.append(ConvBlock(in_ch, channels[i]))
             skip = encoder_channels[i - 1] if i > 0 else 0
-            self.up1.append(ConvBlock(DECODER_CHANNELS[i] + skip, DECODER_CHANNELS[i]))
+            self.up1.append(ConvBlock(channels[i] + skip, channels[i]))
 
     def forward(self, features: list[Tensor]) -> dict[int, Tensor]:
         x = features[-1]
@@ -91,6 +103,7 @@ class DepthNet(nn.Module):
         base_focal: float | None = None,
         channels_last: bool = False,
         upsample: str = "distance",
+        decoder_width: float = 1.0,
     ):
         super().__init__()
         self.upsample = upsample  # checked by its setter
@@ -101,7 +114,8 @@ class DepthNet(nn.Module):
             )
         self.base_focal = None if base_focal is None else float(base_focal)
         self.encoder = ResNetEncoder(resnet, 1, weights)
-        self.decoder = DepthDecoder(self.encoder.channels, scales)
+        widths = decoder_channels(decoder_width)
+        self.decoder = DepthDecoder(self.encoder.channels, scales, widths)
         self.multi_channel, self.scales = multi_channel, tuple(scales)
         self.min_distance, self.max_distance = min_distance, max_distance
         bins = distance_bins(n_bins, min_distance, max_distance)
@@ -112,14 +126,14 @@ class DepthNet(nn.Module):
         self.initial_distance = float(bins.mean())
         if multi_channel:
             self.heads = nn.ModuleDict(
-                {str(s): MultiChannelHead(DECODER_CHANNELS[s], n_bins, attention) for s in scales}
+                {str(s): MultiChannelHead(widths[s], n_bins, attention) for s in scales}
             )
             self.register_buffer("bins", bins, persistent=False)
         else:
             initial = float(
                 distance_to_sigmoid(torch.tensor(self.initial_distance), min_distance, max_distance)
             )
-            self.heads = nn.ModuleDict({str(s): SigmoidHead(DECODER_CHANNELS[s], initial) for s in scales})
+            self.heads = nn.ModuleDict({str(s): SigmoidHead(widths[s], initial) for s in scales})
         self.channels_last = channels_last
         if channels_last:
             self.to(memory_format=torch.channels_last)
