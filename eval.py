@@ -1,10 +1,12 @@
 #!/usr/bin/env python
 """Evaluate a checkpoint on a test split: ``python eval.py ckpt_path=PATH [data=kitti360] [...]``."""
 
+import sys
+
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.cli import run_command
+from fisheyedepth.cli import model_file_alias, run_command
 from fisheyedepth.cli.evaluate import eval_checkpoint
 
 
@@ -14,4 +16,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv = model_file_alias(sys.argv)  # model=FILE.onnx (runtime=onnx)
     main()

@@ -1,10 +1,12 @@
 #!/usr/bin/env python
 """Metric distance for images or a video: ``python predict.py ckpt_path=... input=... camera=...``."""
 
+import sys
+
 import hydra
 from omegaconf import DictConfig
 
-from fisheyedepth.cli import run_command
+from fisheyedepth.cli import model_file_alias, run_command
 from fisheyedepth.cli.predict import predict
 
 
@@ -14,4 +16,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv = model_file_alias(sys.argv)  # model=FILE.onnx (runtime=onnx)
     main()

@@ -46,6 +46,7 @@ from _benchmarks import publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_inference:start -->", "<!-- bench_inference:end -->"
+LITE = {"decoder_width": 0.5, "n_bins": 32}  # conf/model/fisheyedepth_lite.yaml
 BLOCK = 3  # timed frames per runner and round: a deployment runs one runtime frame after frame
 DEFAULT_CALIBRATION = ROOT / "data" / "synthetic_kitti360_256_seed0_f200" / "data_2d_raw"
 
@@ -60,9 +61,12 @@ def softmax_expectation(logits, depth_scale, bins, min_distance, max_distance):
         return d * scale, distance_to_sigmoid(d, min_distance, max_distance)
 
 
-def load(ckpt: str | None) -> FisheyeDepthModule:
+def load(ckpt: str | None, lite: bool = False) -> FisheyeDepthModule:
+    """A trained module, or an untrained one (speed only); ``lite``: ``model=fisheyedepth_lite``."""
     torch.manual_seed(0)
-    return FisheyeDepthModule.from_checkpoint(ckpt) if ckpt else FisheyeDepthModule()
+    if ckpt:
+        return FisheyeDepthModule.from_checkpoint(ckpt)
+    return FisheyeDepthModule(**LITE) if lite else FisheyeDepthModule()
 
 
 def old_path(module: FisheyeDepthModule) -> ExportableNet:
@@ -101,6 +105,16 @@ def calibration_set(folder: Path | None, size: tuple[int, int], count: int = 32)
     return [gen.random((1, 3, size[1], size[0]), dtype=np.float32) for _ in range(count)]
 
 
+def basic_session(data: bytes, threads: int):
+    """The session of :func:`onnx_session` with only ONNX Runtime's basic graph optimisations."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_BASIC
+    opts.intra_op_num_threads, opts.inter_op_num_threads = threads, 1
+    return ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+
+
 def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     size = (args.size, args.size)
     x = torch.rand(1, 3, args.size, args.size)
@@ -124,16 +138,27 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     runners["PyTorch eager, + bf16 autocast"] = bf16
     notes["PyTorch eager, + bf16 autocast"] = "`predict.py precision=bf16`"
     feed = {"image": x.numpy()}
+    lite = ExportableNet(TorchRuntime(load(args.lite_ckpt, lite=True)).module.depth_net).eval()
     sessions = {
         "ONNX Runtime float32, before (softmax graph)": (onnx_bytes(old, size, focal), "today's export"),
+        "ONNX Runtime float32, fused graph, basic graph optimisations": (
+            onnx_bytes(net, size, focal),
+            "ORT's `ORT_ENABLE_BASIC` (no layout or conv-activation fusions)",
+        ),
         "ONNX Runtime float32, fused graph": (onnx_bytes(net, size, focal), "`export.py` + `runtime=onnx`"),
         "ONNX Runtime int8 (QDQ, head float32)": (
             onnx_bytes(net, size, focal, "int8", calibration),
             "`export.py quantize=int8` + `runtime=onnx`",
         ),
+        "lite: ONNX Runtime float32": (onnx_bytes(lite, size, focal), "`model=fisheyedepth_lite`, exported"),
+        "lite: ONNX Runtime int8": (
+            onnx_bytes(lite, size, focal, "int8", calibration),
+            "`model=fisheyedepth_lite`, `quantize=int8`",
+        ),
     }
     for name, (data, note) in sessions.items():
-        session = onnx_session(data, args.threads)
+        basic = "basic graph" in name
+        session = basic_session(data, args.threads) if basic else onnx_session(data, args.threads)
         runners[name] = lambda s=session: s.run(None, feed)
         notes[name] = note
     times = {name: [] for name in runners}
@@ -152,16 +177,15 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     return {name: statistics.median(ts) for name, ts in times.items()}, notes
 
 
-def accuracy(args, tmp: Path) -> dict[str, dict[str, float]]:
-    """Each path made from ``--ckpt`` at its training size, on the test split of ``--data``."""
-    module = load(args.ckpt)
+def accuracy(ckpt: str, args, tmp: Path) -> dict[str, dict[str, float]]:
+    """Each path made from ``ckpt`` at its training size, on the ``--split`` split of ``--data``."""
+    module = load(ckpt)
     size = tuple(module.hparams["input_size"])
     dm = FisheyeDataModule(args.data, "kitti360", {args.split: f"splits/{args.split}.txt"}, batch_size=4)
-    train_images = Path(args.calibration) if args.calibration else None
-    calibration = calibration_set(train_images, size)
+    calibration = calibration_set(args.calibration, size)
     net = ExportableNet(TorchRuntime(module).module.depth_net).eval()
-    paths = {"PyTorch float32": TorchRuntime(load(args.ckpt))}
-    paths["PyTorch bf16"] = TorchRuntime(load(args.ckpt), precision="bf16")
+    paths = {"PyTorch float32": TorchRuntime(load(ckpt))}
+    paths["PyTorch bf16"] = TorchRuntime(load(ckpt), precision="bf16")
     for name, quantize in (("ONNX Runtime float32", None), ("ONNX Runtime int8", "int8")):
         path = tmp / f"{quantize or 'fp32'}.onnx"
         path.write_bytes(onnx_bytes(net, size, module.depth_net.base_focal, quantize, calibration))
@@ -181,6 +205,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=20)
     parser.add_argument("--ckpt", help="a trained checkpoint (default: an untrained network, for speed only)")
+    parser.add_argument("--lite-ckpt", help="a trained model=fisheyedepth_lite checkpoint (its own rows)")
     parser.add_argument("--data", help="a dataset with ground truth: score every path on its --split")
     parser.add_argument("--split", default="test")
     parser.add_argument(
@@ -188,8 +213,8 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
-    if args.data and not args.ckpt:
-        parser.error("--data needs --ckpt (accuracy is that of a trained network)")
+    if args.data and not (args.ckpt or args.lite_ckpt):
+        parser.error("--data needs --ckpt or --lite-ckpt (accuracy is that of a trained network)")
     torch.set_num_threads(args.threads)
     medians, notes = speed(args)
     base = medians["PyTorch eager, before (NCHW, softmax expectation)"]
@@ -197,6 +222,8 @@ def main(argv=None) -> int:
     command += f" --size {args.size} --threads {args.threads} --rounds {args.rounds}"
     if args.ckpt:
         command += f" --ckpt {args.ckpt}"
+    if args.lite_ckpt:
+        command += f" --lite-ckpt {args.lite_ckpt}"
     if args.data:
         command += f" --data {args.data} --split {args.split}"
     lines = [
@@ -220,23 +247,26 @@ def main(argv=None) -> int:
     if args.data:
         import tempfile
 
-        with tempfile.TemporaryDirectory() as tmp:
-            scores = accuracy(args, Path(tmp))
-        ref = scores["PyTorch float32"]["abs_rel"]
         lines += [
             "",
-            f"Accuracy of each path made from that checkpoint, at its training size, on `{args.data}` "
-            f"({args.split} split, full range, no scaling). Goal: abs_rel at most 0.01 above float32.",
+            f"Accuracy of each path made from a checkpoint, at its training size, on `{args.data}` "
+            f"({args.split} split, full range, no scaling). Goal: abs_rel at most 0.01 above its float32.",
             "",
-            "| path | abs_rel | a1 | rmse (m) | abs_rel - float32 | goal |",
-            "|---|---|---|---|---|---|",
+            "| model | path | abs_rel | a1 | rmse (m) | abs_rel - float32 | goal |",
+            "|---|---|---|---|---|---|---|",
         ]
-        for name, m in scores.items():
-            delta = m["abs_rel"] - ref
-            lines.append(
-                f"| {name} | {m['abs_rel']:.4f} | {m['a1']:.4f} | {m['rmse']:.3f} | {delta:+.4f} | "
-                f"{'met' if delta <= 0.01 else 'NOT met'} |"
-            )
+        for label, ckpt in (("full", args.ckpt), ("lite", args.lite_ckpt)):
+            if not ckpt:
+                continue
+            with tempfile.TemporaryDirectory() as tmp:
+                scores = accuracy(ckpt, args, Path(tmp))
+            ref = scores["PyTorch float32"]["abs_rel"]
+            for name, m in scores.items():
+                delta = m["abs_rel"] - ref
+                lines.append(
+                    f"| {label} | {name} | {m['abs_rel']:.4f} | {m['a1']:.4f} | {m['rmse']:.3f} | "
+                    f"{delta:+.4f} | {'met' if delta <= 0.01 else 'NOT met'} |"
+                )
     lines.append(END)
     publish("\n".join(lines) + "\n", ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
     return 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -102,7 +104,7 @@ def test_int8_file_is_close_to_float32_and_scores_within_0_01(onnx_files, kitti_
         cfg = load_cfg(
             "eval",
             runtime="onnx",
-            model=record["path"],
+            model_file=record["path"],
             paths={"output_dir": str(tmp_path / name)},
             data={"generate": None, "datamodule": _datamodule(kitti_data)},
         )
@@ -134,7 +136,11 @@ def test_eval_of_the_checkpoint_agrees_with_eval_of_its_float32_file(
     data = {"generate": None, "datamodule": _datamodule(kitti_data)}
     by_file = eval_checkpoint(
         load_cfg(
-            "eval", runtime="onnx", model=fp32["path"], paths={"output_dir": str(tmp_path / "f")}, data=data
+            "eval",
+            runtime="onnx",
+            model_file=fp32["path"],
+            paths={"output_dir": str(tmp_path / "f")},
+            data=data,
         )
     )
     by_ckpt = eval_checkpoint(
@@ -200,7 +206,7 @@ def test_predict_runs_an_exported_file_like_its_checkpoint(onnx_files, checkpoin
     calib = kitti_data / "calibration" / "image_02.yaml"
     common = {"input": str(src), "camera": str(calib), "max_frames": 2, "paths": {"output_dir": "unused"}}
     by_file = predict(
-        load_cfg("predict", runtime="onnx", model=fp32["path"], output=tmp_path / "f", **common)
+        load_cfg("predict", runtime="onnx", model_file=fp32["path"], output=tmp_path / "f", **common)
     )
     by_ckpt = predict(load_cfg("predict", ckpt_path=checkpoint, output=tmp_path / "c", **common))
     assert by_file["frames"] == by_ckpt["frames"] == 2  # max_frames
@@ -214,9 +220,31 @@ def test_predict_runs_an_exported_file_like_its_checkpoint(onnx_files, checkpoin
     with pytest.raises(ValueError, match="size: \\[32, 32\\], but .*fp32.onnx was exported at \\[64, 64\\]"):
         predict(
             load_cfg(
-                "predict", runtime="onnx", model=fp32["path"], size=[32, 32], output=tmp_path / "s", **common
+                "predict",
+                runtime="onnx",
+                model_file=fp32["path"],
+                size=[32, 32],
+                output=tmp_path / "s",
+                **common,
             )
         )
+    # from the command line, as a user types it: model=FILE.onnx (Hydra alone would read a model group)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "predict.py"), "runtime=onnx", f"model={fp32['path']}", f"input={src}",
+         f"camera={calib}", "max_frames=1", f"output={tmp_path / 'cli'}", f"hydra.run.dir={tmp_path / 'h'}"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert summary["frames"] == 1 and summary["runtime"] == f"onnx (float32): {fp32['path']}"
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "eval.py"), "runtime=onnx", f"model={fp32['path']}", "data.generate=null",
+         f"data.datamodule.root={kitti_data}", f"paths.data_dir={tmp_path}",
+         f"hydra.run.dir={tmp_path / 'e'}", "eval.pictures=0"],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads((tmp_path / "e" / "results.json").read_text())["model"]["file"] == fp32["path"]
     with pytest.raises(ValueError, match="model: runtime=onnx needs the exported file"):
         predict(load_cfg("predict", runtime="onnx", output=tmp_path / "m", **common))
     with pytest.raises(ValueError, match="ckpt_path: required with runtime=torch"):
@@ -285,3 +313,38 @@ def test_a_live_camera_is_written_frame_by_frame_and_ctrl_c_keeps_them(
     assert summary["frames"] == 2 and summary["interrupted"] is False
     with pytest.raises(ValueError, match="max_frames: 0"):
         FrameSource("0", max_frames=0)
+
+
+def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint, kitti_data, tmp_path):
+    """The benchmark behind BENCHMARKS.md "Inference", tiny: every row is measured, and the accuracy
+    table scores the four paths of the checkpoint on the split (float32 ONNX equal to PyTorch)."""
+    pytest.importorskip("onnxruntime")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "bench_inference.py"), "--size", "64", "--rounds", "1",
+         "--threads", "1", "--ckpt", str(checkpoint), "--data", str(kitti_data),
+         "--calibration", str(kitti_data / "data_2d_raw"), "--no-write"],
+        capture_output=True, text=True, timeout=600, cwd=ROOT,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = {
+        line.split(" | ")[0].strip("| "): line for line in proc.stdout.splitlines() if line.startswith("| ")
+    }
+    for name in (
+        "PyTorch eager, before (NCHW, softmax expectation)",
+        "PyTorch eager, + bf16 autocast",
+        "ONNX Runtime float32, fused graph",
+        "ONNX Runtime int8 (QDQ, head float32)",
+        "lite: ONNX Runtime int8",
+    ):
+        fps = float(rows[name].split(" | ")[3])
+        assert fps > 0, rows[name]
+    scored = [line.split(" | ") for line in proc.stdout.splitlines() if line.startswith("| full | ")]
+    assert [r[1] for r in scored] == [
+        "PyTorch float32",
+        "PyTorch bf16",
+        "ONNX Runtime float32",
+        "ONNX Runtime int8",
+    ]
+    abs_rel = {r[1]: float(r[2]) for r in scored}
+    assert 0 < abs_rel["PyTorch float32"] < 2
+    assert abs_rel["ONNX Runtime float32"] == pytest.approx(abs_rel["PyTorch float32"], abs=2e-4)

@@ -22,6 +22,13 @@ EXIT_USAGE = 2
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
 
 
+def model_file_alias(argv: list[str]) -> list[str]:
+    """``model=FILE.onnx`` on the command line of ``predict.py`` and ``eval.py``, which choose no model
+    config group: Hydra reads ``model=`` as a choice from ``conf/model/`` wherever that group exists, so
+    their entry points pass it on as ``model_file=`` (the config key)."""
+    return ["model_file=" + a[len("model=") :] if a.startswith("model=") else a for a in argv]
+
+
 def run_command(command, cfg: DictConfig):
     """Run an entry point; an input error prints one line (``error: <file>: <what>``) and exits 2.
     ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead."""

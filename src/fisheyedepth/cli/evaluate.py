@@ -126,10 +126,10 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
     if runtime == "onnx":
-        if not cfg.get("model"):
+        if not cfg.get("model_file"):
             raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
-        model = OnnxRuntime(cfg.model, cfg.get("threads"))
-        experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model).stem, None
+        model = OnnxRuntime(cfg.model_file, cfg.get("threads"))
+        experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model_file).stem, None
     elif runtime == "torch":
         if not cfg.get("ckpt_path"):
             raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")

@@ -21,7 +21,7 @@ from ..inference import FramePrediction, PredictionWriter
 from ..module import FisheyeDepthModule
 from ..runtimes import OnnxRuntime, TorchRuntime
 from ..utils import atomic_write_text
-from . import free_path, run_command
+from . import free_path, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 
@@ -86,7 +86,8 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
 
 def make_runtime(cfg: DictConfig):
     """``runtime=torch`` (``ckpt_path``, ``precision``, ``device``, ``size``) or ``runtime=onnx`` (``model``:
-    an ``export.py`` file, which fixes the input size; ``threads``)."""
+    an ``export.py`` file, which fixes the input size; ``threads``). On the command line ``model=FILE``
+    (see :func:`~fisheyedepth.cli.model_file_alias`); in the config, ``model_file``."""
     runtime = str(cfg.get("runtime", "torch"))
     if runtime == "torch":
         if not cfg.get("ckpt_path"):
@@ -97,12 +98,14 @@ def make_runtime(cfg: DictConfig):
             module, tuple(size) if size else None, str(cfg.precision), cfg.get("device", "cpu")
         )
     if runtime == "onnx":
-        if not cfg.get("model"):
+        if not cfg.get("model_file"):
             raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
-        onnx = OnnxRuntime(cfg.model, cfg.get("threads"))
+        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"))
         size = cfg.get("size")
         if size and tuple(size) != tuple(onnx.input_size):
-            raise ValueError(f"size: {list(size)}, but {cfg.model} was exported at {list(onnx.input_size)}")
+            raise ValueError(
+                f"size: {list(size)}, but {cfg.model_file} was exported at {list(onnx.input_size)}"
+            )
         return onnx
     raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
 
@@ -117,8 +120,11 @@ def main() -> None:
     """Console script ``fisheyedepth-predict`` (the same as ``python predict.py``, from a source checkout:
     the configs live in its ``conf/``, found by absolute path since a relative one would be read as a
     Python module's)."""
+    import sys
+
     import hydra
 
+    sys.argv = model_file_alias(sys.argv)  # model=FILE.onnx (runtime=onnx)
     conf = Path(__file__).resolve().parents[3] / "conf"
     hydra.main(config_path=str(conf), config_name="predict", version_base="1.3")(
         lambda cfg: run_command(predict, cfg)

@@ -1,0 +1,142 @@
+#!/usr/bin/env python
+"""Streaming over a long video: ``predict.py`` end to end (decode, network, every output written) for a
+short and a long clip of the same frames, in each runtime; its fps and its peak resident memory, which
+must not grow with the video's length (BENCHMARKS.md "Streaming").
+
+Usage: python scripts/bench_streaming.py --ckpt CKPT [--frames 50 1000] [--size 384] [--threads 2]
+           [--calibration DIR] [--no-write]
+
+The clip repeats rendered frames of the synthetic default world (rendered on first use by ``make train``)
+resized to ``--size``; each runtime's network runs at ``--size`` too (``export.py size=``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+
+from _benchmarks import publish
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_streaming:start -->", "<!-- bench_streaming:end -->"
+WORLD = ROOT / "data" / "synthetic_kitti360_256_seed0_f200"
+
+
+def write_clip(path: Path, frames: int, size: int) -> None:
+    sources = sorted((WORLD / "data_2d_raw").glob("*/image_02/data_rgb/*.png"))[:40]
+    if not sources:
+        raise FileNotFoundError(
+            f"{WORLD}: no rendered frames; run `make train` (or fisheyedepth-synthetic) first"
+        )
+    images = [cv2.resize(cv2.imread(str(p)), (size, size), interpolation=cv2.INTER_LINEAR) for p in sources]
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (size, size))
+    for i in range(frames):
+        writer.write(images[i % len(images)])
+    writer.release()
+
+
+def peak_run(args: list[str], threads: int) -> tuple[float, dict]:
+    """Peak RSS (MB) of ``python predict.py ARGS`` and its summary.json."""
+    probe = (
+        "import resource, subprocess, sys;"
+        "r = subprocess.run([sys.executable, *sys.argv[1:]], capture_output=True, text=True);"
+        "sys.stderr.write(r.stderr[-3000:]);"
+        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
+    proc = subprocess.run(
+        [sys.executable, "-c", probe, str(ROOT / "predict.py"), *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+    )
+    if proc.returncode:
+        raise RuntimeError(proc.stderr)
+    out = next(a.split("=", 1)[1] for a in args if a.startswith("output="))
+    return int(proc.stdout.strip().splitlines()[-1]) / 1024.0, json.loads(
+        (Path(out) / "summary.json").read_text()
+    )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--ckpt", required=True)
+    parser.add_argument("--frames", nargs=2, type=int, default=[50, 1000])
+    parser.add_argument("--size", type=int, default=384)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--calibration", type=Path, default=WORLD / "data_2d_raw")
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args(argv)
+    calib = WORLD / "calibration" / "image_02.yaml"
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        size = f"[{args.size},{args.size}]"
+        for quantize in (None, "int8"):
+            extra = [f"quantize={quantize}", f"calibration={args.calibration}"] if quantize else []
+            name = f"{quantize or 'fp32'}.onnx"
+            subprocess.run(
+                [sys.executable, str(ROOT / "export.py"), f"ckpt_path={args.ckpt}", f"size={size}",
+                 f"output={tmp / name}", f"hydra.run.dir={tmp / ('export_' + name)}", *extra],
+                check=True, capture_output=True, cwd=ROOT,
+            )  # fmt: skip
+        runtimes = {
+            "PyTorch float32": [f"ckpt_path={args.ckpt}", f"size={size}"],
+            "PyTorch bf16": [f"ckpt_path={args.ckpt}", f"size={size}", "precision=bf16"],
+            "ONNX Runtime float32": ["runtime=onnx", f"model={tmp / 'fp32.onnx'}", f"threads={args.threads}"],
+            "ONNX Runtime int8": ["runtime=onnx", f"model={tmp / 'int8.onnx'}", f"threads={args.threads}"],
+        }
+        clips = {}
+        for n in args.frames:
+            clips[n] = tmp / f"clip{n}.avi"
+            write_clip(clips[n], n, args.size)
+        for label, options in runtimes.items():
+            peaks, fps = {}, {}
+            for n, clip in clips.items():
+                out = tmp / f"out_{label.replace(' ', '_')}_{n}"
+                run_args = [*options, f"input={clip}", f"camera={calib}", f"output={out}", "batch_size=1",
+                            f"hydra.run.dir={out}_hydra"]  # fmt: skip
+                peaks[n], summary = peak_run(run_args, args.threads)
+                fps[n] = summary["fps"]
+                for f in out.iterdir():  # outputs of 1,000 frames: several GB on a small disk
+                    f.unlink()
+            short, long = args.frames
+            rows.append(
+                f"| {label} | {fps[long]:.1f} | {peaks[short]:.0f} | {peaks[long]:.0f} | "
+                f"{peaks[long] - peaks[short]:+.0f} |"
+            )
+            print(rows[-1], flush=True)
+    short, long = args.frames
+    lines = [
+        START,
+        "## Streaming (`scripts/bench_streaming.py`)",
+        "",
+        f"Command: `python scripts/bench_streaming.py --ckpt CKPT --frames {short} {long} --size {args.size} "
+        f"--threads {args.threads}`  ",
+        f"{time.strftime('%Y-%m-%d')}; `predict.py` end to end on an MJPG clip at {args.size}x{args.size} "
+        "(decode, network at the same size, and every output of every frame written: distance .npy and "
+        "uint16 .png, colour .png), batch 1 as for a live camera. Peak RSS of the whole process.",
+        "",
+        f"| runtime | fps ({long} frames, with writing) | peak RSS, {short} frames (MB) | "
+        f"peak RSS, {long} frames (MB) | growth (MB) |",
+        "|---|---|---|---|---|",
+        *rows,
+        END,
+    ]
+    publish("\n".join(lines) + "\n", ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
