@@ -97,6 +97,7 @@ def test_int8_file_is_close_to_float32_and_scores_within_0_01(onnx_files, kitti_
     relative difference under its written tolerance (3 %), and abs_rel within 0.01 of float32."""
     fp32, int8 = onnx_files
     assert int8["quantize"] == "int8" and int8["parity"] == {"statistic": "median", "tolerance": 0.03}
+    assert int8["calibration"] == {"folder": str(kitti_data / "data_2d_raw"), "frames": 8}
     assert 0 < int8["median_relative_difference"] < 0.03
     assert OnnxRuntime(int8["path"]).quantize == "int8"
     scores = {}

@@ -53,7 +53,6 @@ class DistancePredictor:
             self.runtime = model
         else:
             self.runtime = TorchRuntime(model, input_size, precision, device)
-        self.device = torch.device(device)
         size = self.runtime.input_size or (camera.width, camera.height)
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera

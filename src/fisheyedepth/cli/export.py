@@ -115,6 +115,8 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         "base_focal": module.depth_net.base_focal,
         "checkpoint": str(cfg.ckpt_path),
     }
+    if quantize:
+        record["calibration"] = {"folder": str(cfg.calibration), "frames": len(calibration)}
     if run is not None:
         with torch.no_grad():
             ref, got = net(probe), run(probe)
