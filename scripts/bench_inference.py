@@ -17,7 +17,6 @@ Usage: python scripts/bench_inference.py [--size 384] [--threads 2] [--rounds 20
 from __future__ import annotations
 
 import argparse
-import io
 import os
 import platform
 import statistics
@@ -36,10 +35,8 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import (
     OnnxRuntime,
     TorchRuntime,
-    add_metadata,
-    onnx_metadata,
+    onnx_export,
     onnx_session,
-    quantize_int8,
 )
 
 from _benchmarks import publish
@@ -75,26 +72,6 @@ def old_path(module: FisheyeDepthModule) -> ExportableNet:
     net.expectation, net.channels_last = softmax_expectation, False
     net.to(memory_format=torch.contiguous_format)
     return ExportableNet(net).eval()
-
-
-def onnx_bytes(
-    net: ExportableNet, size: tuple[int, int], base_focal, quantize=None, calibration=None
-) -> bytes:
-    buffer = io.BytesIO()
-    torch.onnx.export(
-        net,
-        (torch.rand(1, 3, size[1], size[0]),),
-        buffer,
-        input_names=["image"],
-        output_names=["distance"],
-        dynamic_axes={"image": {0: "batch"}, "distance": {0: "batch"}},
-        opset_version=17,
-        dynamo=False,
-    )
-    data = buffer.getvalue()
-    if quantize:
-        data = quantize_int8(data, calibration)
-    return add_metadata(data, onnx_metadata(size, net.depth_scale, base_focal, quantize))
 
 
 def calibration_set(folder: Path | None, size: tuple[int, int], count: int = 32) -> list[np.ndarray]:
@@ -140,19 +117,19 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     feed = {"image": x.numpy()}
     lite = ExportableNet(TorchRuntime(load(args.lite_ckpt, lite=True)).module.depth_net).eval()
     sessions = {
-        "ONNX Runtime float32, before (softmax graph)": (onnx_bytes(old, size, focal), "today's export"),
+        "ONNX Runtime float32, before (softmax graph)": (onnx_export(old, size, focal), "today's export"),
         "ONNX Runtime float32, fused graph, basic graph optimisations": (
-            onnx_bytes(net, size, focal),
+            onnx_export(net, size, focal),
             "ORT's `ORT_ENABLE_BASIC` (no layout or conv-activation fusions)",
         ),
-        "ONNX Runtime float32, fused graph": (onnx_bytes(net, size, focal), "`export.py` + `runtime=onnx`"),
+        "ONNX Runtime float32, fused graph": (onnx_export(net, size, focal), "`export.py` + `runtime=onnx`"),
         "ONNX Runtime int8 (QDQ, head float32)": (
-            onnx_bytes(net, size, focal, "int8", calibration),
+            onnx_export(net, size, focal, "int8", calibration),
             "`export.py quantize=int8` + `runtime=onnx`",
         ),
-        "lite: ONNX Runtime float32": (onnx_bytes(lite, size, focal), "`model=fisheyedepth_lite`, exported"),
+        "lite: ONNX Runtime float32": (onnx_export(lite, size, focal), "`model=fisheyedepth_lite`, exported"),
         "lite: ONNX Runtime int8": (
-            onnx_bytes(lite, size, focal, "int8", calibration),
+            onnx_export(lite, size, focal, "int8", calibration),
             "`model=fisheyedepth_lite`, `quantize=int8`",
         ),
     }
@@ -188,7 +165,7 @@ def accuracy(ckpt: str, args, tmp: Path) -> dict[str, dict[str, float]]:
     paths["PyTorch bf16"] = TorchRuntime(load(ckpt), precision="bf16")
     for name, quantize in (("ONNX Runtime float32", None), ("ONNX Runtime int8", "int8")):
         path = tmp / f"{quantize or 'fp32'}.onnx"
-        path.write_bytes(onnx_bytes(net, size, module.depth_net.base_focal, quantize, calibration))
+        path.write_bytes(onnx_export(net, size, module.depth_net.base_focal, quantize, calibration))
         paths[name] = OnnxRuntime(path, args.threads)
     out = {}
     for name, runtime in paths.items():

@@ -17,6 +17,7 @@ on training images; the head's logits and the bin expectation stay float32).
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
 from collections.abc import Iterable
@@ -71,6 +72,30 @@ def onnx_metadata(
         META + "base_focal": "none" if base_focal is None else repr(float(base_focal)),
         META + "quantize": quantize or "none",
     }
+
+
+def onnx_export(
+    net, size: tuple[int, int], base_focal: float | None, quantize: str | None = None, calibration=None
+) -> bytes:
+    """An :class:`~fisheyedepth.inference.ExportableNet` at ``size`` (W, H) as ONNX bytes (opset 17, any
+    batch size), int8 with ``quantize="int8"`` (``calibration``: see :func:`quantize_int8`), with the
+    metadata of :func:`onnx_metadata`."""
+    buffer = io.BytesIO()
+    example = torch.rand(1, 3, size[1], size[0], generator=torch.Generator().manual_seed(0))
+    torch.onnx.export(
+        net,
+        (example,),
+        buffer,
+        input_names=["image"],
+        output_names=["distance"],
+        dynamic_axes={"image": {0: "batch"}, "distance": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    data = buffer.getvalue()
+    if quantize:
+        data = quantize_int8(data, calibration)
+    return add_metadata(data, onnx_metadata(size, net.depth_scale, base_focal, quantize))
 
 
 def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:

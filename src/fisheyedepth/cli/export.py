@@ -21,7 +21,7 @@ from ..cameras import PinholeCamera, load_camera
 from ..images import IMAGE_SUFFIXES, read_image
 from ..inference import DistancePredictor
 from ..module import FisheyeDepthModule
-from ..runtimes import add_metadata, onnx_metadata, onnx_session, quantize_int8
+from ..runtimes import onnx_export, onnx_session
 from ..utils import atomic_write_bytes, atomic_write_text
 
 EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
@@ -84,22 +84,11 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         run = lambda x: exported(x)  # noqa: E731
         data = buffer.getvalue()
     else:
-        torch.onnx.export(
-            net,
-            (example,),
-            buffer,
-            input_names=["image"],
-            output_names=["distance"],
-            dynamic_axes={"image": {0: "batch"}, "distance": {0: "batch"}},
-            opset_version=17,
-            dynamo=False,
-        )
-        data = buffer.getvalue()
+        calibration = None
         if quantize:
             calibration = calibration_images(cfg.calibration, size, int(cfg.calibration_frames))
-            data = quantize_int8(data, calibration)
             probe = torch.from_numpy(np.concatenate(calibration[1::2][:4]))  # real images, not noise
-        data = add_metadata(data, onnx_metadata(size, net.depth_scale, module.depth_net.base_focal, quantize))
+        data = onnx_export(net, size, module.depth_net.base_focal, quantize, calibration)
         try:
             session = onnx_session(data)
         except ImportError:
