@@ -8,7 +8,13 @@ from pathlib import Path
 import pytest
 import yaml
 
-from fisheyedepth.cameras import DoubleSphereCamera, KannalaBrandtCamera, MeiCamera, PinholeCamera
+from fisheyedepth.cameras import (
+    DoubleSphereCamera,
+    Fisheye624Camera,
+    KannalaBrandtCamera,
+    MeiCamera,
+    PinholeCamera,
+)
 from fisheyedepth.cameras.presets import tumvi_double_sphere, tumvi_kannala_brandt
 from fisheyedepth.data.kitti360 import KITTI360_MEI, kitti360_camera
 
@@ -24,6 +30,18 @@ def kitti02(tangential: bool = False) -> MeiCamera:
 
 def kitti03(tangential: bool = False) -> MeiCamera:
     return kitti360_camera(3, tangential)
+
+
+ARIA_SIDE_LEFT = [  # aria_gen2_rig/calib_slam_fisheye624.json, "slam-side-left"
+    244.78391135310176, 252.66232836491685, 256.6758625428585, 0.033700017499895374, -0.0356144764687204,
+    0.05016276920856296, -0.06365513840303465, 0.024101530347748173, -0.0028219261779819558,
+    -0.001007436351907263, -0.0013828990859600307, 0.0018403425685775804, 8.515338893522913e-05,
+    0.0009721496384546848, 0.0002693679794197647,
+]  # fmt: skip
+
+
+def aria_fisheye624():
+    return Fisheye624Camera.from_aria_params(ARIA_SIDE_LEFT, (512, 512))
 
 
 def all_cameras() -> dict[str, object]:
@@ -49,6 +67,25 @@ def all_cameras() -> dict[str, object]:
             k3=-0.0640892,
             k4=0.0113456,
         ),
+        # Aria Gen2 slam-side-left, factory calibration (its radial polynomial folds at 107.5 degrees)
+        "fisheye624_aria": aria_fisheye624(),
+        # stronger tangential and thin-prism terms, and a radial polynomial that folds at 123 degrees
+        "fisheye624_strong": Fisheye624Camera(
+            width=400,
+            height=360,
+            fx=120.0,
+            fy=121.5,
+            cx=201.3,
+            cy=178.6,
+            k0=0.02,
+            k1=-0.012,
+            p0=0.004,
+            p1=-0.003,
+            s0=0.002,
+            s1=-0.0004,
+            s2=-0.0015,
+            s3=0.0003,
+        ),  # fmt: skip
         "ds_tumvi": tumvi_double_sphere(),
         "ds_alpha_below_half": DoubleSphereCamera(
             width=400, height=300, fx=150.0, fy=151.0, cx=200.2, cy=149.7, xi=0.3, alpha=0.4

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -362,3 +363,88 @@ def test_impossible_size_names_the_key():
         PinholeCamera(width=0, height=10, fx=1.0, fy=1.0, cx=0.0, cy=0.0)
     with pytest.raises(ValueError, match="height"):
         PinholeCamera(width=10, height=2.5, fx=1.0, fy=1.0, cx=0.0, cy=0.0)
+
+
+# ------------------------------------------------------------------------------------------ Fisheye624
+def aria_formula(x, y, z, params):
+    """Aria's FisheyeRadTanThinPrism projection written out for one point in front (scalar floats)."""
+    f, cx, cy, *rest = params
+    k, (p0, p1), (s0, s1, s2, s3) = rest[:6], rest[6:8], rest[8:]
+    a, b = x / z, y / z
+    r = math.hypot(a, b)
+    th = math.atan(r)
+    radial = 1 + sum(ki * th ** (2 * i + 2) for i, ki in enumerate(k))
+    xr, yr = (radial * th / r * a, radial * th / r * b) if r > 0 else (0.0, 0.0)
+    rd2 = xr * xr + yr * yr
+    ud = xr + (2 * xr * xr + rd2) * p0 + 2 * xr * yr * p1 + s0 * rd2 + s1 * rd2 * rd2
+    vd = yr + (2 * yr * yr + rd2) * p1 + 2 * xr * yr * p0 + s2 * rd2 + s3 * rd2 * rd2
+    return f * ud + cx, f * vd + cy
+
+
+def test_fisheye624_matches_arias_formula_in_front_of_the_camera():
+    from conftest import ARIA_SIDE_LEFT, aria_fisheye624
+
+    cam = aria_fisheye624()
+    d = directions(math.radians(89.0), n=500)
+    uv, ok = cam.project(d * 3.7)
+    assert bool(ok.all())
+    expected = torch.tensor([aria_formula(*p.tolist(), ARIA_SIDE_LEFT) for p in d * 3.7], dtype=torch.float64)
+    assert (uv - expected).abs().max().item() < 1e-9
+
+
+def test_fisheye624_whole_image_round_trip_and_beyond_90_degrees():
+    """Every pixel of the real Aria camera: unproject, project back, to 1e-6 px; about 1 % of the
+    image (the corners, past the fold of the factory polynomial at 107.5 degrees) has no ray."""
+    from conftest import aria_fisheye624
+
+    cam = aria_fisheye624()
+    uv = pixel_grid(512, 512, dtype=torch.float64)
+    rays, valid = cam.unproject(uv)
+    back, valid2 = cam.project(rays)
+    incidence = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
+    assert 0.985 < valid.double().mean().item() < 0.995
+    assert bool(valid2[valid].all())
+    assert (back - uv).norm(dim=-1)[valid].max().item() < 1e-6
+    beyond = valid & (incidence > 90)
+    assert beyond.sum() > 5000 and incidence[valid].max().item() < 107.49  # a ring beyond 90 degrees
+    assert bool((rays[beyond][:, 2] < 0).all())  # behind the camera's plane, not folded in front
+    # a ray past the polynomial's fold has no pixel; a point behind it on the axis neither
+    behind = torch.tensor([[math.sin(math.radians(110)), 0.0, math.cos(math.radians(110))], [0, 0, -1.0]])
+    _, ok = cam.project(behind.double())
+    assert not bool(ok.any())
+    # at 100 degrees (Z < 0) the projection continues outwards, where Aria's atan(|ab|) would fold
+    ring = [
+        cam.project(torch.tensor([math.sin(t), 0.0, math.cos(t)], dtype=torch.float64)) for t in (1.5, 1.7)
+    ]
+    assert all(bool(ok) for _, ok in ring) and ring[1][0][0] > ring[0][0][0] > cam.cx
+
+
+def test_fisheye624_reads_arias_calibration_and_round_trips_through_yaml(realdata, tmp_path):
+    from fisheyedepth.cameras import CalibrationError, Fisheye624Camera, load_camera, save_camera
+
+    path = realdata / "aria_gen2_rig" / "calib_slam_fisheye624.json"
+    names = ("slam-front-left", "slam-front-right", "slam-side-left", "slam-side-right")
+    for name in names:
+        cam = Fisheye624Camera.from_aria(path, name)
+        assert (cam.width, cam.height) == (512, 512) and cam.fx == cam.fy and 240 < cam.fx < 250
+        saved = save_camera(cam, tmp_path / f"{name}.yaml")
+        assert load_camera(saved) == cam
+        assert 0.9 < cam.pixel_coverage() <= 1.0
+    from conftest import aria_fisheye624
+
+    assert Fisheye624Camera.from_aria(path, "slam-side-left") == aria_fisheye624()
+    with pytest.raises(
+        CalibrationError, match=r"key 'rgb'.*no such camera; the file has \['slam-front-left'"
+    ):
+        Fisheye624Camera.from_aria(path, "rgb")
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"cam": {"model": "CameraModelType.FISHEYE624", "params": [1, 2, 3], "size": [8, 8]}}')
+    with pytest.raises(CalibrationError, match=r"bad.json: key 'cam.params': expected 15 numbers"):
+        Fisheye624Camera.from_aria(bad, "cam")
+    bad.write_text('{"cam": {"model": "CameraModelType.KANNALA_BRANDT_K3", "params": [], "size": [8, 8]}}')
+    with pytest.raises(CalibrationError, match=r"key 'cam.model': .*is not a FISHEYE624 calibration"):
+        Fisheye624Camera.from_aria(bad, "cam")
+    params = [-5.0] + [1.0] * 14
+    bad.write_text(json.dumps({"cam": {"model": "FISHEYE624", "params": params, "size": [8, 8]}}))
+    with pytest.raises(CalibrationError, match=r"key 'cam.fx': focal length must be positive"):
+        Fisheye624Camera.from_aria(bad, "cam")

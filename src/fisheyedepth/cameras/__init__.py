@@ -5,6 +5,7 @@ See :mod:`fisheyedepth.cameras.base` for the conventions shared by every model.
 
 from .base import CAMERA_MODELS, CameraModel, CameraParameterError
 from .double_sphere import DoubleSphereCamera
+from .fisheye624 import Fisheye624Camera
 from .io import CalibrationError, camera_from_mapping, load_camera, load_yaml, opencv_yaml, save_camera
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
@@ -17,6 +18,7 @@ __all__ = [
     "CameraModel",
     "CameraParameterError",
     "DoubleSphereCamera",
+    "Fisheye624Camera",
     "KannalaBrandtCamera",
     "MeiCamera",
     "PinholeCamera",
