@@ -113,3 +113,115 @@ def test_aria_slam_left_warped_into_slam_right(realdata):
     assert scores[1.0] >= 0.55
     assert max(scores, key=scores.get) == 1.0, scores
     assert scores[1.0] - scores[0.8] > 0.03  # the depth really matters
+
+
+# ------------------------------------------------------------------ the real four-camera Aria Gen2 rig
+ARIA_CAMERAS = ("slam-front-left", "slam-front-right", "slam-side-left", "slam-side-right")
+
+
+@pytest.fixture(scope="module")
+def aria_rig(tmp_path_factory):
+    """``realdata/aria_gen2_rig`` converted into the rig layout once (scripts/aria_to_rig.py's function)."""
+    from fisheyedepth.data.aria import aria_to_rig
+
+    from conftest import realdata_dir
+
+    src = realdata_dir() / "aria_gen2_rig"
+    if not src.is_dir():
+        pytest.skip(f"real data not found at {src} (set FISHEYEDEPTH_REALDATA)")
+    out = tmp_path_factory.mktemp("aria") / "rig"
+    summary = aria_to_rig(src, out)
+    return src, out, summary
+
+
+def aria_batch(root, size=128):
+    """One target per camera (the middle frame) with its two neighbours, through the rig data module.
+    The head-mounted rig moves 1.3 cm per frame, so ``min_translation`` comes down from 3 cm to 5 mm."""
+    from fisheyedepth.data import FisheyeDataModule, collate
+
+    dm = FisheyeDataModule(
+        root, "rig", {"train": "all"}, size=(size, size), batch_size=4, num_workers=0, augment=None,
+        cache_dir=str(root.parent / "cache"), min_translation=0.005,
+    )  # fmt: skip
+    dataset = dm.dataloader("train").dataset
+    assert len(dataset) == 4 * 7  # 9 frames per camera, the first and the last have one neighbour only
+    return collate([dataset[i] for i in (3, 10, 17, 24)])
+
+
+def test_aria_rig_converts_with_each_cameras_own_model_extrinsic_and_poses(aria_rig):
+    from fisheyedepth.cameras import Fisheye624Camera
+    from fisheyedepth.data.layouts import RigLayout
+
+    src, root, summary = aria_rig
+    assert summary["images"] == dict.fromkeys(ARIA_CAMERAS, 9) and summary["poses"] == 237
+    layout = RigLayout(root)
+    calib = json.loads((src / "calib_slam_fisheye624.json").read_text())
+    assert sorted(layout.cameras) == list(ARIA_CAMERAS)
+    for name, spec in layout.cameras.items():
+        assert spec.camera == Fisheye624Camera.from_aria(src / "calib_slam_fisheye624.json", name)
+        assert np.allclose(spec.cam_to_body, np.array(calib[name]["T_device_camera"]), atol=1e-12)
+        frames = layout.frames("seq0", name)
+        stamps = sorted(int(p.name.split("_")[1].split(".")[0]) for p in (src / name).glob("*.png"))
+        assert [f.key for f in frames] == stamps  # every image kept: all inside the pose stream
+    # the poses at the image stamps lie on the odometry's path: between the two bracketing rows
+    rows = np.loadtxt(src / "vio_high_frequency_T_odometry_device.csv", delimiter=",", skiprows=1)
+    times = rows[:, 0] * 1000
+    for f in layout.frames("seq0", "slam-side-left"):
+        i = int(np.searchsorted(times, f.key)) - 1
+        a, b = rows[i, 1:4], rows[i + 1, 1:4]
+        u = (f.key - times[i]) / (times[i + 1] - times[i])
+        assert np.allclose(f.pose[:3, 3], a + u * (b - a), atol=1e-9)
+    with pytest.raises(FileExistsError, match="rig.yaml exists; pass overwrite=True"):
+        from fisheyedepth.data.aria import aria_to_rig
+
+        aria_to_rig(src, root)
+
+
+def test_real_odometry_explains_the_aria_frames_in_every_camera(aria_rig):
+    """Warping each camera's neighbour frame into it with the odometry's relative pose and a plausible
+    constant distance (2 m, indoors) lowers the photometric error against the identity pose by at
+    least a fifth in all four cameras; at 0.5 m the same poses explain the frames worse (the poses'
+    translation is metric)."""
+    from fisheyedepth.losses.photometric import photometric_error
+
+    batch = aria_batch(aria_rig[1])
+    assert batch.camera_name == list(ARIA_CAMERAS)
+    assert [c.model_name for c in batch.camera] == ["fisheye624"] * 4
+    rays, has_ray = RayCache().batch(batch.camera, batch.image.device, batch.image.dtype)
+
+    def error(distance, poses):
+        d = torch.full((4, 1, 128, 128), distance)
+        warp = warp_to_source(rays, has_ray, d, poses, batch.camera)
+        err = photometric_error(sample(batch.sources[:, 0], warp.grid), batch.image)
+        valid = warp.valid & has_ray
+        return torch.stack([err[i][valid[i]].mean() for i in range(4)])
+
+    identity = error(2.0, torch.eye(4).expand(4, 4, 4))
+    real = error(2.0, batch.poses[:, 0])
+    near = error(0.5, batch.poses[:, 0])
+    assert bool((real < 0.8 * identity).all()), (real, identity)
+    assert bool((near > real).all()), (near, real)
+
+
+def test_a_short_finetune_on_the_real_rig_lowers_its_photometric_loss(aria_rig):
+    """Fifteen steps of the full model on one batch of the four real cameras (each with its own
+    Fisheye624 model, extrinsic and interpolated poses): the self-supervised loss falls, each five
+    steps below the five before. Slowly: with 1.3 cm between frames the warp depends little on the
+    distance (6 % in fifteen steps, measured)."""
+    from fisheyedepth.module import FisheyeDepthModule
+
+    torch.manual_seed(0)
+    batch = aria_batch(aria_rig[1], size=96)
+    module = FisheyeDepthModule(scales=(0, 1), input_size=(96, 96), base_focal=45.0)
+    optimiser = torch.optim.Adam(module.parameters(), 1e-3)
+    losses = []
+    for _ in range(15):
+        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        losses.append(float(loss))
+    assert all(math.isfinite(x) for x in losses)
+    assert losses[-1] < 0.95 * losses[0] and np.mean(losses[-5:]) < np.mean(losses[5:10]) < np.mean(
+        losses[:5]
+    ), losses
