@@ -225,3 +225,24 @@ def test_a_short_finetune_on_the_real_rig_lowers_its_photometric_loss(aria_rig):
     assert losses[-1] < 0.95 * losses[0] and np.mean(losses[-5:]) < np.mean(losses[5:10]) < np.mean(
         losses[:5]
     ), losses
+
+
+def test_train_py_trains_on_the_real_rig(aria_rig, tmp_path):
+    """``train.py data=rig`` on the converted Aria rig: its four cameras load and one step trains."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run(
+        [sys.executable, str(root / "train.py"), "data=rig", "data.datamodule.min_translation=0.005",
+         "data.datamodule.size=[64,64]", "data.datamodule.num_workers=0", "data.datamodule.batch_size=4",
+         "trainer.fast_dev_run=true", "model.compile_kernels=false", "logger=none",
+         f"paths.data_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"],
+        capture_output=True, text=True, timeout=600, cwd=root,
+        env={**os.environ, "RIG_ROOT": str(aria_rig[1])},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "28 samples kept" in proc.stdout + proc.stderr
+    assert "`Trainer.fit` stopped: `max_steps=1` reached" in proc.stdout + proc.stderr

@@ -6,9 +6,10 @@ An Aria export as in ``realdata/aria_gen2_rig``:
     vio_high_frequency_T_odometry_device.csv   tracking_timestamp_us, tx, ty, tz, qx, qy, qz, qw
     <camera>/NN_<capture_ns>.png               images, capture time in the device clock (ns)
 
-becomes ``rig.yaml`` (every camera of the calibration that has an image folder: its Fisheye624 model and
-``cam_to_body = T_device_camera``, the body being Aria's device frame), ``<sequence>/poses.txt`` (the
-odometry poses, device -> odometry, at nanosecond stamps of the same clock) and
+becomes ``rig.yaml`` (every camera of the calibration that has an image folder: its Fisheye624 model in
+``calibration/<camera>.yaml`` and ``cam_to_body = T_device_camera``, the body being Aria's device
+frame), ``<sequence>/poses.txt`` (the odometry poses, device -> odometry, at nanosecond stamps of the
+same clock) and
 ``<sequence>/images/<camera>/<capture_ns>.png``. The rig layout interpolates the poses to each image.
 """
 
@@ -25,7 +26,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CalibrationError, Fisheye624Camera
+from ..cameras import CalibrationError, Fisheye624Camera, save_camera
 from ..utils import atomic_write_bytes, atomic_write_text
 
 CALIBRATION = "calib_slam_fisheye624.json"
@@ -72,7 +73,7 @@ def aria_to_rig(
     names = sorted(n for n in calibration if (src / n).is_dir())
     if not names:
         raise FileNotFoundError(f"{src}: no image folder named like a camera of {calib_path.name}")
-    cameras, images = [], {}
+    cameras, images, calibrations = [], {}, {}
     for name in names:
         camera = Fisheye624Camera.from_aria(calib_path, name)
         T = calibration[name].get("T_device_camera")
@@ -82,8 +83,13 @@ def aria_to_rig(
         if not files:
             raise FileNotFoundError(f"{src / name}: no images named NN_<capture_ns>.png")
         images[name] = files
+        calibrations[name] = camera
         cameras.append(
-            {"name": name, "model": camera.to_dict(), "cam_to_body": np.asarray(T, float).tolist()}
+            {
+                "name": name,
+                "calibration": f"calibration/{name}.yaml",
+                "cam_to_body": np.asarray(T, float).tolist(),
+            }
         )
     poses = read_aria_poses(src / POSES)
     rig = {"cameras": cameras, "source": f"Aria export {src} (fisheyedepth.data.aria)"}
@@ -102,6 +108,8 @@ def aria_to_rig(
                 shutil.copyfile(path, tmp)
                 os.replace(tmp, target)
                 bar.update()
+    for name, camera in calibrations.items():  # the project's YAML: predict.py camera=... reads it too
+        save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)
     atomic_write_text(
         out / sequence / "poses.txt",
         "# timestamp_ns tx ty tz qx qy qz qw (device -> odometry)\n" + "\n".join(lines) + "\n",
