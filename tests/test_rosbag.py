@@ -1,0 +1,251 @@
+"""ROS bag import: small ROS 1 and ROS 2 (sqlite3, mcap) bags written with ``rosbags`` itself, from known
+poses, calibration, extrinsics and images; the imported rig must reproduce every one of them."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from fisheyedepth.cameras import KannalaBrandtCamera, PinholeCamera, load_camera
+from fisheyedepth.data.layouts import RigLayout
+from fisheyedepth.geometry import make_pose
+
+from conftest import TRAIN_SEQ
+
+rosbags = pytest.importorskip("rosbags")
+
+T0 = 1_700_000_000_000_000_000  # ns
+KB = {
+    "fx": 110.0,
+    "fy": 111.0,
+    "cx": 127.2,
+    "cy": 128.9,
+    "k1": 0.01,
+    "k2": -0.003,
+    "k3": 0.0005,
+    "k4": -0.0001,
+}
+# body -> imu -> cam_left (a chain of two static transforms), body -> cam_right
+T_BODY_IMU = make_pose(torch.eye(3, dtype=torch.float64), torch.tensor([0.1, 0.0, 1.2])).numpy()
+R_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera z forward = body x
+T_IMU_LEFT = make_pose(torch.from_numpy(R_CAM), torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64)).numpy()
+T_BODY_RIGHT = make_pose(torch.from_numpy(R_CAM), torch.tensor([0.1, -0.3, 1.2], dtype=torch.float64)).numpy()
+
+
+def body_pose(t_ns: int) -> np.ndarray:
+    """The known trajectory: 0.5 m/s along x and 0.1 rad/s of yaw (exact under linear + slerp)."""
+    t = (t_ns - T0) * 1e-9
+    yaw = 0.1 * t
+    R = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1.0]])
+    return make_pose(torch.from_numpy(R), torch.tensor([0.5 * t, 0.0, 0.0], dtype=torch.float64)).numpy()
+
+
+def quaternion_xyzw(R: np.ndarray) -> list[float]:
+    """Rotation matrix to (x, y, z, w), for yaw-only and the fixed camera rotation used here."""
+    w = math.sqrt(max(0.0, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
+    if w > 1e-6:
+        return [
+            (R[2, 1] - R[1, 2]) / (4 * w),
+            (R[0, 2] - R[2, 0]) / (4 * w),
+            (R[1, 0] - R[0, 1]) / (4 * w),
+            w,
+        ]
+    x = math.sqrt(max(0.0, 1 + R[0, 0] - R[1, 1] - R[2, 2])) / 2
+    return [x, (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x), (R[2, 1] - R[1, 2]) / (4 * x)]
+
+
+def write_bag(path: Path, kind: str, frames: list[np.ndarray]) -> None:
+    """Two cameras (rgb8 Image and PNG CompressedImage, 10 Hz from T0), their CameraInfo, /tf_static,
+    and odometry at 20 Hz from T0 + 50 ms to T0 + 450 ms (the first and last images fall outside)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ros1 = kind == "ros1"
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if "tf2_msgs/msg/TFMessage" not in ts.types:
+        ts.register(
+            get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+        )
+    T = ts.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+
+    def header(stamp: int, frame: str):
+        time = Time(sec=stamp // 1_000_000_000, nanosec=stamp % 1_000_000_000)
+        return Header(seq=0, stamp=time, frame_id=frame) if ros1 else Header(stamp=time, frame_id=frame)
+
+    def transform(M: np.ndarray):
+        q = quaternion_xyzw(M[:3, :3])
+        return T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=M[0, 3], y=M[1, 3], z=M[2, 3]),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+
+    def stamped(M, parent, child, stamp):
+        return T["geometry_msgs/msg/TransformStamped"](
+            header=header(stamp, parent), child_frame_id=child, transform=transform(M)
+        )
+
+    def info(frame, stamp, model, d, k):
+        fields = {"D": np.array(d, float), "K": np.array(k, float), "R": np.eye(3).ravel(), "P": np.zeros(12)}
+        if not ros1:
+            fields = {key.lower(): value for key, value in fields.items()}
+        roi = T["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
+        return T["sensor_msgs/msg/CameraInfo"](
+            header=header(stamp, frame), height=256, width=256, distortion_model=model,
+            binning_x=0, binning_y=0, roi=roi, **fields,
+        )  # fmt: skip
+
+    messages = []  # (topic, msgtype, stamp, message)
+    static = [stamped(T_BODY_IMU, "base_link", "imu", T0), stamped(T_IMU_LEFT, "imu", "cam_left", T0),
+              stamped(T_BODY_RIGHT, "base_link", "cam_right", T0)]  # fmt: skip
+    messages.append(
+        ("/tf_static", "tf2_msgs/msg/TFMessage", T0, T["tf2_msgs/msg/TFMessage"](transforms=static))
+    )
+    k_left = [KB["fx"], 0, KB["cx"], 0, KB["fy"], KB["cy"], 0, 0, 1]
+    d_left = [KB["k1"], KB["k2"], KB["k3"], KB["k4"]]
+    k_right = [90.0, 0, 127.5, 0, 90.0, 127.5, 0, 0, 1]
+    info_type = "sensor_msgs/msg/CameraInfo"
+    messages.append(("/left/camera_info", info_type, T0, info("cam_left", T0, "equidistant", d_left, k_left)))
+    messages.append(
+        ("/right/camera_info", info_type, T0, info("cam_right", T0, "plumb_bob", [0.0] * 5, k_right))
+    )
+    for i, bgr in enumerate(frames):
+        stamp = T0 + i * 100_000_000
+        rgb = np.ascontiguousarray(bgr[..., ::-1])
+        image = T["sensor_msgs/msg/Image"](
+            header=header(stamp, "cam_left"), height=256, width=256, encoding="rgb8", is_bigendian=0,
+            step=256 * 3, data=rgb.ravel(),
+        )  # fmt: skip
+        messages.append(("/left/image_raw", "sensor_msgs/msg/Image", stamp, image))
+        png = np.frombuffer(cv2.imencode(".png", bgr)[1].tobytes(), np.uint8)
+        compressed = T["sensor_msgs/msg/CompressedImage"](
+            header=header(stamp, "cam_right"), format="png", data=png
+        )
+        messages.append(("/right/image_raw/compressed", "sensor_msgs/msg/CompressedImage", stamp, compressed))
+    for j in range(9):
+        stamp = T0 + 50_000_000 + j * 50_000_000
+        M = body_pose(stamp)
+        q = quaternion_xyzw(M[:3, :3])
+        pose = T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=M[0, 3], y=M[1, 3], z=M[2, 3]),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        )
+        cov = np.zeros(36)
+        odom = T["nav_msgs/msg/Odometry"](
+            header=header(stamp, "odom"), child_frame_id="base_link",
+            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov),
+            twist=T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](
+                    linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                    angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                ),
+                covariance=cov,
+            ),
+        )  # fmt: skip
+        messages.append(("/odom", "nav_msgs/msg/Odometry", stamp, odom))
+        tf = T["tf2_msgs/msg/TFMessage"](transforms=[stamped(M, "odom", "base_link", stamp)])
+        messages.append(("/tf", "tf2_msgs/msg/TFMessage", stamp, tf))
+    messages.sort(key=lambda m: m[2])
+    if ros1:
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), ts.serialize_ros1
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        plugin = StoragePlugin.MCAP if kind == "ros2-mcap" else StoragePlugin.SQLITE3
+        writer, serialize = Writer(path, version=9, storage_plugin=plugin), ts.serialize_cdr
+    with writer:
+        connections = {}
+        for topic, msgtype, stamp, msg in messages:
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=ts)
+            writer.write(connections[topic], stamp, serialize(msg, msgtype))
+
+
+@pytest.fixture(scope="module")
+def frames(kitti_data):
+    src = sorted((kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb").glob("*.png"))[:6]
+    return [cv2.imread(str(p)) for p in src]
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2-sqlite3", "ros2-mcap"])
+@pytest.mark.parametrize("poses", ["odometry", "tf"])
+def test_an_imported_bag_reproduces_poses_stamps_calibration_and_pixels(kind, poses, frames, tmp_path):
+    from fisheyedepth.data.rosbag import import_rosbag
+
+    bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
+    write_bag(bag, kind, frames)
+    out = tmp_path / "rig"
+    source = {"odometry": "/odom"} if poses == "odometry" else {"tf_poses": ("odom", "base_link")}
+    summary = import_rosbag(
+        bag, out, {"left": "/left/image_raw", "right": "/right/image_raw/compressed"}, **source
+    )
+    # images at T0 and T0 + 500 ms lie outside the poses (T0 + 50 ms .. T0 + 450 ms): dropped, counted
+    assert summary["images"] == {"left": 4, "right": 4}
+    assert summary["outside_poses"] == {"left": 2, "right": 2} and summary["poses"] == 9
+    layout = RigLayout(out)
+    assert load_camera(out / "calibration" / "left.yaml") == KannalaBrandtCamera(width=256, height=256, **KB)
+    assert layout.cameras["right"].camera == PinholeCamera(
+        width=256, height=256, fx=90.0, fy=90.0, cx=127.5, cy=127.5
+    )
+    assert np.allclose(layout.cameras["left"].cam_to_body, T_BODY_IMU @ T_IMU_LEFT, atol=1e-12)
+    assert np.allclose(layout.cameras["right"].cam_to_body, T_BODY_RIGHT, atol=1e-12)
+    for name in ("left", "right"):
+        kept = layout.frames("seq0", name)
+        assert [f.key for f in kept] == [T0 + i * 100_000_000 for i in range(1, 5)]
+        for i, frame in enumerate(kept, start=1):
+            assert np.allclose(frame.pose, body_pose(frame.key), atol=1e-9)  # interpolated at the stamp
+            pixels = cv2.imread(str(layout.image("seq0", name, frame)))
+            assert np.array_equal(pixels, frames[i])  # lossless, in BGR order, for both encodings
+    with pytest.raises(FileExistsError, match="rig.yaml exists"):
+        import_rosbag(bag, out, {"left": "/left/image_raw"}, odometry="/odom")
+
+
+def test_unsupported_input_is_named(frames, tmp_path):
+    from rosbags.typesys import Stores, get_typestore
+
+    from fisheyedepth.data.rosbag import RosbagError, camera_from_info, import_rosbag, main
+
+    bag = tmp_path / "run"
+    write_bag(bag, "ros2-sqlite3", frames)
+    with pytest.raises(RosbagError, match=r"topic /front/image_raw is not in the bag"):
+        import_rosbag(bag, tmp_path / "a", {"front": "/front/image_raw"}, odometry="/odom")
+    with pytest.raises(ValueError, match="exactly one of odometry=TOPIC or tf_poses"):
+        import_rosbag(bag, tmp_path / "b", {"left": "/left/image_raw"})
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    zero = T["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    info = T["sensor_msgs/msg/CameraInfo"](
+        header=T["std_msgs/msg/Header"](stamp=zero, frame_id="c"), height=8, width=8,
+        distortion_model="plumb_bob", d=np.array([0.1, 0, 0, 0, 0.0]), k=np.eye(3).ravel(),
+        r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0, roi=roi,
+    )  # fmt: skip
+    with pytest.raises(
+        RosbagError, match=r"/cam/camera_info: distortion model 'plumb_bob' .* is not supported"
+    ):
+        camera_from_info(info, "/cam/camera_info")
+    # the console script: one error line, exit 2; a good run prints the summary
+    assert main([str(bag), "--out", str(tmp_path / "c"), "--camera", "x=/nope", "--odometry", "/odom"]) == 2
+    assert (
+        main(
+            [
+                str(bag),
+                "--out",
+                str(tmp_path / "d"),
+                "--camera",
+                "left=/left/image_raw",
+                "--odometry",
+                "/odom",
+            ]
+        )
+        == 0
+    )
+    assert (tmp_path / "d" / "rig.yaml").is_file()
