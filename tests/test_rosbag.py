@@ -249,3 +249,41 @@ def test_unsupported_input_is_named(frames, tmp_path):
         == 0
     )
     assert (tmp_path / "d" / "rig.yaml").is_file()
+
+
+def test_given_calibration_and_extrinsics_replace_the_bags(frames, tmp_path):
+    """``--calibration NAME=FILE`` and ``--extrinsics FILE.yaml`` take the place of CameraInfo and
+    /tf_static (a bag without them, or with wrong ones)."""
+    import yaml
+
+    from fisheyedepth.cameras import save_camera
+    from fisheyedepth.data.rosbag import main
+
+    bag = tmp_path / "run.bag"
+    write_bag(bag, "ros1", frames)
+    mine = KannalaBrandtCamera(width=256, height=256, fx=99.0, fy=98.0, cx=128.0, cy=127.0, k1=0.02)
+    save_camera(mine, tmp_path / "mine.yaml")
+    given = np.eye(4)
+    given[:3, 3] = [0.5, 0.25, 1.0]
+    (tmp_path / "extrinsics.yaml").write_text(yaml.safe_dump({"left": given.tolist()}))
+    args = [
+        str(bag),
+        "--out",
+        str(tmp_path / "rig"),
+        "--camera",
+        "left=/left/image_raw",
+        "--odometry",
+        "/odom",
+    ]
+    args += [
+        "--calibration",
+        f"left={tmp_path / 'mine.yaml'}",
+        "--extrinsics",
+        str(tmp_path / "extrinsics.yaml"),
+    ]
+    assert main(args) == 0
+    layout = RigLayout(tmp_path / "rig")
+    assert layout.cameras["left"].camera == mine
+    assert np.allclose(layout.cameras["left"].cam_to_body, given)
+    assert main(args) == 2  # the second run would overwrite: refused
+    assert main([*args, "--overwrite"]) == 0

@@ -230,6 +230,42 @@ def odd_poly_monotone_limit(coeffs: tuple[float, ...], cap: float = math.inf) ->
     return min(limit, cap)
 
 
+def theta_poly_project(
+    points: Tensor, coeffs: tuple[float, ...], theta_max: float
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The radial step of the models that distort the incidence angle (Kannala-Brandt, Fisheye624):
+    ``theta = atan2(rho, Z)``, ``theta_d = g(theta)`` (:func:`odd_poly`), and ``(x_r, y_r) = theta_d (X, Y) /
+    rho``, with its limit ``(X, Y) / Z`` on the axis. Returns ``(x_r, y_r, valid)``; ``valid`` is False
+    beyond ``theta_max``, at the origin and on the axis behind the camera."""
+    X, Y, Z = split_xyz(points)
+    tiny = torch.finfo(points.dtype).tiny ** 0.5
+    rho = safe_norm(points[..., :2])
+    theta = torch.atan2(rho, Z)
+    theta_d, _ = odd_poly(theta, coeffs)
+    near_axis = rho <= tiny
+    scale = torch.where(
+        near_axis, 1.0 / finite_where(Z > 0, Z, 1.0), theta_d / finite_where(~near_axis, rho, 1.0)
+    )
+    valid = (theta < theta_max) & (safe_norm(points) > tiny) & ~(near_axis & (Z <= 0))
+    return scale * X, scale * Y, valid
+
+
+def theta_poly_rays(
+    xr: Tensor, yr: Tensor, coeffs: tuple[float, ...], theta_max: float
+) -> tuple[Tensor, Tensor]:
+    """The inverse of :func:`theta_poly_project`: unit rays ``[..., 3]`` of ``(x_r, y_r)`` (``theta`` by
+    :func:`solve_odd_poly` from ``theta_d = |(x_r, y_r)|``), the optical axis where invalid."""
+    theta_d = torch.sqrt(xr * xr + yr * yr)
+    theta, valid = solve_odd_poly(theta_d, coeffs, theta_max)
+    positive = theta_d > 0
+    s = torch.where(positive, torch.sin(theta) / finite_where(positive, theta_d, 1.0), torch.ones_like(theta))
+    rays = torch.stack((s * xr, s * yr, torch.cos(theta)), dim=-1)
+    rays = rays / safe_norm(rays, keepdim=True)
+    axis = torch.zeros_like(rays)
+    axis[..., 2] = 1
+    return torch.where(valid[..., None], rays, axis), valid
+
+
 def solve_odd_poly(
     target: Tensor, coeffs: tuple[float, ...], r_max: float, max_iter: int = 60
 ) -> tuple[Tensor, Tensor]:

@@ -31,13 +31,11 @@ from .base import (
     CameraModel,
     CameraParameterError,
     finite_where,
-    odd_poly,
     odd_poly_monotone_limit,
     register_model,
-    safe_norm,
-    solve_odd_poly,
     split_uv,
-    split_xyz,
+    theta_poly_project,
+    theta_poly_rays,
 )
 
 ARIA_MODEL = "FISHEYE624"
@@ -115,18 +113,8 @@ class Fisheye624Camera(CameraModel):
 
     # ------------------------------------------------------------------ the interface
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        X, Y, Z = split_xyz(points)
-        tiny = torch.finfo(points.dtype).tiny ** 0.5
-        rho = safe_norm(points[..., :2])
-        theta = torch.atan2(rho, Z)
-        theta_d, _ = odd_poly(theta, self._radial)
-        near_axis = rho <= tiny
-        # theta_d / rho, with its limit 1/Z on the axis
-        scale = torch.where(
-            near_axis, 1.0 / finite_where(Z > 0, Z, 1.0), theta_d / finite_where(~near_axis, rho, 1.0)
-        )
-        ud, vd, a, b, c, d = self._distort(scale * X, scale * Y)
-        valid = (theta < self._theta_max) & (safe_norm(points) > tiny) & ~(near_axis & (Z <= 0))
+        xr, yr, valid = theta_poly_project(points, self._radial, self._theta_max)
+        ud, vd, a, b, c, d = self._distort(xr, yr)
         valid = valid & (a * d - b * c > 0) & torch.isfinite(ud) & torch.isfinite(vd)
         uv = torch.stack((self.fx * ud + self.cx, self.fy * vd + self.cy), dim=-1)
         return torch.where(valid[..., None], uv, torch.zeros_like(uv)), valid
@@ -134,19 +122,10 @@ class Fisheye624Camera(CameraModel):
     def unproject(self, uv: Tensor) -> tuple[Tensor, Tensor]:
         u, v = split_uv(uv)
         xr, yr, converged = self._undistort((u - self.cx) / self.fx, (v - self.cy) / self.fy)
+        # where Newton did not converge, (0, 0): the optical axis, as for every pixel without a ray
         xr, yr = finite_where(converged, xr, 0.0), finite_where(converged, yr, 0.0)
-        theta_d = torch.sqrt(xr * xr + yr * yr)
-        theta, ok = solve_odd_poly(theta_d, self._radial, self._theta_max)
-        valid = converged & ok & (theta < self._theta_max)
-        positive = theta_d > 0
-        s = torch.where(
-            positive, torch.sin(theta) / finite_where(positive, theta_d, 1.0), torch.ones_like(theta)
-        )
-        rays = torch.stack((s * xr, s * yr, torch.cos(theta)), dim=-1)
-        rays = rays / safe_norm(rays, keepdim=True)
-        axis = torch.zeros_like(rays)
-        axis[..., 2] = 1
-        return torch.where(valid[..., None], rays, axis), valid
+        rays, valid = theta_poly_rays(xr, yr, self._radial, self._theta_max)
+        return rays, converged & valid
 
     # ------------------------------------------------------------------ Aria's calibration files
     @classmethod

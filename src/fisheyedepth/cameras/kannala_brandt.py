@@ -18,14 +18,11 @@ from torch import Tensor
 
 from .base import (
     CameraModel,
-    finite_where,
-    odd_poly,
     odd_poly_monotone_limit,
     register_model,
-    safe_norm,
-    solve_odd_poly,
     split_uv,
-    split_xyz,
+    theta_poly_project,
+    theta_poly_rays,
 )
 
 
@@ -56,31 +53,12 @@ class KannalaBrandtCamera(CameraModel):
         return self._theta_max
 
     def project(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        X, Y, Z = split_xyz(points)
-        tiny = torch.finfo(points.dtype).tiny ** 0.5
-        rho = safe_norm(points[..., :2])
-        theta = torch.atan2(rho, Z)
-        theta_d, _ = odd_poly(theta, self._coeffs)
-        near_axis = rho <= tiny
-        # theta_d / rho, with its limit 1/Z (times the distortion factor, 1 on the axis) where rho -> 0
-        scale = torch.where(
-            near_axis, 1.0 / finite_where(Z > 0, Z, 1.0), theta_d / finite_where(~near_axis, rho, 1.0)
-        )
-        valid = (theta < self._theta_max) & (safe_norm(points) > tiny) & ~(near_axis & (Z <= 0))
-        uv = torch.stack((self.fx * scale * X + self.cx, self.fy * scale * Y + self.cy), dim=-1)
+        xr, yr, valid = theta_poly_project(points, self._coeffs, self._theta_max)
+        uv = torch.stack((self.fx * xr + self.cx, self.fy * yr + self.cy), dim=-1)
         return torch.where(valid[..., None], uv, torch.zeros_like(uv)), valid
 
     def unproject(self, uv: Tensor) -> tuple[Tensor, Tensor]:
         u, v = split_uv(uv)
-        mx, my = (u - self.cx) / self.fx, (v - self.cy) / self.fy
-        theta_d = torch.sqrt(mx * mx + my * my)
-        theta, valid = solve_odd_poly(theta_d, self._coeffs, self._theta_max)
-        positive = theta_d > 0
-        s = torch.where(
-            positive, torch.sin(theta) / finite_where(positive, theta_d, 1.0), torch.ones_like(theta)
+        return theta_poly_rays(
+            (u - self.cx) / self.fx, (v - self.cy) / self.fy, self._coeffs, self._theta_max
         )
-        rays = torch.stack((s * mx, s * my, torch.cos(theta)), dim=-1)
-        rays = rays / safe_norm(rays, keepdim=True)
-        axis = torch.zeros_like(rays)
-        axis[..., 2] = 1
-        return torch.where(valid[..., None], rays, axis), valid
