@@ -418,3 +418,26 @@ def test_collate_builds_a_typed_batch_with_every_optional_part_resolved(kitti_da
     assert (
         isinstance(skipped, SkippedBatch) and skipped.skipped_frames == ["a: truncated"] and len(skipped) == 0
     )
+
+
+def test_a_kitti360_camera_without_a_body_mask_is_warned_once_by_name(kitti_data, tmp_path, caplog):
+    """KITTI-360 ships no body masks: the layout says which camera has none and which file it expected,
+    once per file and process, and treats every pixel as usable."""
+    import logging
+
+    from fisheyedepth.data import Kitti360Layout
+
+    root = tmp_path / "k"
+    shutil.copytree(kitti_data / "calibration", root / "calibration")
+    (root / "calibration" / "body_mask_image_03.png").unlink()
+    with caplog.at_level(logging.WARNING, logger="fisheyedepth.data.kitti360.layout"):
+        layout = Kitti360Layout(root, ["image_02", "image_03"])
+        Kitti360Layout(root, ["image_02", "image_03"])
+    warnings = [r.getMessage() for r in caplog.records if "no body mask" in r.getMessage()]
+    expected = root / "calibration" / "body_mask_image_03.png"
+    assert warnings == [
+        f"camera image_03 has no body mask (expected {expected}): every pixel counts as usable, the "
+        "vehicle's body included; write that PNG (255 = usable) or pass "
+        "data.datamodule.masks={image_03: FILE}"
+    ]
+    assert layout.cameras["image_03"].mask is None and layout.cameras["image_02"].mask is not None

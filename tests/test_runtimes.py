@@ -349,3 +349,19 @@ def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint,
     abs_rel = {r[1]: float(r[2]) for r in scored}
     assert 0 < abs_rel["PyTorch float32"] < 2
     assert abs_rel["ONNX Runtime float32"] == pytest.approx(abs_rel["PyTorch float32"], abs=2e-4)
+
+
+def test_eval_runs_the_network_at_the_checkpoints_size_whatever_the_data_config_says(
+    checkpoint, kitti_data, tmp_path
+):
+    """The checkpoint was trained at 64x64 with base focal 20; a data config at 32x32 changes nothing."""
+    data = {"generate": None, "datamodule": OmegaConf.merge(_datamodule(kitti_data), {"size": [32, 32]})}
+    out = {}
+    for name, size in (("cfg32", [32, 32]), ("cfg64", [64, 64])):
+        data["datamodule"]["size"] = size
+        cfg = load_cfg("eval", ckpt_path=checkpoint, paths={"output_dir": str(tmp_path / name)}, data=data)
+        cfg.eval.pictures = 0
+        out[name] = eval_checkpoint(cfg)
+    assert out["cfg32"]["train_size"] == out["cfg64"]["train_size"] == [64, 64]
+    a, b = out["cfg32"]["results"]["full"]["none"], out["cfg64"]["results"]["full"]["none"]
+    assert a["abs_rel"] == b["abs_rel"] and a["rmse"] == b["rmse"]

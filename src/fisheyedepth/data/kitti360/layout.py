@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -10,6 +11,26 @@ import numpy as np
 from ...cameras import load_camera
 from ..layouts import CameraSpec, Frame, existing
 from .files import read_cam_to_pose, read_cam_to_velo, read_poses
+
+log = logging.getLogger(__name__)
+
+
+_WARNED: set[Path] = set()
+
+
+def warn_no_mask(camera: str, expected: Path) -> None:
+    """Once per process and file: a camera without a body mask scores and samples every pixel, the
+    vehicle's own body included (KITTI-360 ships none; the paper masks the body)."""
+    if expected in _WARNED:
+        return
+    _WARNED.add(expected)
+    log.warning(
+        "camera %s has no body mask (expected %s): every pixel counts as usable, the vehicle's body "
+        "included; write that PNG (255 = usable) or pass data.datamodule.masks={%s: FILE}",
+        camera,
+        expected,
+        camera,
+    )
 
 
 class Kitti360Layout:
@@ -39,6 +60,8 @@ class Kitti360Layout:
             mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
             if masks and name in masks:
                 existing(mask, "body mask")
+            if not mask.is_file():
+                warn_no_mask(name, mask)
             self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
         self.cam_to_pose, self._extrinsics_file = extrinsics, extrinsics_file  # every camera, image_00 too
         self._cam0_to_velo: np.ndarray | None = None
