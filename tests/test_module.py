@@ -408,3 +408,98 @@ def test_cosine_schedule_anneals_to_lr_gamma_over_the_run():
     assert all(a > b for a, b in zip(lrs, lrs[1:], strict=False))
     with pytest.raises(ValueError, match="lr_schedule: 'linear' is not one of step, cosine"):
         FisheyeDepthModule(lr_schedule="linear")
+
+
+class _NanGradientOnce(L.Callback):
+    """A finite loss whose gradients turn non-finite at one step (a hook on one weight)."""
+
+    def __init__(self, step: int):
+        self.step = step
+        self.before: dict[str, torch.Tensor] = {}
+
+    def on_train_batch_start(self, trainer, module, batch, batch_idx):
+        weight = module.depth_net.heads["0"].logits[1].weight
+        if trainer.global_step == self.step:
+            self.before = {n: p.detach().clone() for n, p in module.named_parameters()}
+            self.handle = weight.register_hook(lambda g: torch.full_like(g, float("nan")))
+
+    def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
+        if getattr(self, "handle", None) is not None:
+            self.handle.remove()
+            self.handle = None
+            self.after = {n: p.detach().clone() for n, p in module.named_parameters()}
+
+
+def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data):
+    """The gradients are dropped before the optimiser: no parameter moves (Adam's moments neither, as a
+    parameter without a gradient is left alone), BatchNorm is restored, the skip is counted."""
+    flat = tiny_samples(kitti_data, frames=(1, 2, 3))
+    train = DataLoader(flat, batch_size=2, collate_fn=collate)
+    module = FisheyeDepthModule(scales=(0,))
+    probe = _NanGradientOnce(step=1)
+    trainer = L.Trainer(
+        max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+        accelerator="cpu", enable_model_summary=False, limit_val_batches=0, callbacks=[probe],
+    )  # fmt: skip
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trainer.fit(module, train)
+    assert module.skipped_batches == 1
+    assert any("non-finite gradients" in str(w.message) for w in caught)
+    assert all(torch.equal(probe.before[n], probe.after[n]) for n in probe.before)
+    assert all(torch.isfinite(p).all() for p in module.parameters())
+    assert all(torch.isfinite(b).all() for b in module.buffers())
+
+
+DDP_SCRIPT = """
+import sys, warnings
+import torch, lightning as L
+from torch.utils.data import DataLoader
+sys.path.insert(0, sys.argv[2])
+from conftest import tiny_samples
+from fisheyedepth.data import collate
+from fisheyedepth.module import FisheyeDepthModule
+
+class Faulty(FisheyeDepthModule):
+    # rank 1 alone: a non-finite loss at step 1; rank 0 alone: non-finite gradients at step 3
+    def losses(self, batch, outputs):
+        loss, logs = super().losses(batch, outputs)
+        if self.training and self.global_rank == 1 and self.global_step == 1:
+            loss = loss * float("nan")
+        if self.training and self.global_rank == 0 and self.global_step == 3:
+            loss.register_hook(lambda g: g * float("nan"))
+        return loss, logs
+
+warnings.simplefilter("ignore")
+torch.manual_seed(0)
+samples = tiny_samples(sys.argv[1], frames=(1, 2, 3))
+module = Faulty(scales=(0,))
+trainer = L.Trainer(strategy="ddp", accelerator="cpu", devices=2, max_steps=5, logger=False,
+                    enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                    limit_val_batches=0)
+trainer.fit(module, DataLoader(samples, batch_size=2, collate_fn=collate))
+finite = all(bool(torch.isfinite(p).all()) for p in module.parameters())
+rank, steps = trainer.global_rank, trainer.global_step
+print(f"RANK {rank} skipped {module.skipped_batches} steps {steps} finite {finite}")
+"""
+
+
+def test_ddp_never_hangs_when_one_rank_meets_a_bad_step(kitti_data, tmp_path):
+    """Two gloo processes; a non-finite loss on rank 1 only, later non-finite gradients on rank 0 only:
+    both ranks skip both steps together, and the run ends (a rank left alone in a collective would
+    wait forever: the timeout is the failure)."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "ddp_fault.py"
+    script.write_text(DDP_SCRIPT)
+    proc = subprocess.run(
+        [sys.executable, str(script), str(kitti_data), os.path.dirname(__file__)],
+        capture_output=True, text=True, timeout=600, cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = sorted(line for line in proc.stdout.splitlines() if line.startswith("RANK"))
+    assert lines == ["RANK 0 skipped 2 steps 5 finite True", "RANK 1 skipped 2 steps 5 finite True"], (
+        proc.stdout
+    )

@@ -140,6 +140,8 @@ class FisheyeDepthModule(L.LightningModule):
         self.val_metrics = DepthMetrics(tuple(eval_cap))
         self.val_metrics_scaled = DepthMetrics(tuple(eval_cap), median_scaling=True)
         self.skipped_batches = 0
+        self._saved_statistics: dict[str, Tensor] = {}
+        self._dropping = False  # the step was skipped: drop its gradients before the optimiser
         self.skipped_frames: list[str] = []
 
     @classmethod
@@ -319,24 +321,51 @@ class FisheyeDepthModule(L.LightningModule):
                 self.log("train/skipped_frames", float(len(self.skipped_frames)))
             self.skipped_frames.clear()
 
-    def training_step(self, batch: Batch | SkippedBatch, batch_idx: int) -> Tensor | None:
-        if self._count_skipped(batch):
-            return None
+    def _any_rank(self, flag: bool) -> bool:
+        """``flag`` on any process of a distributed run (every rank must call this at the same point);
+        the flag itself when there is one process."""
+        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+            return flag
+        if torch.distributed.get_world_size() == 1:
+            return flag
+        value = torch.tensor([1.0 if flag else 0.0], device=self.device)
+        torch.distributed.all_reduce(value, op=torch.distributed.ReduceOp.MAX)
+        return bool(value.item() > 0)
+
+    def _skip_step(self, why: str, batch_idx: int, batch_size: int) -> None:
+        """Every rank skips this step together: BatchNorm's running statistics go back to what they
+        were before the forward pass, and the skip is counted and logged."""
+        with torch.no_grad():
+            for name, b in self.named_buffers():
+                if name in self._saved_statistics:
+                    b.copy_(self._saved_statistics[name])
+        self.skipped_batches += 1
+        warnings.warn(f"{why} at step {self.global_step} (batch {batch_idx}): step skipped", stacklevel=2)
+        self.log("train/skipped_batches", float(self.skipped_batches), batch_size=max(batch_size, 1))
+
+    def _skip_loss(self) -> Tensor:
+        """What a skipped step returns: a zero loss on every parameter. Under DDP every rank must run
+        the backward pass and its gradient all-reduce (Lightning refuses ``None`` there, and a rank
+        left alone in a collective would wait forever); the zero gradients are then dropped before the
+        optimiser (:meth:`on_before_optimizer_step`), so nothing moves, Adam's moments included."""
+        self._dropping = True
+        return sum(p.sum() for p in self.parameters()) * 0.0
+
+    def training_step(self, batch: Batch | SkippedBatch, batch_idx: int) -> Tensor:
+        """A step that any rank cannot take is skipped by every rank together: an unreadable batch
+        before the forward pass, a non-finite loss after it, non-finite gradients in
+        :meth:`on_before_optimizer_step`."""
+        if self._any_rank(self._count_skipped(batch)):
+            if not isinstance(batch, SkippedBatch):
+                self.skipped_batches += 1  # another rank could not read its batch
+            return self._skip_loss()
         # a non-finite batch must not poison BatchNorm's running statistics either: keep them to restore
-        saved = {name: b.clone() for name, b in self.named_buffers() if "running_" in name}
+        self._saved_statistics = {name: b.clone() for name, b in self.named_buffers() if "running_" in name}
         outputs = self(batch.image_aug, batch.camera)
         loss, logs = self.losses(batch, outputs)
-        if not torch.isfinite(loss):
-            with torch.no_grad():
-                for name, b in self.named_buffers():
-                    if name in saved:
-                        b.copy_(saved[name])
-            self.skipped_batches += 1
-            warnings.warn(
-                f"non-finite loss at step {self.global_step} (batch {batch_idx}): batch skipped", stacklevel=1
-            )
-            self.log("train/skipped_batches", float(self.skipped_batches), batch_size=len(batch))
-            return None
+        if self._any_rank(not bool(torch.isfinite(loss))):
+            self._skip_step("non-finite loss on a rank", batch_idx, len(batch))
+            return self._skip_loss()
         batch_size = len(batch)
         logs.pop("loss")
         self.log_dict({f"train/{k}": v.detach() for k, v in logs.items()}, batch_size=batch_size)
@@ -415,6 +444,22 @@ class FisheyeDepthModule(L.LightningModule):
         self.reprojection.error_fn = photometric_error
 
     # ------------------------------------------------------------------------------- optimisation
+    def on_before_optimizer_step(self, optimizer) -> None:
+        """Non-finite gradients after a finite loss: every rank drops them (a parameter without a
+        gradient is left alone by the optimiser, its moments included) and restores BatchNorm. A step
+        already skipped in :meth:`training_step` drops its zero gradients here."""
+        if self._dropping:  # every rank agreed on it in training_step
+            self._dropping = False
+            for p in self.parameters():
+                p.grad = None
+            return
+        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        finite = all(bool(torch.isfinite(g).all()) for g in grads)
+        if self._any_rank(not finite):
+            for p in self.parameters():
+                p.grad = None
+            self._skip_step("non-finite gradients on a rank", -1, 0)
+
     def configure_optimizers(self):
         optimizer = torch.optim.Adam(
             self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay
