@@ -25,7 +25,12 @@ def main(argv=None) -> int:
     parser.add_argument("--sequence", default="seq0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    print(json.dumps(aria_to_rig(args.src, args.out, args.sequence, args.overwrite), indent=2))
+    try:
+        summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
+    except (FileNotFoundError, FileExistsError, ValueError) as err:  # CalibrationError is a ValueError
+        print(f"error: {err}")
+        return 2
+    print(json.dumps(summary, indent=2))
     return 0
 
 

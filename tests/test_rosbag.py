@@ -190,6 +190,7 @@ def test_an_imported_bag_reproduces_poses_stamps_calibration_and_pixels(kind, po
     # images at T0 and T0 + 500 ms lie outside the poses (T0 + 50 ms .. T0 + 450 ms): dropped, counted
     assert summary["images"] == {"left": 4, "right": 4}
     assert summary["outside_poses"] == {"left": 2, "right": 2} and summary["poses"] == 9
+    assert summary["duplicate_stamps"] == {"left": 0, "right": 0}
     layout = RigLayout(out)
     assert load_camera(out / "calibration" / "left.yaml") == KannalaBrandtCamera(width=256, height=256, **KB)
     assert layout.cameras["right"].camera == PinholeCamera(
@@ -232,6 +233,13 @@ def test_unsupported_input_is_named(frames, tmp_path):
         RosbagError, match=r"/cam/camera_info: distortion model 'plumb_bob' .* is not supported"
     ):
         camera_from_info(info, "/cam/camera_info")
+    # a problem with the second camera stops the import before anything is written
+    with pytest.raises(ValueError, match="missing.yaml: cannot read calibration file"):
+        import_rosbag(
+            bag, tmp_path / "e", {"left": "/left/image_raw", "right": "/right/image_raw/compressed"},
+            calibrations={"right": tmp_path / "missing.yaml"}, odometry="/odom",
+        )  # fmt: skip
+    assert not (tmp_path / "e").exists()
     # the console script: one error line, exit 2; a good run prints the summary
     assert main([str(bag), "--out", str(tmp_path / "c"), "--camera", "x=/nope", "--odometry", "/odom"]) == 2
     assert (

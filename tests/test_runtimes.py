@@ -365,3 +365,34 @@ def test_eval_runs_the_network_at_the_checkpoints_size_whatever_the_data_config_
     assert out["cfg32"]["train_size"] == out["cfg64"]["train_size"] == [64, 64]
     a, b = out["cfg32"]["results"]["full"]["none"], out["cfg64"]["results"]["full"]["none"]
     assert a["abs_rel"] == b["abs_rel"] and a["rmse"] == b["rmse"]
+
+
+def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summary(
+    checkpoint, kitti_data, tmp_path, monkeypatch
+):
+    """A sequence folder named ``0001`` is read as images, not as camera 1; Ctrl-C while a batch is
+    being written keeps the frames written so far, writes none twice, and still writes summary.json."""
+    from fisheyedepth.inference import PredictionWriter
+
+    folder = tmp_path / "0001"
+    folder.mkdir()
+    for p in sorted((kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb").glob("*.png"))[:4]:
+        (folder / p.name).write_bytes(p.read_bytes())
+    source = FrameSource(folder)
+    assert not source.live and len(source) == 4 and is_live("0001") is True  # no such path: an index
+    original, calls = PredictionWriter.write, []
+
+    def write(self, name, *args):
+        calls.append(name)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return original(self, name, *args)
+
+    monkeypatch.setattr(PredictionWriter, "write", write)
+    calib = kitti_data / "calibration" / "image_02.yaml"
+    summary = predict(
+        load_cfg("predict", ckpt_path=checkpoint, input=str(folder), camera=str(calib), batch_size=4,
+                 output=tmp_path / "out", paths={"output_dir": "unused"})
+    )  # fmt: skip
+    assert summary["interrupted"] is True and summary["frames"] == 1 and len(calls) == 2
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["frames"] == 1

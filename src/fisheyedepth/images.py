@@ -108,14 +108,13 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
 
 
 def is_live(source: str | os.PathLike) -> bool:
-    """A live camera: a device file (``/dev/video0``) or a camera index (``0``)."""
+    """A live camera: a device file (``/dev/video0``), or a camera index (``0``) that names no file or
+    folder (a sequence folder called ``00`` is a folder)."""
     text = str(source)
-    if text.isdigit():
-        return True
     try:
         return stat.S_ISCHR(os.stat(text).st_mode)
     except OSError:
-        return False
+        return text.isdigit()
 
 
 class FrameSource:

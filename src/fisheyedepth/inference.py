@@ -262,7 +262,7 @@ class FramePrediction:
         rgb = np.stack([f.bgr[..., ::-1] for f in self.pending])
         images = torch.from_numpy(rgb.copy()).permute(0, 3, 1, 2).float() / 255.0
         distance = predictor(images).cpu()
-        for frame, d, colour in zip(self.pending, distance[:, 0], rgb, strict=True):
+        frames, self.pending = self.pending, []  # an interrupt while writing loses no frame twice
+        for frame, d, colour in zip(frames, distance[:, 0], rgb, strict=True):
             self.writer.write(frame.name, d, colour, predictor.camera)
-        self.written += len(self.pending)
-        self.pending.clear()
+            self.written += 1

@@ -112,7 +112,8 @@ def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:
 class TorchRuntime:
     """A trained module in PyTorch: ``precision`` fp32 or bf16 (autocast around the network; the bin
     expectation and everything after it stay float32), weights in channels_last (the same numbers,
-    1.4x faster at 384x384 on the CPU of BENCHMARKS.md)."""
+    1.4x faster at 384x384 on the CPU of BENCHMARKS.md). The module itself is put in eval mode, moved
+    to ``device`` and converted to channels_last, in place (no copy of its weights)."""
 
     def __init__(
         self, module, input_size: tuple[int, int] | None = None, precision: str = "fp32", device="cpu"

@@ -83,6 +83,7 @@ def run_evaluation(
     )
     if isinstance(runtime, OnnxRuntime):
         described = {"runtime": "onnx", "file": str(runtime.path), "quantize": runtime.quantize}
+        described["upsample"] = "distance"  # the file outputs distance at its size; resized in 1/d
     else:
         hp = runtime.module.hparams
         described = {k: hp[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")}
@@ -128,9 +129,15 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     if runtime == "onnx":
         if not cfg.get("model_file"):
             raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
+        if cfg.get("upsample") not in (None, "distance"):
+            raise ValueError(
+                f"upsample: {cfg.upsample!r}; an exported file upsamples its distance (upsample=distance)"
+            )
         model = OnnxRuntime(cfg.model_file, cfg.get("threads"))
         experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model_file).stem, None
     elif runtime == "torch":
+        if cfg.get("model_file"):
+            raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
         if not cfg.get("ckpt_path"):
             raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
         module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))

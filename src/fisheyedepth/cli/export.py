@@ -86,8 +86,19 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     else:
         calibration = None
         if quantize:
-            calibration = calibration_images(cfg.calibration, size, int(cfg.calibration_frames))
-            probe = torch.from_numpy(np.concatenate(calibration[1::2][:4]))  # real images, not noise
+            frames = int(cfg.calibration_frames)
+            if frames < 2:
+                raise ValueError(f"calibration_frames: {frames}; int8 ranges need at least 2 images")
+            # the parity probes are real images too, but not ones the int8 ranges were measured on
+            images = calibration_images(cfg.calibration, size, frames + 4)
+            held = set(range(1, len(images), 2)[:4]) if len(images) > 2 else set()
+            calibration = [im for i, im in enumerate(images) if i not in held]
+            if len(calibration) < 2 or not held:
+                raise ValueError(
+                    f"calibration: {cfg.calibration} has {len(images)} images; int8 needs at least 3 "
+                    "(2 to measure ranges on, 1 to check the quantized file against)"
+                )
+            probe = torch.from_numpy(np.concatenate([images[i] for i in sorted(held)]))
         data = onnx_export(net, size, module.depth_net.base_focal, quantize, calibration)
         try:
             session = onnx_session(data)

@@ -90,6 +90,8 @@ def make_runtime(cfg: DictConfig):
     (see :func:`~fisheyedepth.cli.model_file_alias`); in the config, ``model_file``."""
     runtime = str(cfg.get("runtime", "torch"))
     if runtime == "torch":
+        if cfg.get("model_file"):
+            raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
         if not cfg.get("ckpt_path"):
             raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
         module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)

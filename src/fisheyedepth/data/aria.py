@@ -69,7 +69,10 @@ def aria_to_rig(
         raise FileNotFoundError(f"{calib_path}: Aria calibration not found")
     if (out / "rig.yaml").exists() and not overwrite:
         raise FileExistsError(f"{out / 'rig.yaml'} exists; pass overwrite=True (--overwrite) to replace it")
-    calibration = json.loads(calib_path.read_text())
+    try:
+        calibration = json.loads(calib_path.read_text())
+    except ValueError as err:
+        raise CalibrationError(calib_path, None, f"not readable JSON ({err})") from None
     names = sorted(n for n in calibration if (src / n).is_dir())
     if not names:
         raise FileNotFoundError(f"{src}: no image folder named like a camera of {calib_path.name}")
@@ -77,8 +80,8 @@ def aria_to_rig(
     for name in names:
         camera = Fisheye624Camera.from_aria(calib_path, name)
         T = calibration[name].get("T_device_camera")
-        if T is None:
-            raise CalibrationError(calib_path, f"{name}.T_device_camera", "missing")
+        if T is None or np.asarray(T, dtype=object).shape != (4, 4):
+            raise CalibrationError(calib_path, f"{name}.T_device_camera", f"expected a 4x4 matrix, got {T!r}")
         files = sorted(p for p in (src / name).iterdir() if IMAGE_NAME.match(p.name))
         if not files:
             raise FileNotFoundError(f"{src / name}: no images named NN_<capture_ns>.png")

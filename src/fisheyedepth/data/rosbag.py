@@ -65,7 +65,13 @@ def decode_image(msg, topic: str) -> np.ndarray:
         raise RosbagError(f"{topic}: image encoding {msg.encoding!r} is not one of {sorted(ENCODINGS)}")
     dtype, channels = ENCODINGS[encoding]
     dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
-    rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)
+    data = np.frombuffer(bytes(msg.data), np.uint8)
+    if msg.step < msg.width * channels * dt.itemsize or data.size != msg.height * msg.step:
+        raise RosbagError(
+            f"{topic}: image data of {data.size} bytes does not fit height {msg.height} x step {msg.step} "
+            f"for {msg.width} px of {encoding}"
+        )
+    rows = data.reshape(msg.height, msg.step)
     pixels = rows[:, : msg.width * channels * dt.itemsize].copy().view(dt)
     image = pixels.reshape(msg.height, msg.width, channels).astype(dtype)
     if encoding.startswith("rgb"):
@@ -117,6 +123,17 @@ def chain(edges: dict[tuple[str, str], np.ndarray], parent: str, child: str) -> 
     return None
 
 
+def _open(bag: Path):
+    from rosbags.highlevel import AnyReader
+
+    try:
+        reader = AnyReader([bag])
+        reader.open()
+    except Exception as err:  # rosbags raises its own types for unreadable bags
+        raise RosbagError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({err})") from None
+    return reader
+
+
 def import_rosbag(
     bag: str | os.PathLike,
     out: str | os.PathLike,
@@ -135,9 +152,11 @@ def import_rosbag(
     ``cameras``: name -> image topic. ``info_topics``: name -> CameraInfo topic (default: the image
     topic's namespace + ``/camera_info``). ``calibrations``/``extrinsics``: given per camera instead of
     the bag's (``extrinsics`` values: 4x4 camera -> body). Poses from ``odometry`` (a topic) or
-    ``tf_poses`` (world frame, body frame); ``body_frame`` defaults to the odometry's child frame."""
-    from rosbags.highlevel import AnyReader
+    ``tf_poses`` (world frame, body frame); ``body_frame`` defaults to the odometry's child frame.
 
+    Two passes over the bag: the first reads poses, calibrations, frames and extrinsics and checks every
+    camera, so a problem stops the import before anything is written; the second streams the images to
+    disk one at a time (memory does not grow with the bag)."""
     bag, out = Path(bag), Path(out)
     if (odometry is None) == (tf_poses is None):
         raise ValueError("poses: give exactly one of odometry=TOPIC or tf_poses=(WORLD, BODY)")
@@ -151,18 +170,16 @@ def import_rosbag(
         base = topic.removesuffix("/compressed")
         info_topics.setdefault(name, base.rsplit("/", 1)[0] + "/camera_info")
     calibrations, extrinsics = dict(calibrations or {}), dict(extrinsics or {})
-    images: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
-    infos: dict[str, Any] = {}
-    frame_ids: dict[str, str] = {}
-    static: dict[tuple[str, str], np.ndarray] = {}
-    poses: list[tuple[int, np.ndarray]] = []
     by_image = {topic: name for name, topic in cameras.items()}
     by_info = {topic: name for name, topic in info_topics.items()}
-    try:
-        reader = AnyReader([bag])
-        reader.open()
-    except Exception as err:  # rosbags raises its own types for unreadable bags
-        raise RosbagError(f"{bag}: not a readable ROS 1 or ROS 2 bag ({err})") from None
+    infos: dict[str, Any] = {}
+    frame_ids: dict[str, str] = {}
+    stamps: dict[str, list[int]] = defaultdict(list)
+    static: dict[tuple[str, str], np.ndarray] = {}
+    poses: list[tuple[int, np.ndarray]] = []
+
+    # ---- pass 1: everything but the pixels
+    reader = _open(bag)
     try:
         topics = {c.topic for c in reader.connections}
         for topic in list(cameras.values()) + ([odometry] if odometry else []):
@@ -172,13 +189,13 @@ def import_rosbag(
         connections = [c for c in reader.connections if c.topic in wanted]
         for connection, _, raw in tqdm(
             reader.messages(connections=connections), total=sum(c.msgcount for c in connections),
-            desc=f"reading {bag.name}", unit="msg",
+            desc=f"indexing {bag.name}", unit="msg",
         ):  # fmt: skip
-            msg = reader.deserialize(raw, connection.msgtype)
             topic = connection.topic
+            msg = reader.deserialize(raw, connection.msgtype)
             if topic in by_image:
                 name = by_image[topic]
-                images[name].append((_stamp(msg.header), decode_image(msg, topic)))
+                stamps[name].append(_stamp(msg.header))
                 frame_ids.setdefault(name, msg.header.frame_id)
             elif topic in by_info and by_info[topic] not in infos:
                 infos[by_info[topic]] = msg
@@ -205,14 +222,23 @@ def import_rosbag(
         raise RosbagError(f"{bag}: {source}: fewer than two poses")
     poses.sort(key=lambda p: p[0])
     first, last = poses[0][0], poses[-1][0]
-    rig_cameras, summary = [], {"images": {}, "outside_poses": {}, "poses": len(poses), "out": str(out)}
-    for name in cameras:
-        if not images[name]:
-            raise RosbagError(f"{bag}: topic {cameras[name]} has no images")
+
+    # ---- every camera checked before anything is written
+    models, rig_cameras, keep = {}, [], {}
+    summary = {
+        "images": {},
+        "outside_poses": {},
+        "duplicate_stamps": {},
+        "poses": len(poses),
+        "out": str(out),
+    }
+    for name, topic in cameras.items():
+        if not stamps[name]:
+            raise RosbagError(f"{bag}: topic {topic} has no images")
         if name in calibrations:
-            camera = load_camera(calibrations[name])
+            models[name] = load_camera(calibrations[name])
         elif name in infos:
-            camera = camera_from_info(infos[name], info_topics[name])
+            models[name] = camera_from_info(infos[name], info_topics[name])
         else:
             raise RosbagError(
                 f"{bag}: no CameraInfo on {info_topics[name]} for camera {name}; "
@@ -227,22 +253,55 @@ def import_rosbag(
                     f"{bag}: /tf_static has no chain from the body frame {body_frame!r} to camera {name}'s "
                     f"frame {frame_ids.get(name)!r}; give its extrinsic (--extrinsics)"
                 )
-        save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)
+        inside = sorted(s for s in stamps[name] if first <= s <= last)
+        keep[name] = set(inside)
+        summary["images"][name] = len(keep[name])
+        summary["outside_poses"][name] = len(stamps[name]) - len(inside)
+        summary["duplicate_stamps"][name] = len(inside) - len(keep[name])
+        if not keep[name]:
+            raise RosbagError(
+                f"{bag}: {topic}: none of its {len(stamps[name])} images lies within the poses' time range "
+                f"[{first}, {last}] ns (header stamps in another clock?)"
+            )
         rig_cameras.append(
             {"name": name, "calibration": f"calibration/{name}.yaml", "cam_to_body": cam_to_body.tolist()}
         )
-        kept = [(s, im) for s, im in images[name] if first <= s <= last]
-        summary["images"][name] = len(kept)
-        summary["outside_poses"][name] = len(images[name]) - len(kept)
-        folder = out / sequence / "images" / name
-        for stamp, image in kept:
-            target = folder / f"{stamp}.png"
-            if target.exists() and not overwrite:
-                raise FileExistsError(f"{target} exists; pass overwrite=True (--overwrite)")
+    if not overwrite:
+        for name in cameras:
+            for stamp in keep[name]:
+                if (out / sequence / "images" / name / f"{stamp}.png").exists():
+                    raise FileExistsError(f"{out / sequence / 'images' / name / f'{stamp}.png'} exists; "
+                                          "pass overwrite=True (--overwrite)")  # fmt: skip
+
+    # ---- pass 2: the images, one at a time (a stamp seen twice keeps its first image)
+    reader = _open(bag)
+    try:
+        connections = [c for c in reader.connections if c.topic in by_image]
+        for connection, _, raw in tqdm(
+            reader.messages(connections=connections), total=sum(c.msgcount for c in connections),
+            desc="writing images", unit="image",
+        ):  # fmt: skip
+            name, topic = by_image[connection.topic], connection.topic
+            msg = reader.deserialize(raw, connection.msgtype)
+            stamp = _stamp(msg.header)
+            if stamp not in keep[name]:
+                continue
+            keep[name].discard(stamp)
+            image = decode_image(msg, topic)
+            camera = models[name]
+            if image.shape[1] * camera.height != image.shape[0] * camera.width:
+                raise RosbagError(
+                    f"{topic}: image {image.shape[1]}x{image.shape[0]} at {stamp} ns, but the calibration is "
+                    f"{camera.width}x{camera.height} (another aspect ratio)"
+                )
             ok, png = cv2.imencode(".png", image)
             if not ok:
-                raise RosbagError(f"{cameras[name]}: the image at {stamp} ns could not be encoded as PNG")
-            atomic_write_bytes(target, png.tobytes())
+                raise RosbagError(f"{topic}: the image at {stamp} ns could not be encoded as PNG")
+            atomic_write_bytes(out / sequence / "images" / name / f"{stamp}.png", png.tobytes())
+    finally:
+        reader.close()
+    for name, camera in models.items():
+        save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)
     lines = [f"{s} " + " ".join(repr(float(v)) for v in values) for s, values in poses]
     header = f"# timestamp_ns tx ty tz qx qy qz qw ({body_frame} -> world), from {odometry or '/tf'}\n"
     atomic_write_text(out / sequence / "poses.txt", header + "\n".join(lines) + "\n")
@@ -290,17 +349,19 @@ def main(argv=None) -> int:
     parser.add_argument("--sequence", default="seq0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    extrinsics = {}
-    if args.extrinsics:
-        data = yaml.safe_load(args.extrinsics.read_text())
-        extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in (data or {}).items()}
     try:
+        extrinsics = {}
+        if args.extrinsics:
+            data = yaml.safe_load(args.extrinsics.read_text())
+            if not isinstance(data, dict):
+                raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
+            extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
         summary = import_rosbag(
             args.bag, args.out, _pairs(args.camera, "--camera"), _pairs(args.camera_info, "--camera-info"),
             _pairs(args.calibration, "--calibration"), extrinsics, args.odometry,
             tuple(args.tf_poses) if args.tf_poses else None, args.body_frame, args.sequence, args.overwrite,
         )  # fmt: skip
-    except (RosbagError, FileExistsError, FileNotFoundError, ValueError) as err:
+    except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
         print(f"error: {err}")
         return 2
     print(json.dumps(summary, indent=2))

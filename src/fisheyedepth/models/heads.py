@@ -40,14 +40,19 @@ def bin_expectation(
     float64) even under autocast: the logits of a bf16 network are cast up first.
 
     Fused: with the logits clamped to [-10, 10] no ``exp`` over- or underflows, so the softmax needs no
-    max subtraction, and ``sum_k e^l_k b_k / sum_k e^l_k`` is one pass of ``exp`` and one 1x1 convolution
-    with two output channels (the bins and ones): no ``[B, K, H, W]`` probabilities, products or layout
-    copies (a third of the whole network's time at 384x384 in channels_last, BENCHMARKS.md "Inference").
+    max subtraction, and ``sum_k e^l_k b_k / sum_k e^l_k`` is one ``exp`` and one 1x1 convolution with
+    two output channels (the bins and ones): no normalised probabilities, bin products or the layout
+    copies a softmax over channels forces (a third of the whole network's time at 384x384 in
+    channels_last, BENCHMARKS.md "Inference"). On CUDA the convolution runs without TF32.
     """
     with torch.autocast(logits.device.type, enabled=False):
         logits = at_least_float32(logits)
         weights = torch.stack((bins, torch.ones_like(bins))).to(logits)[:, :, None, None]
-        sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)  # [B, 2, H, W]
+        if logits.is_cuda:  # cuDNN would run the convolution in TF32 on Ampere and later
+            with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
+                sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)
+        else:
+            sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)  # [B, 2, H, W]
         d = sums[:, :1] / sums[:, 1:]
         disp = distance_to_sigmoid(d, min_distance, max_distance)
         scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
