@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fisheyedepth.cli.export import calibration_images
 from fisheyedepth.data import FisheyeDataModule
 from fisheyedepth.evaluation import evaluate
 from fisheyedepth.inference import ExportableNet
@@ -35,6 +34,7 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import (
     OnnxRuntime,
     TorchRuntime,
+    calibration_images,
     onnx_export,
     onnx_session,
 )

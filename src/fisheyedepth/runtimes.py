@@ -22,11 +22,14 @@ import os
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
 
+from .images import IMAGE_SUFFIXES, read_image
 from .models import depth_scale, distance_at_size
 
 PRECISIONS = ("fp32", "bf16")
@@ -130,6 +133,16 @@ class TorchRuntime:
         size = input_size or module.hparams.get("input_size")
         self.input_size = None if size is None else (int(size[0]), int(size[1]))
 
+    def describe(self) -> dict[str, Any]:
+        """What results.json records of the model: its switches, upsampling, runtime and precision."""
+        hp = self.module.hparams
+        out = {k: hp[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")}
+        return out | {
+            "upsample": self.module.depth_net.upsample,
+            "runtime": "torch",
+            "precision": self.precision,
+        }
+
     @torch.no_grad()
     def distance(self, images: Tensor, cameras) -> Tensor:
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
@@ -167,6 +180,10 @@ class OnnxRuntime:
             )
         return meta[META + key]
 
+    def describe(self) -> dict[str, Any]:
+        """What results.json records: the file; its distance is resized in inverse distance."""
+        return {"runtime": "onnx", "file": str(self.path), "quantize": self.quantize, "upsample": "distance"}
+
     def run(self, images: Tensor) -> Tensor:
         """The file as it is: ``[B, 3, h, w]`` at ``input_size`` -> distance with the file's depth_scale."""
         array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
@@ -178,6 +195,24 @@ class OnnxRuntime:
             return self.run(small) * scale.reshape(-1, 1, 1, 1)
 
         return distance_at_size(run, images.cpu(), cameras, self.input_size)
+
+
+def calibration_images(folder: str | Path, size: tuple[int, int], count: int) -> list[np.ndarray]:
+    """``count`` images spread evenly over the images under ``folder`` (recursively, in name order), as
+    ``[1, 3, H, W]`` float32 RGB at ``size`` (W, H): the int8 ranges are measured on them."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise FileNotFoundError(f"calibration: {root} is not a folder of (training) images")
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise FileNotFoundError(f"calibration: no images ({' '.join(IMAGE_SUFFIXES)}) under {root}")
+    picked = [files[i] for i in np.linspace(0, len(files) - 1, min(count, len(files))).round().astype(int)]
+    images = []
+    for path in picked:
+        bgr = read_image(path).bgr
+        rgb = cv2.resize(bgr, tuple(size), interpolation=cv2.INTER_AREA)[..., ::-1]
+        images.append(np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0)
+    return images
 
 
 def quantize_int8(onnx_bytes: bytes, calibration: Iterable[np.ndarray], input_name: str = "image") -> bytes:

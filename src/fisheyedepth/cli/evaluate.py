@@ -81,18 +81,10 @@ def run_evaluation(
         out_dir / "predictions",
         int(cfg.eval.pictures),
     )
-    if isinstance(runtime, OnnxRuntime):
-        described = {"runtime": "onnx", "file": str(runtime.path), "quantize": runtime.quantize}
-        described["upsample"] = "distance"  # the file outputs distance at its size; resized in 1/d
-    else:
-        hp = runtime.module.hparams
-        described = {k: hp[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")}
-        described |= {"upsample": runtime.module.depth_net.upsample, "runtime": "torch"}
-        described |= {"precision": runtime.precision}
     record = {
         "experiment": cfg.get("experiment_name"),
         "checkpoint": ckpt,
-        "model": described,
+        "model": runtime.describe(),
         "data": str(cfg.data.datamodule.root),
         "split": split,
         "train_size": list(train_size) if train_size else None,

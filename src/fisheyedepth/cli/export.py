@@ -11,17 +11,15 @@ import json
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from omegaconf import DictConfig
 from rich.console import Console
 
 from ..cameras import PinholeCamera, load_camera
-from ..images import IMAGE_SUFFIXES, read_image
 from ..inference import DistancePredictor
 from ..module import FisheyeDepthModule
-from ..runtimes import onnx_export, onnx_session
+from ..runtimes import calibration_images, onnx_export, onnx_session
 from ..utils import atomic_write_bytes, atomic_write_text
 
 EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
@@ -30,24 +28,6 @@ QUANTIZE = ("int8",)
 # relative difference in distance allowed (float32 paths), or the median (int8, an approximation by
 # design; its accuracy on a test split is in BENCHMARKS.md "Inference"). A file outside is not written.
 PARITY = {"torchscript": ("max", 1e-4), "onnx": ("max", 1e-4), "onnx-int8": ("median", 0.03)}
-
-
-def calibration_images(folder: str | Path, size: tuple[int, int], count: int) -> list[np.ndarray]:
-    """``count`` images spread evenly over the images under ``folder`` (recursively, in name order), as
-    ``[1, 3, H, W]`` float32 RGB at ``size`` (W, H): the int8 ranges are measured on them."""
-    root = Path(folder)
-    if not root.is_dir():
-        raise FileNotFoundError(f"calibration: {root} is not a folder of (training) images")
-    files = sorted(p for p in root.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise FileNotFoundError(f"calibration: no images ({' '.join(IMAGE_SUFFIXES)}) under {root}")
-    picked = [files[i] for i in np.linspace(0, len(files) - 1, min(count, len(files))).round().astype(int)]
-    images = []
-    for path in picked:
-        bgr = read_image(path).bgr
-        rgb = cv2.resize(bgr, tuple(size), interpolation=cv2.INTER_AREA)[..., ::-1]
-        images.append(np.ascontiguousarray(rgb.transpose(2, 0, 1)[None], dtype=np.float32) / 255.0)
-    return images
 
 
 def export(cfg: DictConfig) -> dict[str, Any]:
