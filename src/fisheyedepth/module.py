@@ -454,7 +454,7 @@ class FisheyeDepthModule(L.LightningModule):
                 p.grad = None
             return
         grads = [p.grad for p in self.parameters() if p.grad is not None]
-        finite = all(bool(torch.isfinite(g).all()) for g in grads)
+        finite = not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())  # one sync
         if self._any_rank(not finite):
             for p in self.parameters():
                 p.grad = None
