@@ -22,7 +22,7 @@ from torch.nn import functional as F
 from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
 from .metrics import DepthMetrics
-from .runtimes import OnnxRuntime, TorchRuntime
+from .runtimes import as_runtime
 from .viz import panel
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
@@ -162,8 +162,7 @@ def evaluate(
     """Run ``model`` over a loader of native-resolution samples with ground truth ``distance``. ``model``:
     a trained module (run in float32 at ``train_size``) or a runtime of :mod:`fisheyedepth.runtimes`
     (an exported file, bf16), which brings its own input size."""
-    if not isinstance(model, (TorchRuntime, OnnxRuntime)):
-        model = TorchRuntime(model, train_size, device=model.device)
+    model = as_runtime(model, train_size)
     rays = RayCache()  # one per run, shared by the protocols
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
     written = 0

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
-from .runtimes import OnnxRuntime, TorchRuntime
+from .runtimes import TorchRuntime, as_runtime
 from .utils import atomic_write_bytes
 from .viz import colourise
 
@@ -49,10 +49,7 @@ class DistancePredictor:
         device="cpu",
         precision: str = "fp32",
     ):
-        if isinstance(model, (TorchRuntime, OnnxRuntime)):
-            self.runtime = model
-        else:
-            self.runtime = TorchRuntime(model, input_size, precision, device)
+        self.runtime = as_runtime(model, input_size, precision, device)
         size = self.runtime.input_size or (camera.width, camera.height)
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera

@@ -215,6 +215,14 @@ def calibration_images(folder: str | Path, size: tuple[int, int], count: int) ->
     return images
 
 
+def as_runtime(model, input_size=None, precision: str = "fp32", device=None):
+    """``model`` if it is a runtime already; a trained module as a :class:`TorchRuntime` (at
+    ``input_size``, default its checkpoint's; on ``device``, default the module's)."""
+    if isinstance(model, (TorchRuntime, OnnxRuntime)):
+        return model
+    return TorchRuntime(model, input_size, precision, model.device if device is None else device)
+
+
 def quantize_int8(onnx_bytes: bytes, calibration: Iterable[np.ndarray], input_name: str = "image") -> bytes:
     """Static int8 QDQ quantization of an exported float32 file: weights per output channel (int8),
     activations per tensor (uint8) with min/max ranges from ``calibration`` (``[1, 3, h, w]`` float32

@@ -13,6 +13,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..data.synthetic import ensure_dataset, is_complete
+from ..module import FisheyeDepthModule
+from ..runtimes import OnnxRuntime, TorchRuntime
 
 log = logging.getLogger("fisheyedepth")
 
@@ -61,3 +63,34 @@ def free_path(path: Path) -> Path:
         n += 1
         candidate = path.with_name(f"{path.stem}_{n}{path.suffix}")
     return candidate
+
+
+def load_runtime(cfg: DictConfig):
+    """The network ``predict.py`` and ``eval.py`` run: ``runtime=torch`` (``ckpt_path``, ``precision``,
+    ``device``, ``upsample``, ``size``) or ``runtime=onnx`` (``model_file``, typed ``model=FILE.onnx``:
+    an ``export.py`` file, which fixes the input size; ``threads``)."""
+    runtime, size = str(cfg.get("runtime", "torch")), cfg.get("size")
+    if runtime == "onnx":
+        if not cfg.get("model_file"):
+            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
+        if cfg.get("upsample") not in (None, "distance"):
+            raise ValueError(
+                f"upsample: {cfg.upsample!r}; an exported file upsamples its distance (upsample=distance)"
+            )
+        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"))
+        if size and tuple(size) != tuple(onnx.input_size):
+            raise ValueError(
+                f"size: {list(size)}, but {cfg.model_file} was exported at {list(onnx.input_size)}"
+            )
+        return onnx
+    if runtime != "torch":
+        raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
+    if cfg.get("model_file"):
+        raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
+    if not cfg.get("ckpt_path"):
+        raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
+    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
+    if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
+        module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
+    size = tuple(size) if size else None
+    return TorchRuntime(module, size, str(cfg.get("precision", "fp32")), cfg.get("device", "cpu"))

@@ -16,10 +16,9 @@ from rich.console import Console
 from rich.table import Table
 
 from ..evaluation import evaluate
-from ..module import FisheyeDepthModule
-from ..runtimes import OnnxRuntime, TorchRuntime
+from ..runtimes import OnnxRuntime, as_runtime
 from ..utils import atomic_write_text
-from . import free_path, prepare_data
+from . import free_path, load_runtime, prepare_data
 
 
 def _git_commit() -> str | None:
@@ -64,11 +63,10 @@ def run_evaluation(
     """Evaluate ``split`` at the ground truth's native resolution, the network at the size it was
     trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
     trained module, or a runtime (an ONNX file, bf16) of :mod:`fisheyedepth.runtimes`."""
-    if isinstance(model, (TorchRuntime, OnnxRuntime)):
-        train_size, runtime = model.input_size, model
-    else:
-        train_size = model.hparams.get("input_size") or datamodule.size
-        runtime = TorchRuntime(model, train_size, device=model.device)
+    runtime = as_runtime(model)
+    if runtime.input_size is None and datamodule.size:  # a checkpoint that stored no input size
+        runtime.input_size = tuple(datamodule.size)
+    train_size = runtime.input_size
     native = instantiate(cfg.data.datamodule, size=None, augment=None, batch_size=4, num_workers=0)
     loader = native.dataloader(split)
     results = evaluate(
@@ -115,31 +113,13 @@ def experiment_of(ckpt_path: str | Path) -> str | None:
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     """``ckpt_path`` in PyTorch (``precision`` fp32 or bf16), or ``runtime=onnx model=FILE.onnx``."""
     out_dir = Path(cfg.paths.output_dir)
-    runtime = str(cfg.get("runtime", "torch"))
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
-    if runtime == "onnx":
-        if not cfg.get("model_file"):
-            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
-        if cfg.get("upsample") not in (None, "distance"):
-            raise ValueError(
-                f"upsample: {cfg.upsample!r}; an exported file upsamples its distance (upsample=distance)"
-            )
-        model = OnnxRuntime(cfg.model_file, cfg.get("threads"))
+    model = load_runtime(cfg)
+    if isinstance(model, OnnxRuntime):
         experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model_file).stem, None
-    elif runtime == "torch":
-        if cfg.get("model_file"):
-            raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-        if not cfg.get("ckpt_path"):
-            raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
-        module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path).to(cfg.get("device", "cpu"))
-        if cfg.get("upsample") is not None:  # only how a distance at the training size reaches the GT's size
-            module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
-        size = module.hparams.get("input_size") or datamodule.size
-        model = TorchRuntime(module, size, str(cfg.get("precision", "fp32")), cfg.get("device", "cpu"))
-        experiment, ckpt = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path), str(cfg.ckpt_path)
     else:
-        raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
+        experiment, ckpt = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path), str(cfg.ckpt_path)
     return run_evaluation(
         cfg, model, datamodule, out_dir, ckpt, {"experiment": experiment}, str(cfg.get("split", "test"))
     )

@@ -18,10 +18,9 @@ from tqdm import tqdm
 from ..cameras import load_camera
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
-from ..module import FisheyeDepthModule
-from ..runtimes import OnnxRuntime, TorchRuntime
+from ..runtimes import OnnxRuntime
 from ..utils import atomic_write_text
-from . import free_path, model_file_alias, run_command
+from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 
@@ -33,7 +32,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     )
     source = FrameSource(cfg.input, cfg.get("max_frames"))  # lists the inputs without decoding any
     writer.check_free(source.names())
-    runtime = make_runtime(cfg)
+    runtime = load_runtime(cfg)
     batch_size = 1 if source.live else int(cfg.batch_size)  # a live frame is written as it comes
     run = FramePrediction(runtime, load_camera(cfg.camera), cfg.camera, writer, batch_size)
     unreadable: list[str] = []
@@ -82,34 +81,6 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         f"{f', {len(grayscale)} grayscale' if grayscale else ''}; outputs in {out} ({summary_path.name})"
     )
     return summary
-
-
-def make_runtime(cfg: DictConfig):
-    """``runtime=torch`` (``ckpt_path``, ``precision``, ``device``, ``size``) or ``runtime=onnx`` (``model``:
-    an ``export.py`` file, which fixes the input size; ``threads``). On the command line ``model=FILE``
-    (see :func:`~fisheyedepth.cli.model_file_alias`); in the config, ``model_file``."""
-    runtime = str(cfg.get("runtime", "torch"))
-    if runtime == "torch":
-        if cfg.get("model_file"):
-            raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-        if not cfg.get("ckpt_path"):
-            raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
-        module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
-        size = cfg.get("size")
-        return TorchRuntime(
-            module, tuple(size) if size else None, str(cfg.precision), cfg.get("device", "cpu")
-        )
-    if runtime == "onnx":
-        if not cfg.get("model_file"):
-            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
-        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"))
-        size = cfg.get("size")
-        if size and tuple(size) != tuple(onnx.input_size):
-            raise ValueError(
-                f"size: {list(size)}, but {cfg.model_file} was exported at {list(onnx.input_size)}"
-            )
-        return onnx
-    raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
 
 
 def runtime_name(runtime) -> str:

@@ -19,7 +19,6 @@ import csv
 import json
 import os
 import re
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -107,9 +106,7 @@ def aria_to_rig(
                 target = folder / f"{int(stamp)}.png"
                 if target.exists() and not overwrite:
                     raise FileExistsError(f"{target} exists; pass overwrite=True (--overwrite)")
-                tmp = target.with_name(f".{target.name}.tmp")
-                shutil.copyfile(path, tmp)
-                os.replace(tmp, target)
+                atomic_write_bytes(target, path.read_bytes())
                 bar.update()
     for name, camera in calibrations.items():  # the project's YAML: predict.py camera=... reads it too
         save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)

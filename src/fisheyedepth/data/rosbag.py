@@ -26,13 +26,14 @@ from typing import Any
 
 import cv2
 import numpy as np
-import torch
 import yaml
 from tqdm import tqdm
 
 from ..cameras import CameraModel, KannalaBrandtCamera, PinholeCamera, load_camera, save_camera
-from ..geometry import make_pose, quaternion_to_matrix
+from ..geometry import make_pose
 from ..utils import atomic_write_bytes, atomic_write_text
+from .layouts import _transform as read_transform
+from .layouts import quaternion_matrix
 
 ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3),
              "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4)}  # fmt: skip
@@ -101,7 +102,7 @@ def camera_from_info(msg, topic: str) -> CameraModel:
 def _transform(t) -> np.ndarray:
     """4x4 of a ``geometry_msgs/Transform`` (parent <- child)."""
     q = np.array([t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w], float)
-    R = quaternion_to_matrix(torch.from_numpy(q / np.linalg.norm(q))).numpy()
+    R = quaternion_matrix(q / np.linalg.norm(q))
     return make_pose(R, np.array([t.translation.x, t.translation.y, t.translation.z], float)).numpy()
 
 
@@ -324,8 +325,6 @@ def main(argv=None) -> int:
     """Console script ``fisheyedepth-import-rosbag`` (also ``scripts/import_rosbag.py``)."""
     import argparse
     import json
-
-    from ..data.layouts import _transform as read_transform
 
     parser = argparse.ArgumentParser(
         description="Import a ROS 1 or ROS 2 bag into the rig layout (docs/data-format.md).",

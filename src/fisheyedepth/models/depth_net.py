@@ -195,9 +195,7 @@ class DepthNet(nn.Module):
         image and camera resized alike, and its distance is upsampled back in inverse-distance space."""
         H, W = image.shape[-2:]
         if self.multi_channel and self.upsample == "logits" and input_size and (W, H) != tuple(input_size):
-            w, h = int(input_size[0]), int(input_size[1])
-            small = F.interpolate(image, size=(h, w), mode="area")
-            return self.upsampled_expectation(small, [c.resize(w, h) for c in cameras], (H, W))
+            return self.upsampled_expectation(*resized(image, cameras, input_size), (H, W))
 
         def run(images: Tensor, small_cameras) -> Tensor:
             return self.for_cameras(images, small_cameras, scales=(0,))["distance"][0]
@@ -233,9 +231,13 @@ def distance_at_size(run, image: Tensor, cameras, input_size: tuple[int, int] | 
     H, W = image.shape[-2:]
     if input_size is None or (W, H) == tuple(input_size):
         return run(image, cameras)
-    w, h = int(input_size[0]), int(input_size[1])
-    small = F.interpolate(image, size=(h, w), mode="area")
-    return upsample_inverse(run(small, [c.resize(w, h) for c in cameras]), (H, W))
+    return upsample_inverse(run(*resized(image, cameras, input_size)), (H, W))
+
+
+def resized(image: Tensor, cameras, size: tuple[int, int]) -> tuple[Tensor, list]:
+    """Images area-resized to ``size`` (W, H) and their cameras resized alike."""
+    w, h = int(size[0]), int(size[1])
+    return F.interpolate(image, size=(h, w), mode="area"), [c.resize(w, h) for c in cameras]
 
 
 def upsample_inverse(distance: Tensor, size: tuple[int, int]) -> Tensor:

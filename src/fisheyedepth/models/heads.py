@@ -7,6 +7,7 @@ disparity map normalised to [0, 1] (used by the smoothness loss and for display)
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 
 import torch
 from torch import Tensor, nn
@@ -48,10 +49,11 @@ def bin_expectation(
     with torch.autocast(logits.device.type, enabled=False):
         logits = at_least_float32(logits)
         weights = torch.stack((bins, torch.ones_like(bins))).to(logits)[:, :, None, None]
-        if logits.is_cuda:  # cuDNN would run the convolution in TF32 on Ampere and later
-            with torch.backends.cudnn.flags(enabled=True, allow_tf32=False):
-                sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)
-        else:
+        # cuDNN would run the convolution in TF32 on Ampere and later
+        exact = (
+            torch.backends.cudnn.flags(enabled=True, allow_tf32=False) if logits.is_cuda else nullcontext()
+        )
+        with exact:
             sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)  # [B, 2, H, W]
         d = sums[:, :1] / sums[:, 1:]
         disp = distance_to_sigmoid(d, min_distance, max_distance)
