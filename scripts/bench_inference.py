@@ -169,7 +169,7 @@ def accuracy(ckpt: str, args, tmp: Path) -> dict[str, dict[str, float]]:
         paths[name] = OnnxRuntime(path, args.threads)
     out = {}
     for name, runtime in paths.items():
-        res = evaluate(runtime, dm.dataloader(args.split), size, ["full"], ("none",))
+        res = evaluate(runtime, dm.scoring_loader(args.split), size, ["full"], ("none",))
         out[name] = res["full"]["none"]
     return out
 

@@ -41,7 +41,7 @@ def main(argv=None) -> int:
     for i, ckpt in enumerate(args.ckpt):
         module = FisheyeDepthModule.from_checkpoint(ckpt)
         size = module.hparams.get("input_size")
-        loader = dm._loader(args.split, shuffle=False)
+        loader = dm.scoring_loader(args.split)
         res = evaluate(
             module,
             loader,

@@ -22,7 +22,13 @@ from fisheyedepth.data import (
     collate,
     flip_sample,
 )
-from fisheyedepth.data.kitti360 import LidarGroundTruth, read_cam_to_pose, read_poses
+from fisheyedepth.data.kitti360 import (
+    LidarGroundTruth,
+    project_points,
+    read_cam_to_pose,
+    read_poses,
+    read_velodyne,
+)
 from fisheyedepth.geometry import sample as grid_sample_image
 from fisheyedepth.geometry import warp_to_source
 from fisheyedepth.module import FisheyeDepthModule
@@ -52,15 +58,19 @@ def test_datamodule_batches(kitti_data, cache):
     batch = next(iter(dm.train_dataloader()))
     assert batch.image.shape == (4, 3, 128, 128) and batch.sources.shape == (4, 2, 3, 128, 128)
     assert batch.poses.shape == (4, 2, 4, 4) and batch.mask.shape == (4, 1, 128, 128)
-    assert batch.image_aug.shape == batch.image.shape and batch.distance.shape == (4, 1, 128, 128)
+    assert batch.image_aug.shape == batch.image.shape
+    assert batch.distance is None  # nothing scores the train split: no ground truth is read for it
+    val = next(iter(dm.val_dataloader()))
+    assert val.distance.shape[1:] == (1, 128, 128) and val.distance_source == ["rendered"] * len(val)
     assert all(c.width == 128 for c in batch.camera)
     assert len(dm.dataset("train")) == 2 * (12 - 2 * 3 - 2)  # both cameras, minus frames without neighbours
     assert dm.dataset("train").dropped["no neighbour"] == 4
     cams = {dm.dataset("val").items[i].camera for i in range(len(dm.dataset("val")))}
     assert cams == {"image_02", "image_03"}
     assert (cache / "resized" / "128x128").is_dir()
-    for key in ("image", "sources", "poses", "mask", "distance", "image_aug"):
+    for key in ("image", "sources", "poses", "mask", "image_aug"):
         assert torch.isfinite(getattr(batch, key)).all()
+    assert torch.isfinite(val.distance).all()
 
 
 def test_base_focal_auto_is_the_mean_focal_of_the_training_cameras_at_the_training_size(kitti_data, cache):
@@ -182,8 +192,8 @@ def test_lidar_ground_truth(kitti_data, cache):
     cam = layout.cameras["image_02"].camera
     frame = layout.frames(TRAIN_SEQ)[3]
     d, z = gt(TRAIN_SEQ, "image_02", cam, frame)
-    files = list((cache / "lidar" / TRAIN_SEQ).glob("image_02_256x256*.npz"))
-    assert len(files) == 1  # the whole sequence, cached once
+    files = list((cache / "lidar" / TRAIN_SEQ).rglob("*.npz"))
+    assert [f.name.split("_")[0] for f in files] == [f"{frame.key:010d}"]  # this frame only, lazily
     rendered = np.load(layout.distance(TRAIN_SEQ, "image_02", frame))
     both = (d > 0) & (rendered > 0)
     assert both.sum() > 500
@@ -194,12 +204,74 @@ def test_lidar_ground_truth(kitti_data, cache):
     # z / distance is the cosine of incidence: that of the pixel's ray, up to the point's sub-pixel offset
     assert np.abs(z[has] / d[has] - rays[..., 2].numpy()[has]).max() < 0.03
     assert (z[has] < 0).sum() > 0  # points beyond 90 degrees of incidence are kept
-    again = LidarGroundTruth(layout, cache, occlusion=0.1)(TRAIN_SEQ, "image_02", cam, frame)
-    assert np.array_equal(again[0], d)
+    # the filter applied on reading is the projection's own
+    T = layout.velo_to_camera("image_02")
+    direct = project_points(read_velodyne(layout.lidar(TRAIN_SEQ, frame)), T, cam, occlusion=0.1)
+    assert np.array_equal(direct[0], d) and np.array_equal(direct[1], z)
     unfiltered, _ = LidarGroundTruth(layout, cache, occlusion=None)(TRAIN_SEQ, "image_02", cam, frame)
-    assert (unfiltered > 0).sum() >= (d > 0).sum()
-    ds = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], ground_truth="lidar", cache_dir=cache)
-    assert (ds[0]["distance"] > 0).float().mean() < 0.3  # sparse, not the dense rendered map
+    assert (unfiltered > 0).sum() > (d > 0).sum() and np.array_equal(unfiltered[d > 0], d[d > 0])
+    assert len(list((cache / "lidar").rglob("*.npz"))) == 1  # one cache file serves both
+
+
+def test_lidar_cache_is_keyed_by_calibration_and_scan(kitti_data, tmp_path, monkeypatch, caplog):
+    data = tmp_path / "data"
+    shutil.copytree(kitti_data, data)
+    layout, cache = Kitti360Layout(data), tmp_path / "cache"
+    cam = layout.cameras["image_02"].camera
+    frame = layout.frames(TRAIN_SEQ)[2]
+    first = LidarGroundTruth(layout, cache)(TRAIN_SEQ, "image_02", cam, frame)
+
+    def refuse(*args):
+        raise AssertionError("projected again")
+
+    monkeypatch.setattr(LidarGroundTruth, "project", refuse)
+    again = LidarGroundTruth(layout, cache)(TRAIN_SEQ, "image_02", cam, frame)  # a new process: the disk
+    assert np.array_equal(again[0], first[0])
+    monkeypatch.undo()
+    small = cam.resize(128, 128)  # another calibration: its own entry, projected at its size
+    d_small, _ = LidarGroundTruth(layout, cache)(TRAIN_SEQ, "image_02", small, frame)
+    assert d_small.shape == (128, 128) and len(list(cache.rglob("*.npz"))) == 2
+    scan = layout.lidar(TRAIN_SEQ, frame)
+    points = read_velodyne(scan)
+    points[:, :3] *= 2.0  # the scan is replaced (points twice as far from the scanner): never stale
+    scan.write_bytes(points.astype(np.float32).tobytes())
+    doubled, _ = LidarGroundTruth(layout, cache, occlusion=None)(TRAIN_SEQ, "image_02", cam, frame)
+    expected, _ = project_points(points, layout.velo_to_camera("image_02"), cam)
+    assert np.array_equal(doubled, expected) and np.median(doubled[doubled > 0]) > 1.5 * np.median(
+        first[0][first[0] > 0]
+    )
+    newest = max(cache.rglob("*.npz"), key=lambda p: p.stat().st_mtime_ns)
+    newest.write_bytes(b"not a zip")  # a corrupt cache file is rebuilt, with a word
+    with caplog.at_level("WARNING"):
+        rebuilt, _ = LidarGroundTruth(layout, cache, occlusion=None)(TRAIN_SEQ, "image_02", cam, frame)
+    assert np.array_equal(rebuilt, doubled) and f"{newest}: unreadable LiDAR cache" in caplog.text
+
+
+def test_building_a_lidar_dataset_projects_nothing_and_train_reads_no_ground_truth(
+    kitti_data, cache, monkeypatch
+):
+    def refuse(*args):
+        raise AssertionError("LiDAR projected")
+
+    monkeypatch.setattr(LidarGroundTruth, "project", refuse)
+    dm = FisheyeDataModule(kitti_data, ground_truth="lidar", cache_dir=cache, size=(64, 64))
+    dm.setup("fit")
+    dm.setup("test")
+    assert dm.dataset("train").lidar is None and dm.dataset("test").lidar is not None
+    assert "distance" not in dm.dataset("train")[0]  # training reads no scan
+    with pytest.raises(AssertionError, match="LiDAR projected"):
+        dm.dataset("test")[0]  # the first read of a scored frame projects it
+    monkeypatch.undo()
+    sample = dm.dataset("test")[0]
+    assert sample["distance_source"] == "lidar" and 0 < (sample["distance"] > 0).float().mean() < 0.3
+    item = dm.dataset("test").items[0]
+    scan = dm.layout.lidar(item.sequence, dm.layout.frames(item.sequence)[item.row])
+    scan.rename(scan.with_suffix(".moved"))
+    try:
+        with pytest.raises(FileNotFoundError, match=f"{scan}: no Velodyne scan"):
+            dm.dataset("test")[0]
+    finally:
+        scan.with_suffix(".moved").rename(scan)
 
 
 def quaternion_xyzw(R: np.ndarray) -> np.ndarray:

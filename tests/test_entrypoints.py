@@ -206,6 +206,8 @@ def test_train_eval_resume_tables(workdir):
     again = json.loads((evaluated / "results.json").read_text())
     assert again["checkpoint"].endswith("last.ckpt") and again["results"]["full"]["none"]["images"] > 0
     assert again["split"] == "test" and again["train_size"] == [64, 64]
+    test_frames = (calib.parent / "splits" / "test.txt").read_text().splitlines()
+    assert again["results"]["full"]["none"]["images"] == 2 * len(test_frames)  # every frame: its ends too
     assert again["experiment"] == "ablation_full"  # from the checkpoint's run: make_tables finds its row
     on_val = workdir / "eval_val"
     run(

@@ -78,3 +78,23 @@ def test_unnamed_images_give_no_per_camera_breakdown(scene):
     ev = Evaluator(PROTOCOLS["full"], ("none",))
     ev.update(gt, gt, valid, camera)
     assert "none_by_camera" not in ev.compute()
+
+
+def test_the_occlusion_filter_is_the_protocols_and_only_for_lidar(scene):
+    """A far LiDAR point two pixels from a near one (the scanner saw behind an edge): the project's
+    ``full`` protocol drops it, the reference's ``kitti360`` scores it, and a dense map is never filtered."""
+    camera, _, valid, _ = scene
+    gt = torch.zeros(96, 96, dtype=torch.float64)
+    gt[48, 40], gt[48, 42], gt[30, 30] = 3.0, 6.0, 5.0  # all within 8 m, near the optical axis (z > 0.3)
+    pred = gt.clone()
+    pred[48, 42] = 3.0  # the camera sees the near surface there: a network predicts it
+    results = {}
+    for name in ("full", "kitti360"):
+        for source in ("lidar", "rendered"):
+            ev = Evaluator(PROTOCOLS[name], ("none",))
+            ev.update(pred, gt, valid, camera, source=source)
+            results[name, source] = ev.compute()["none"]["abs_rel"]
+    assert results["full", "lidar"] == 0.0  # the hidden point is not scored
+    assert results["kitti360", "lidar"] == pytest.approx(0.5 / 3)  # scored: |3 - 6| / 6 over 3 points
+    assert results["full", "rendered"] == results["kitti360", "rendered"] == pytest.approx(0.5 / 3)
+    assert PROTOCOLS["kitti360"].occlusion is None and PROTOCOLS["full"].occlusion == 0.1

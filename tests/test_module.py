@@ -430,7 +430,7 @@ class _NanGradientOnce(L.Callback):
             self.after = {n: p.detach().clone() for n, p in module.named_parameters()}
 
 
-def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data):
+def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_path):
     """The gradients are dropped before the optimiser: no parameter moves (Adam's moments neither, as a
     parameter without a gradient is left alone), BatchNorm is restored, the skip is counted."""
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
@@ -440,6 +440,7 @@ def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data):
     trainer = L.Trainer(
         max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
         accelerator="cpu", enable_model_summary=False, limit_val_batches=0, callbacks=[probe],
+        default_root_dir=tmp_path,  # the training panel is written there, not in the working tree
     )  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -1,7 +1,8 @@
 """Evaluation at the ground truth's native resolution, under named protocols, with an angle breakdown.
 
-The network runs at its training resolution (the image and camera model resized alike); its distance is
-upsampled to the ground truth's resolution in inverse-distance space, as the reference does. Metrics
+Every frame of the scored split is scored (no neighbour needed, no translation bound). The network runs
+at its training resolution (the image and camera model resized alike); its distance is upsampled to the
+ground truth's resolution in inverse-distance space, as the reference does. Metrics
 are reported unscaled (real scale), per-image median-scaled, and optionally with DNet-style scale
 recovery from the known camera height. The breakdown by angle of incidence (0-30, 30-60, 60-90, beyond
 90 degrees) shows where fisheye geometry matters.
@@ -21,6 +22,7 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
+from .data.kitti360 import OCCLUSION, occlusion_filter
 from .metrics import DepthMetrics
 from .runtimes import as_runtime
 from .viz import panel
@@ -36,6 +38,9 @@ class Protocol:
     ``z_range``: keep ground truth whose z lies in this open interval (None: no z condition).
     ``max_range``: keep ground truth whose Euclidean distance is below this (None: no limit).
     ``cap``: (min, max) for ground truth validity and prediction clamping.
+    ``occlusion``: LiDAR ground truth only: drop points farther than ``1 + occlusion`` times the
+    nearest within 3 pixels (seen by the scanner around an edge the camera cannot see); None keeps
+    every projected point. Rendered (dense) ground truth is never filtered.
     """
 
     name: str
@@ -43,15 +48,18 @@ class Protocol:
     z_range: tuple[float, float] | None = None
     max_range: float | None = None
     cap: tuple[float, float] = (1e-3, 80.0)
+    occlusion: float | None = None
 
 
 PROTOCOLS = {
-    # the reference implementation's KITTI-360 protocol: GT z in (0.3, 60) m and range < 8 m, capped at 80
+    # the reference implementation's (the paper's Table 1), exactly: one scan, z > 0, the nearest point
+    # per pixel, no occlusion filter; scored where GT z is in (0.3, 60) m and the range below 8 m
     "kitti360": Protocol("kitti360", "distance", (0.3, 60.0), 8.0),
     "kitti360_z": Protocol("kitti360_z", "z", (0.3, 60.0), 8.0),
-    # everything with ground truth up to 80 m, including the periphery beyond 90 degrees
-    "full": Protocol("full", "distance", None, None),
-    "full_z": Protocol("full_z", "z", (1e-3, 80.0), None),
+    # the project's: everything with ground truth up to 80 m, the periphery beyond 90 degrees included,
+    # and LiDAR points hidden from the camera dropped
+    "full": Protocol("full", "distance", None, None, occlusion=OCCLUSION),
+    "full_z": Protocol("full_z", "z", (1e-3, 80.0), None, occlusion=OCCLUSION),
 }
 
 
@@ -91,14 +99,23 @@ class Evaluator:
         self.rays = rays if rays is not None else RayCache()
 
     def update(
-        self, pred: Tensor, gt: Tensor, mask: Tensor, camera: CameraModel, name: str | None = None
+        self,
+        pred: Tensor,
+        gt: Tensor,
+        mask: Tensor,
+        camera: CameraModel,
+        name: str | None = None,
+        source: str | None = None,
     ) -> None:
         """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels;
-        ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs)."""
+        ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs); ``source``:
+        "lidar" for a projected scan (the protocol's occlusion filter applies), else a dense map."""
         rays, valid = self.rays.get(camera, pred.device, pred.dtype)
         p = self.protocol
         gt_z = gt * rays[..., 2]
         keep = mask.bool() & valid & (gt > 0)
+        if source == "lidar" and p.occlusion is not None:
+            keep &= ~occlusion_filter(gt, p.occlusion)
         if p.z_range is not None:
             keep &= (gt_z > p.z_range[0]) & (gt_z < p.z_range[1])
         if p.max_range is not None:
@@ -174,9 +191,10 @@ def evaluate(
         pred = model.distance(batch.image, batch.camera).float()
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
         names = batch.camera_name or [None] * len(batch)
+        sources = batch.distance_source or [None] * len(batch)
         for i, cam in enumerate(batch.camera):
             for ev in evaluators.values():
-                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i])
+                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i])
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body

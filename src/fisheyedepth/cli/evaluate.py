@@ -67,8 +67,7 @@ def run_evaluation(
     if runtime.input_size is None and datamodule.size:  # a checkpoint that stored no input size
         runtime.input_size = tuple(datamodule.size)
     train_size = runtime.input_size
-    native = instantiate(cfg.data.datamodule, size=None, augment=None, batch_size=4, num_workers=0)
-    loader = native.dataloader(split)
+    loader = datamodule.scoring_loader(split)
     results = evaluate(
         runtime,
         loader,

@@ -13,6 +13,7 @@ A sample (what ``FisheyeDataset`` returns) is a dict:
 | ``mask`` | ``[1, H, W]`` float | target body mask, 1 = usable pixel |
 | ``source_mask`` | ``[S, 1, H, W]`` | optional: sources' body masks (default: ``mask``, same camera) |
 | ``distance`` | ``[1, H, W]`` float | optional ground-truth distance in metres, 0 = unknown |
+| ``distance_source`` | ``str`` | with ``distance``: "rendered" (a dense map) or "lidar" (projected scan) |
 | ``camera`` | a ``CameraModel`` | the target camera |
 | ``source_camera`` | list of ``S`` cameras | optional: sources' cameras (default: ``camera``) |
 | ``camera_name`` | ``str`` | optional: the rig's name for the target camera (e.g. ``image_02``) |
@@ -39,6 +40,7 @@ OPTIONAL = (
     "cam_to_body",
     "source_mask",
     "distance",
+    "distance_source",
     "source_camera",
     "camera_name",
 )
@@ -61,6 +63,7 @@ class Batch:
     distance: Tensor | None = None  # [B, 1, H, W] ground truth in metres (0 = unknown), when known
     skipped_frames: list[str] = dataclasses.field(default_factory=list)  # reasons, skip_bad_frames
     camera_name: list[str] | None = None  # B rig names of the target cameras, when the dataset gives them
+    distance_source: list[str] | None = None  # B "rendered" or "lidar", with distance
 
     def __len__(self) -> int:
         return len(self.camera)
@@ -137,4 +140,5 @@ def collate(samples: list[dict[str, Any]]) -> Batch | SkippedBatch:
         distance=stack("distance") if "distance" in keys else None,
         skipped_frames=skipped,
         camera_name=[str(s["camera_name"]) for s in samples] if "camera_name" in keys else None,
+        distance_source=[str(s["distance_source"]) for s in samples] if "distance_source" in keys else None,
     )

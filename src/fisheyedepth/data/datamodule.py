@@ -14,7 +14,7 @@ from torch.utils.data import DataLoader
 from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset
-from .kitti360 import Kitti360Layout
+from .kitti360 import OCCLUSION, Kitti360Layout
 from .layouts import RigLayout
 
 LAYOUTS = {"kitti360": Kitti360Layout, "rig": RigLayout}
@@ -37,6 +37,10 @@ class FisheyeDataModule(L.LightningDataModule):
             ``{sequence, start, stop, stride, cameras}`` entries, or "all" (see ``parse_split``).
         size: training resolution ``(width, height)``; None keeps the native size.
         augment: training augmentation (flip and colour jitter); None disables it.
+        ground_truth: "auto", "distance", "lidar" or "none", for the splits in ``ground_truth_splits``
+            only (the scored ones; by default not train, where nothing reads it). LiDAR is projected
+            lazily per frame and cached on disk; ``lidar_occlusion``: its occlusion filter (None: off).
+        offsets: source frames of a target; empty for evaluation (every frame of a split is scored).
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
     """
 
@@ -60,6 +64,8 @@ class FisheyeDataModule(L.LightningDataModule):
         cache_dir: str | os.PathLike | None = None,
         seed: int = 0,
         pose_noise: PoseNoise | dict | None = None,
+        ground_truth_splits: tuple[str, ...] | list[str] = ("val", "test"),
+        lidar_occlusion: float | None = OCCLUSION,
     ):
         super().__init__()
         if layout not in LAYOUTS:
@@ -78,6 +84,7 @@ class FisheyeDataModule(L.LightningDataModule):
         )
         self.augment = Augment(**augment) if isinstance(augment, dict) else augment
         self.ground_truth, self.skip_bad_frames = ground_truth, skip_bad_frames
+        self.ground_truth_splits, self.lidar_occlusion = tuple(ground_truth_splits), lidar_occlusion
         self.batch_size, self.num_workers, self.pin_memory = batch_size, num_workers, pin_memory
         self.cache_dir, self.seed = cache_dir, seed
         self.pose_noise = PoseNoise(**pose_noise) if isinstance(pose_noise, dict) else pose_noise
@@ -103,9 +110,10 @@ class FisheyeDataModule(L.LightningDataModule):
                 self.min_translation,
                 self.max_translation,
                 self.augment if split == "train" else None,
-                self.ground_truth,
+                self.ground_truth if split in self.ground_truth_splits else "none",
                 self.skip_bad_frames,
                 self.cache_dir,
+                lidar_occlusion=self.lidar_occlusion,
                 pose_noise=self.pose_noise,
             )
         return self.datasets[split]
@@ -159,6 +167,24 @@ class FisheyeDataModule(L.LightningDataModule):
     def dataloader(self, split: str) -> DataLoader:
         """Any configured split in order, unshuffled (evaluation)."""
         return self._loader(split, shuffle=False)
+
+    def scoring_loader(self, split: str, batch_size: int = 4, num_workers: int = 0) -> DataLoader:
+        """What evaluation scores: every frame of ``split`` (no source frames, hence no neighbour
+        needed and no translation bound, as the reference scores its test set) at its native
+        resolution, un-augmented, with ground truth (LiDAR unfiltered: each protocol filters its own)."""
+        if split not in self.splits:
+            raise KeyError(f"no {split!r} split configured (have {sorted(self.splits)})")
+        dataset = FisheyeDataset(
+            self.layout,
+            self.splits[split],
+            self.cameras,
+            offsets=(),
+            ground_truth=self.ground_truth,
+            skip_bad_frames=self.skip_bad_frames,
+            cache_dir=self.cache_dir,
+            lidar_occlusion=None,
+        )
+        return DataLoader(dataset, batch_size, num_workers=num_workers, collate_fn=collate)
 
     def predict_dataloader(self) -> DataLoader:
         return self._loader("test", shuffle=False)

@@ -29,7 +29,7 @@ from ..geometry import relative_pose
 from ..images import ImageError, read_image
 from ..utils import atomic_write_bytes
 from .augment import Augment, PoseNoise
-from .kitti360 import Kitti360Layout, LidarGroundTruth
+from .kitti360 import OCCLUSION, Kitti360Layout, LidarGroundTruth
 from .layouts import Frame
 
 log = logging.getLogger(__name__)
@@ -177,12 +177,15 @@ class FisheyeDataset(Dataset):
         ground_truth: str = "auto",
         skip_bad_frames: bool = False,
         cache_dir: str | os.PathLike | None = None,
-        lidar_occlusion: float | None = 0.1,
+        lidar_occlusion: float | None = OCCLUSION,
         pose_noise: PoseNoise | None = None,
     ):
         """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
-        "auto" (whichever exists), or "none". ``pose_noise``: seeded odometry error on the relative
-        poses (the paper's claim that the multi-channel head copes with noisy real poses)."""
+        "auto" (whichever exists), or "none"; LiDAR is projected lazily, per frame, when a sample is
+        read (``lidar_occlusion``: the occlusion filter's ratio, None for every point). ``offsets``:
+        the source frames; empty for evaluation, which scores every frame of the split (no neighbour
+        needed, no translation bound). ``pose_noise``: seeded odometry error on the relative poses (the
+        paper's claim that the multi-channel head copes with noisy real poses)."""
         self.pose_noise = pose_noise or PoseNoise()
         self.layout, self.size, self.offsets = layout, size, tuple(offsets)
         self.augment, self.skip_bad_frames = augment, skip_bad_frames
@@ -297,7 +300,11 @@ class FisheyeDataset(Dataset):
             sources.append(self._image(self.layout.image(item.sequence, item.camera, other), camera, native))
             T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E)
             poses.append(self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{offset}"))
-        sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
+        if sources:
+            sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
+        else:  # evaluation: the target alone
+            sample["sources"] = sample["image"].new_zeros(0, *sample["image"].shape)
+            sample["poses"] = torch.zeros(0, 4, 4)
         sample["cam_to_body"] = E.float()  # lets a PoseNet predict the body's motion, like odometry
         size = (camera.width, camera.height)
         if spec.mask is not None:
@@ -309,19 +316,20 @@ class FisheyeDataset(Dataset):
             sample["mask"] = torch.ones(1, camera.height, camera.width)
         gt = self._ground_truth(item, camera, target)
         if gt is not None:
-            sample["distance"] = gt
+            sample["distance"], sample["distance_source"] = gt
         if not all(torch.isfinite(v).all() for v in sample.values() if isinstance(v, torch.Tensor)):
             raise ValueError(f"{path}: sample has non-finite values")
         return sample
 
-    def _ground_truth(self, item: Item, camera, frame: Frame) -> torch.Tensor | None:
+    def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
+        """``(distance [1, H, W], source)``, source "rendered" (a dense map) or "lidar" (sparse)."""
         if self.ground_truth in ("distance", "auto"):
             path = self.layout.distance(item.sequence, item.camera, frame)
             if path is not None:
                 d = np.load(path)
                 if d.shape[1::-1] != (camera.width, camera.height):
                     d = cv2.resize(d, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-                return torch.from_numpy(d.astype(np.float32))[None]
+                return torch.from_numpy(d.astype(np.float32))[None], "rendered"
             if self.ground_truth == "distance":
                 raise FileNotFoundError(
                     f"no ground-truth distance map for {item.sequence}/{item.camera}/{frame.key}"
@@ -329,7 +337,12 @@ class FisheyeDataset(Dataset):
         if self.lidar is not None and self.ground_truth in ("lidar", "auto"):
             out = self.lidar(item.sequence, item.camera, camera, frame)
             if out is not None:
-                return torch.from_numpy(out[0])[None]
+                return torch.from_numpy(out[0])[None], "lidar"
+            if self.ground_truth == "lidar":
+                raise FileNotFoundError(
+                    f"{self.layout.lidar(item.sequence, frame)}: no Velodyne scan for "
+                    f"{item.sequence}/{item.camera}/{frame.key} (ground_truth: lidar)"
+                )
         return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:

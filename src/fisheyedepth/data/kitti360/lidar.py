@@ -1,15 +1,18 @@
 """LiDAR ground truth: Velodyne scans projected into each fisheye camera (for evaluation).
 
 Unlike KITTI-360's official tools, points beyond 90 degrees of incidence are kept (they drop z <= 0),
-each pixel keeps its nearest point, and both the Euclidean distance and z are stored. An optional
-occlusion filter drops points that lie well behind a nearer point in their neighbourhood (the scanner
-sees around foreground edges that the camera cannot). Results are cached on disk once per
-(sequence, camera, image size).
+each pixel keeps its nearest point, and both the Euclidean distance and z are stored. The projection is
+cached on disk, one small file per frame, built on first use (nothing is projected when a dataset is
+built, nothing is held in memory). An optional occlusion filter, applied when a frame is read, drops
+points that lie well behind a nearer point in their neighbourhood (the scanner sees around foreground
+edges that the camera cannot); the reference implementation has none.
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 import logging
 import os
 import zipfile
@@ -18,12 +21,25 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
 from ...cameras import CameraModel
 from ...utils import atomic_write_bytes
 from .files import read_velodyne
 
 log = logging.getLogger(__name__)
+
+OCCLUSION = 0.1  # the project's default: a point 10 % behind the nearest within 3 pixels is hidden
+CACHE_VERSION = 2  # bump when the projection changes, so old cache files are never read as new
+
+
+def occlusion_filter(distance: Tensor, ratio: float, radius: int = 3) -> Tensor:
+    """Boolean ``[..., H, W]``: the points (``distance > 0``) farther than ``(1 + ratio)`` times the
+    nearest point within ``radius`` pixels, which the scanner saw around an edge the camera cannot."""
+    inf = torch.where(distance > 0, distance, torch.full_like(distance, float("inf")))
+    flat = inf.reshape(-1, 1, *distance.shape[-2:])
+    near = -F.max_pool2d(-flat, 2 * radius + 1, 1, radius).reshape(distance.shape)
+    return (distance > 0) & (distance > (1 + ratio) * near)
 
 
 def project_points(
@@ -51,65 +67,83 @@ def project_points(
     )
     z_img = z_img.reshape(camera.height, camera.width)
     if occlusion is not None:
-        inf = torch.where(d_img > 0, d_img, torch.full_like(d_img, float("inf")))
-        near = -F.max_pool2d(-inf[None, None], 7, 1, 3)[0, 0]
-        hidden = (d_img > 0) & (d_img > (1 + occlusion) * near)
+        hidden = occlusion_filter(d_img, occlusion)
         d_img, z_img = d_img.masked_fill(hidden, 0), z_img.masked_fill(hidden, 0)
     return d_img.float().numpy(), z_img.float().numpy()
 
 
+def _digest(*parts: bytes | str) -> str:
+    h = hashlib.sha1()
+    for part in parts:
+        h.update(part.encode() if isinstance(part, str) else part)
+        h.update(b"|")
+    return h.hexdigest()[:16]
+
+
 class LidarGroundTruth:
-    """Projected LiDAR per frame, computed for a whole sequence on first use and cached to ``cache_dir``."""
+    """Projected LiDAR per frame, built lazily and cached in ``cache_dir`` one file per frame, keyed by
+    the calibration (the camera model at its size and the Velodyne-to-camera transform) and the scan
+    (its path, size and modification time): a new calibration or a replaced scan is projected again,
+    never served stale. ``occlusion``: the filter's ratio applied when reading (None: every point)."""
 
-    def __init__(self, layout, cache_dir: str | os.PathLike, occlusion: float | None = 0.1):
+    def __init__(self, layout, cache_dir: str | os.PathLike, occlusion: float | None = OCCLUSION):
         self.layout, self.cache_dir, self.occlusion = layout, Path(cache_dir), occlusion
-        self._loaded: dict[tuple, dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+        self._calibration: dict[tuple[str, CameraModel], tuple[str, np.ndarray]] = {}
 
-    def _path(self, sequence: str, camera_name: str, camera: CameraModel) -> Path:
-        occ = "none" if self.occlusion is None else f"{self.occlusion:g}"
-        return (
-            self.cache_dir / "lidar" / sequence / f"{camera_name}_{camera.width}x{camera.height}_occ{occ}.npz"
-        )
+    def calibration_key(self, camera_name: str, camera: CameraModel) -> tuple[str, np.ndarray]:
+        """``(key, T_velo_to_cam)`` of one camera at one size (one small entry per camera and size)."""
+        if (camera_name, camera) not in self._calibration:
+            T = self.layout.velo_to_camera(camera_name)
+            model = json.dumps(camera.to_dict(), sort_keys=True)
+            key = _digest(f"v{CACHE_VERSION}", model, np.ascontiguousarray(T, np.float64).tobytes())
+            self._calibration[(camera_name, camera)] = (key, T)
+        return self._calibration[(camera_name, camera)]
 
-    def _build(self, sequence: str, camera_name: str, camera: CameraModel, path: Path) -> None:
-        T = self.layout.velo_to_camera(camera_name)
-        arrays = {}
-        for frame in self.layout.frames(sequence, camera_name):
-            scan = self.layout.lidar(sequence, frame)
-            if not scan.is_file():
-                continue
-            d, z = project_points(read_velodyne(scan), T, camera, self.occlusion)
-            idx = np.flatnonzero(d > 0).astype(np.int32)
-            arrays[f"i{frame.key}"], arrays[f"d{frame.key}"], arrays[f"z{frame.key}"] = (
-                idx,
-                d.flat[idx],
-                z.flat[idx],
-            )
-        buffer = io.BytesIO()
-        np.savez_compressed(buffer, **arrays)
-        atomic_write_bytes(path, buffer.getvalue())  # concurrent workers may both build, none sees half
-        log.info("LiDAR ground truth for %s/%s cached in %s", sequence, camera_name, path)
+    def path(self, sequence: str, camera_name: str, camera: CameraModel, scan: Path) -> Path:
+        """The cache file of one scan seen by one calibrated camera."""
+        calibration, _ = self.calibration_key(camera_name, camera)
+        stat = scan.stat()
+        key = _digest(str(scan.resolve()), str(stat.st_size), str(stat.st_mtime_ns))
+        folder = f"{camera_name}_{camera.width}x{camera.height}_{calibration}"
+        return self.cache_dir / "lidar" / sequence / folder / f"{scan.stem}_{key}.npz"
+
+    def project(self, camera_name: str, camera: CameraModel, scan: Path) -> tuple[np.ndarray, ...]:
+        """``(pixel index, distance, z)`` of the nearest point of each pixel hit, unfiltered."""
+        _, T = self.calibration_key(camera_name, camera)
+        d, z = project_points(read_velodyne(scan), T, camera, occlusion=None)
+        idx = np.flatnonzero(d > 0).astype(np.int32)
+        return idx, d.flat[idx], z.flat[idx]
+
+    def _cached(self, path: Path) -> tuple[np.ndarray, ...] | None:
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path) as data:
+                return data["index"], data["distance"], data["z"]
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            log.warning("%s: unreadable LiDAR cache (%s); projecting the scan again", path, exc)
+            return None
 
     def __call__(
         self, sequence: str, camera_name: str, camera: CameraModel, frame
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """``(distance, z)`` images for ``camera`` (any size), or None when the frame has no scan."""
-        key = (sequence, camera_name, camera)
-        if key not in self._loaded:
-            path = self._path(sequence, camera_name, camera)
-            if not path.is_file():
-                self._build(sequence, camera_name, camera, path)
-            try:
-                with np.load(path) as data:
-                    keys = {int(k[1:]) for k in data.files if k.startswith("i")}
-                    self._loaded[key] = {k: (data[f"i{k}"], data[f"d{k}"], data[f"z{k}"]) for k in keys}
-            except (OSError, ValueError, zipfile.BadZipFile) as exc:
-                raise ValueError(f"{path}: corrupt LiDAR cache ({exc}); delete it to rebuild") from None
-        entry = self._loaded[key].get(frame.key)
-        if entry is None:
+        scan = self.layout.lidar(sequence, frame)
+        if not scan.is_file():
             return None
+        path = self.path(sequence, camera_name, camera, scan)
+        entry = self._cached(path)
+        if entry is None:
+            entry = self.project(camera_name, camera, scan)
+            buffer = io.BytesIO()
+            np.savez(buffer, index=entry[0], distance=entry[1], z=entry[2])
+            atomic_write_bytes(path, buffer.getvalue())  # concurrent workers may both write, none sees half
         idx, d, z = entry
         d_img = np.zeros(camera.height * camera.width, np.float32)
         z_img = np.zeros_like(d_img)
         d_img[idx], z_img[idx] = d, z
-        return d_img.reshape(camera.height, camera.width), z_img.reshape(camera.height, camera.width)
+        d_img, z_img = d_img.reshape(camera.height, camera.width), z_img.reshape(camera.height, camera.width)
+        if self.occlusion is not None:
+            hidden = occlusion_filter(torch.from_numpy(d_img), self.occlusion).numpy()
+            d_img[hidden], z_img[hidden] = 0, 0
+        return d_img, z_img
