@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 import yaml
 
@@ -112,6 +114,14 @@ def realdata() -> Path:
 
 
 TRAIN_SEQ = "2013_05_28_drive_0000_sync"
+
+
+def quaternion_xyzw(R: np.ndarray) -> list[float]:
+    """A rotation matrix as a unit quaternion (x, y, z, w), through its axis-angle (any rotation)."""
+    rvec = cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
+    angle = float(np.linalg.norm(rvec))
+    axis = rvec / angle if angle > 0 else np.zeros(3)
+    return [*(axis * np.sin(angle / 2)), float(np.cos(angle / 2))]
 
 
 def _overrides(tree, prefix=""):

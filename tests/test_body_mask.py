@@ -17,6 +17,8 @@ from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.data.kitti360.presets import KITTI360_CAM_TO_POSE
 from fisheyedepth.geometry import pose_from_3x4
 
+from conftest import quaternion_xyzw
+
 TRAIN, VAL = "2013_05_28_drive_0000_sync", "2013_05_28_drive_0001_sync"  # 24 and 3 frames
 CAMERAS = ("image_02", "image_03")
 
@@ -120,13 +122,6 @@ def test_too_few_frames(world, tmp_path, capsys):
     assert main(["--root", str(root), "--sequence", TRAIN, "--camera", "image_02", "--frames", "5"]) == 2
     assert "at least 10" in capsys.readouterr().out
     assert not out.exists()
-
-
-def quaternion_xyzw(R: np.ndarray) -> list[float]:
-    rvec = cv2.Rodrigues(R)[0].reshape(3)
-    angle = float(np.linalg.norm(rvec))
-    axis = rvec / angle if angle > 0 else np.zeros(3)
-    return [*(axis * np.sin(angle / 2)), float(np.cos(angle / 2))]
 
 
 def as_rig(root: Path, out: Path) -> Path:

@@ -33,7 +33,7 @@ from fisheyedepth.geometry import sample as grid_sample_image
 from fisheyedepth.geometry import warp_to_source
 from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ
+from conftest import TRAIN_SEQ, quaternion_xyzw
 
 
 @pytest.fixture
@@ -263,7 +263,8 @@ def test_building_a_lidar_dataset_projects_nothing_and_train_reads_no_ground_tru
         dm.dataset("test")[0]  # the first read of a scored frame projects it
     monkeypatch.undo()
     sample = dm.dataset("test")[0]
-    assert sample["distance_source"] == "lidar" and 0 < (sample["distance"] > 0).float().mean() < 0.3
+    assert sample["distance_source"] == "lidar_filtered"  # validation's default: the occlusion filter
+    assert 0 < (sample["distance"] > 0).float().mean() < 0.3
     item = dm.dataset("test").items[0]
     scan = dm.layout.lidar(item.sequence, dm.layout.frames(item.sequence)[item.row])
     scan.rename(scan.with_suffix(".moved"))
@@ -272,13 +273,6 @@ def test_building_a_lidar_dataset_projects_nothing_and_train_reads_no_ground_tru
             dm.dataset("test")[0]
     finally:
         scan.with_suffix(".moved").rename(scan)
-
-
-def quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    w = np.sqrt(max(0.0, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    return np.array(
-        [(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w]
-    )
 
 
 def write_rig(src, dst, keep_every=1, early_images=0):
@@ -509,7 +503,14 @@ def test_a_kitti360_camera_without_a_body_mask_is_warned_once_by_name(kitti_data
     expected = root / "calibration" / "body_mask_image_03.png"
     assert warnings == [
         f"camera image_03 has no body mask (expected {expected}): every pixel counts as usable, the "
-        "vehicle's body included; write that PNG (255 = usable) or pass "
+        "vehicle's body included; estimate it from a recording (fisheyedepth-estimate-mask --root ROOT "
+        "--sequence SEQ --camera image_03), write that PNG yourself (255 = usable) or pass "
         "data.datamodule.masks={image_03: FILE}"
     ]
+    caplog.clear()
+    (root / "calibration" / "body_mask_image_02.png").unlink()
+    with caplog.at_level(logging.WARNING, logger="fisheyedepth.data.kitti360.layout"):
+        Kitti360Layout(root, ["image_02"], warn_missing_masks=False)  # the mask command, about to write it
+        Kitti360Layout(root, ["image_02"])
+    assert [r.getMessage()[:36] for r in caplog.records] == ["camera image_02 has no body mask (ex"]
     assert layout.cameras["image_03"].mask is None and layout.cameras["image_02"].mask is not None

@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 
 from fisheyedepth.data import FisheyeDataModule, Kitti360Layout
@@ -79,3 +80,98 @@ def test_the_reference_protocols_ground_truth_is_one_scan_z_positive_nearest_unf
             assert np.array_equal(ours_scored, scored)
             assert (ours_z < 0).any() and not (theirs_z < 0).any()
     assert p.occlusion is None and p.z_range == (0.3, 60.0) and p.max_range == 8.0 and p.cap == (1e-3, 80.0)
+
+
+def test_projection_keeps_the_nearest_point_at_the_rounded_pixel():
+    """Hand-made points: two on one pixel's ray (the nearer wins, both its distance and its z), one
+    rounded to its nearest pixel, one behind the camera beyond the model's field (dropped)."""
+    from fisheyedepth.cameras import PinholeCamera
+
+    camera = PinholeCamera(width=8, height=6, fx=4.0, fy=4.0, cx=3.5, cy=2.5)
+    points = np.array(
+        [
+            [0.25, 0.05, 2.0, 0],  # u = 3.5 + 0.5 = 4.0, v = 2.5 + 0.1 = 2.6 -> pixel (4, 3)
+            [0.5, 0.1, 4.0, 0],  # the same ray, twice as far: loses
+            [-0.49, 0.26, 2.0, 0],  # u = 3.5 - 0.98 = 2.52 -> 3, v = 2.5 + 0.52 = 3.02 -> 3
+            [0.0, 0.0, -1.0, 0],  # behind a pinhole camera: no projection
+        ],
+        np.float32,
+    )
+    d, z = project_points(points, np.eye(4), camera)
+    assert np.count_nonzero(d) == 2
+    assert d[3, 4] == pytest.approx(np.linalg.norm([0.25, 0.05, 2.0]), rel=1e-6) and z[3, 4] == 2.0
+    assert d[3, 3] == pytest.approx(np.linalg.norm([-0.49, 0.26, 2.0]), rel=1e-6)
+
+
+@pytest.fixture(scope="module")
+def lidar_world(kitti_data, tmp_path_factory):
+    """The synthetic world without its rendered maps, so ground truth comes from the Velodyne scans."""
+    root = tmp_path_factory.mktemp("lidar") / "world"
+    shutil.copytree(kitti_data, root, ignore=shutil.ignore_patterns("data_2d_distance"))
+    return root
+
+
+def test_evaluation_scores_unfiltered_lidar_and_each_protocol_filters_its_own(
+    lidar_world, checkpoint, tmp_path
+):
+    from fisheyedepth.evaluation import Evaluator, evaluate
+    from fisheyedepth.module import FisheyeDepthModule
+    from fisheyedepth.runtimes import as_runtime
+
+    model = as_runtime(FisheyeDepthModule.from_checkpoint(checkpoint))
+    dm = FisheyeDataModule(lidar_world, ground_truth="lidar", cache_dir=tmp_path / "c")
+    results = evaluate(model, dm.scoring_loader("test"), (64, 64), ["kitti360", "full"], ("none",))
+    by_hand = {name: Evaluator(PROTOCOLS[name], ("none",)) for name in ("kitti360", "full")}
+    for batch in dm.scoring_loader("test"):
+        assert batch.distance_source == ["lidar"] * len(batch)  # every projected point, unfiltered
+        pred = model.distance(batch.image, batch.camera).float()
+        for i, camera in enumerate(batch.camera):
+            for ev in by_hand.values():
+                ev.update(pred[i, 0], batch.distance[i, 0], batch.mask[i, 0] > 0.5, camera, source="lidar")
+    for name, ev in by_hand.items():
+        assert results[name]["none"]["abs_rel"] == pytest.approx(ev.compute()["none"]["abs_rel"], rel=1e-6)
+    assert results["kitti360"]["none"]["images"] > 0 and results["full"]["none"]["images"] > 0
+    with pytest.raises(ValueError, match="kitti360 protocol scores every projected LiDAR point"):
+        evaluate(model, dm.dataloader("test"), (64, 64), ["kitti360"], ("none",))  # training's filtered GT
+
+
+def test_a_frame_without_a_scan_scores_nothing_under_auto_and_unreadable_frames_are_counted(
+    lidar_world, checkpoint, tmp_path, caplog
+):
+    from fisheyedepth.evaluation import evaluate
+    from fisheyedepth.module import FisheyeDepthModule
+
+    root = tmp_path / "world"
+    shutil.copytree(lidar_world, root)
+    dm = FisheyeDataModule(root, ground_truth="auto", cache_dir=tmp_path / "c", skip_bad_frames=True)
+    items = dm.scoring_loader("test").dataset.items
+    first = dm.layout.frames(items[0].sequence)[items[0].row]
+    dm.layout.lidar(items[0].sequence, first).unlink()  # no scan: its ground truth is unknown, all 0
+    last = items[-1]
+    image = dm.layout.image(last.sequence, last.camera, dm.layout.frames(last.sequence)[last.row])
+    image.write_bytes(image.read_bytes()[:200])  # truncated: skipped, and counted
+    sample = dm.scoring_loader("test").dataset[0]
+    assert sample["distance_source"] == "none" and not sample["distance"].any()
+    model = FisheyeDepthModule.from_checkpoint(checkpoint)
+    with caplog.at_level("WARNING"):
+        results = evaluate(model, dm.scoring_loader("test"), (64, 64), ["full"], ("none",))
+    cameras_on_first = sum(1 for it in items if (it.sequence, it.row) == (items[0].sequence, items[0].row))
+    assert results["full"]["none"]["images"] == len(items) - cameras_on_first - 1
+    assert (
+        results["full"]["skipped_frames"] == 1 and "1 frame(s) of the split could not be read" in caplog.text
+    )
+
+
+def test_an_unwritable_lidar_cache_is_reported_once_and_projection_goes_on(lidar_world, tmp_path, caplog):
+    from fisheyedepth.data.kitti360 import LidarGroundTruth
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "lidar").write_text("a file where the cache's folder should be")
+    layout = Kitti360Layout(lidar_world)
+    gt = LidarGroundTruth(layout, cache)
+    cam = layout.cameras["image_02"].camera
+    with caplog.at_level("WARNING"):
+        maps = [gt(TRAIN_SEQ, "image_02", cam, f) for f in layout.frames(TRAIN_SEQ)[:3]]
+    assert all((m[0] > 0).sum() > 100 for m in maps)
+    assert caplog.text.count("cannot cache LiDAR projections") == 1

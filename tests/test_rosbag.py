@@ -15,7 +15,7 @@ from fisheyedepth.cameras import KannalaBrandtCamera, PinholeCamera, load_camera
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.geometry import make_pose
 
-from conftest import TRAIN_SEQ
+from conftest import TRAIN_SEQ, quaternion_xyzw
 
 rosbags = pytest.importorskip("rosbags")
 
@@ -43,20 +43,6 @@ def body_pose(t_ns: int) -> np.ndarray:
     yaw = 0.1 * t
     R = np.array([[math.cos(yaw), -math.sin(yaw), 0], [math.sin(yaw), math.cos(yaw), 0], [0, 0, 1.0]])
     return make_pose(torch.from_numpy(R), torch.tensor([0.5 * t, 0.0, 0.0], dtype=torch.float64)).numpy()
-
-
-def quaternion_xyzw(R: np.ndarray) -> list[float]:
-    """Rotation matrix to (x, y, z, w), for yaw-only and the fixed camera rotation used here."""
-    w = math.sqrt(max(0.0, 1 + R[0, 0] + R[1, 1] + R[2, 2])) / 2
-    if w > 1e-6:
-        return [
-            (R[2, 1] - R[1, 2]) / (4 * w),
-            (R[0, 2] - R[2, 0]) / (4 * w),
-            (R[1, 0] - R[0, 1]) / (4 * w),
-            w,
-        ]
-    x = math.sqrt(max(0.0, 1 + R[0, 0] - R[1, 1] - R[2, 2])) / 2
-    return [x, (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x), (R[2, 1] - R[1, 2]) / (4 * x)]
 
 
 def write_bag(path: Path, kind: str, frames: list[np.ndarray]) -> None:

@@ -11,6 +11,7 @@ recovery from the known camera height. The breakdown by angle of incidence (0-30
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,8 @@ from .data.kitti360 import OCCLUSION, occlusion_filter
 from .metrics import DepthMetrics
 from .runtimes import as_runtime
 from .viz import panel
+
+log = logging.getLogger(__name__)
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
 
@@ -109,12 +112,18 @@ class Evaluator:
     ) -> None:
         """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels;
         ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs); ``source``:
-        "lidar" for a projected scan (the protocol's occlusion filter applies), else a dense map."""
+        "lidar" for a projected scan (the protocol's occlusion filter applies), "lidar_filtered" for
+        one filtered already (refused by a protocol without the filter), else a dense map."""
         rays, valid = self.rays.get(camera, pred.device, pred.dtype)
         p = self.protocol
         gt_z = gt * rays[..., 2]
         keep = mask.bool() & valid & (gt > 0)
-        if source == "lidar" and p.occlusion is not None:
+        if source == "lidar_filtered" and p.occlusion is None:
+            raise ValueError(
+                f"the {p.name} protocol scores every projected LiDAR point, but this ground truth was "
+                "occlusion-filtered: read it with lidar_occlusion=None (FisheyeDataModule.scoring_loader)"
+            )
+        if source in ("lidar", "lidar_filtered") and p.occlusion is not None:
             keep &= ~occlusion_filter(gt, p.occlusion)
         if p.z_range is not None:
             keep &= (gt_z > p.z_range[0]) & (gt_z < p.z_range[1])
@@ -182,9 +191,10 @@ def evaluate(
     model = as_runtime(model, train_size)
     rays = RayCache()  # one per run, shared by the protocols
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
-    written = 0
+    written, skipped = 0, []
     for batch in loader:
-        if isinstance(batch, SkippedBatch):  # no frame of it could be read (skip_bad_frames)
+        skipped += batch.skipped_frames  # frames that could not be read (skip_bad_frames)
+        if isinstance(batch, SkippedBatch):
             continue
         if batch.distance is None:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
@@ -201,4 +211,8 @@ def evaluate(
                 pic = panel(batch.image[i], pred[i].cpu(), scored, 0.5, 80.0)
                 cv2.imwrite(str(pictures / f"panel_{written:03d}.png"), pic[..., ::-1])
                 written += 1
-    return {name: ev.compute() for name, ev in evaluators.items()}
+    if skipped:
+        log.warning(
+            "%d frame(s) of the split could not be read and are not scored: %s", len(skipped), skipped[:3]
+        )
+    return {name: ev.compute() | {"skipped_frames": len(skipped)} for name, ev in evaluators.items()}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -40,3 +41,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def file_key(path: str | os.PathLike, *extra: str) -> str:
+    """A cache key for a file's current content, cheap to compute: its resolved path, size and
+    modification time (and ``extra``). A file replaced in place gets a new key, unless it keeps both its
+    size and its modification time (``cp -p``, ``rsync -t``): delete the cache entry then."""
+    path = Path(path)
+    stat = path.stat()
+    ident = "|".join((str(path.resolve()), str(stat.st_size), str(stat.st_mtime_ns), *extra))
+    return hashlib.sha1(ident.encode()).hexdigest()[:20]

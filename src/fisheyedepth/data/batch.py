@@ -13,10 +13,13 @@ A sample (what ``FisheyeDataset`` returns) is a dict:
 | ``mask`` | ``[1, H, W]`` float | target body mask, 1 = usable pixel |
 | ``source_mask`` | ``[S, 1, H, W]`` | optional: sources' body masks (default: ``mask``, same camera) |
 | ``distance`` | ``[1, H, W]`` float | optional ground-truth distance in metres, 0 = unknown |
-| ``distance_source`` | ``str`` | with ``distance``: "rendered" (a dense map) or "lidar" (projected scan) |
+| ``distance_source`` | ``str`` | with ``distance``: "rendered", "lidar", "lidar_filtered" or "none" |
 | ``camera`` | a ``CameraModel`` | the target camera |
 | ``source_camera`` | list of ``S`` cameras | optional: sources' cameras (default: ``camera``) |
 | ``camera_name`` | ``str`` | optional: the rig's name for the target camera (e.g. ``image_02``) |
+
+``distance_source``: a dense rendered map, a projected LiDAR scan (every point, or occlusion-filtered),
+or "none" (a frame without ground truth in a split that has it: all 0, no pixel scored).
 
 ``collate`` stacks samples into a :class:`Batch` with every optional part resolved, so the module reads
 fields and never guesses. Cameras are Python values, not tensors: they stay lists, so one batch may mix
@@ -63,7 +66,7 @@ class Batch:
     distance: Tensor | None = None  # [B, 1, H, W] ground truth in metres (0 = unknown), when known
     skipped_frames: list[str] = dataclasses.field(default_factory=list)  # reasons, skip_bad_frames
     camera_name: list[str] | None = None  # B rig names of the target cameras, when the dataset gives them
-    distance_source: list[str] | None = None  # B "rendered" or "lidar", with distance
+    distance_source: list[str] | None = None  # B "rendered", "lidar", "lidar_filtered" or "none"
 
     def __len__(self) -> int:
         return len(self.camera)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import logging
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -34,8 +33,8 @@ import torch
 from tqdm import tqdm
 
 from ..cameras import CameraModel, compute_rays, load_yaml
-from ..images import read_image
 from ..utils import atomic_write_bytes
+from .dataset import read_checked
 from .kitti360 import Kitti360Layout
 from .layouts import RigLayout
 
@@ -197,13 +196,7 @@ def rig_mask_entry(root: Path, camera: str) -> str | None:
 def read_frames(paths: Sequence[Path], camera: CameraModel, progress: bool = True) -> Iterator[np.ndarray]:
     """The images at ``paths`` (BGR), each checked to be ``camera``'s size; errors name the file."""
     for path in tqdm(paths, desc="reading frames", unit="frame", disable=not progress):
-        bgr = read_image(path).bgr
-        if bgr.shape[:2] != (camera.height, camera.width):
-            raise ValueError(
-                f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, "
-                f"the camera's calibration {camera.width}x{camera.height}"
-            )
-        yield bgr
+        yield read_checked(path, (camera.width, camera.height))
 
 
 def write_body_mask(
@@ -259,17 +252,11 @@ def write_body_mask(
 
 def open_layout(kind: str, root: Path, camera: str) -> Layout:
     """The layout at ``root`` with ``camera`` alone. The camera's mask need not exist yet, as this command
-    may be about to write it: the KITTI-360 layout's warning about a missing mask is held back, and
-    ``masks={camera: None}`` keeps the rig layout from looking for the one ``rig.yaml`` names."""
+    may be about to write it: the KITTI-360 layout does not warn about it, and ``masks={camera: None}``
+    keeps the rig layout from looking for the one ``rig.yaml`` names."""
     if kind == "rig":
         return RigLayout(root, cameras=[camera], masks={camera: None})  # type: ignore[dict-item]
-    layout_log = logging.getLogger(Kitti360Layout.__module__)
-    level = layout_log.level
-    layout_log.setLevel(logging.ERROR)
-    try:
-        return Kitti360Layout(root, cameras=[camera])
-    finally:
-        layout_log.setLevel(level)
+    return Kitti360Layout(root, cameras=[camera], warn_missing_masks=False)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -40,7 +40,7 @@ class FisheyeDataModule(L.LightningDataModule):
         ground_truth: "auto", "distance", "lidar" or "none", for the splits in ``ground_truth_splits``
             only (the scored ones; by default not train, where nothing reads it). LiDAR is projected
             lazily per frame and cached on disk; ``lidar_occlusion``: its occlusion filter (None: off).
-        offsets: source frames of a target; empty for evaluation (every frame of a split is scored).
+        offsets: source frames of a training target (``scoring_loader`` reads none).
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
     """
 
@@ -165,7 +165,8 @@ class FisheyeDataModule(L.LightningDataModule):
         return self.dataloader("test")
 
     def dataloader(self, split: str) -> DataLoader:
-        """Any configured split in order, unshuffled (evaluation)."""
+        """Any configured split in order, unshuffled, by the training rules (neighbours, translation
+        bounds, filtered LiDAR); evaluation reads :meth:`scoring_loader` instead."""
         return self._loader(split, shuffle=False)
 
     def scoring_loader(self, split: str, batch_size: int = 4, num_workers: int = 0) -> DataLoader:

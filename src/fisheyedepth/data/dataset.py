@@ -14,7 +14,6 @@ stretched).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import logging
 import os
 from pathlib import Path
@@ -27,7 +26,7 @@ from torch.utils.data import Dataset
 
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
-from ..utils import atomic_write_bytes
+from ..utils import atomic_write_bytes, file_key
 from .augment import Augment, PoseNoise
 from .kitti360 import OCCLUSION, Kitti360Layout, LidarGroundTruth
 from .layouts import Frame
@@ -106,9 +105,7 @@ class ImageCache:
         """``path`` (which must be ``expect`` = (width, height)) resized to ``size``, cached."""
         if not path.is_file():
             raise FileNotFoundError(f"{path}: image not found")
-        stat = path.stat()
-        ident = f"{path.resolve()}|{stat.st_size}|{stat.st_mtime_ns}|{expect[0]}x{expect[1]}"
-        key = hashlib.sha1(ident.encode()).hexdigest()[:20]
+        key = file_key(path, f"{expect[0]}x{expect[1]}")
         cached = self.dir / "resized" / f"{size[0]}x{size[1]}" / f"{key}.png"
         if cached.is_file():
             try:
@@ -337,12 +334,14 @@ class FisheyeDataset(Dataset):
         if self.lidar is not None and self.ground_truth in ("lidar", "auto"):
             out = self.lidar(item.sequence, item.camera, camera, frame)
             if out is not None:
-                return torch.from_numpy(out[0])[None], "lidar"
+                return torch.from_numpy(out[0])[None], self.lidar.source
             if self.ground_truth == "lidar":
                 raise FileNotFoundError(
                     f"{self.layout.lidar(item.sequence, frame)}: no Velodyne scan for "
                     f"{item.sequence}/{item.camera}/{frame.key} (ground_truth: lidar)"
                 )
+            # auto: this frame has neither, its neighbours may; an empty map scores no pixel of it
+            return torch.zeros(1, camera.height, camera.width), "none"
         return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:

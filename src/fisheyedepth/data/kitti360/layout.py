@@ -26,9 +26,11 @@ def warn_no_mask(camera: str, expected: Path) -> None:
     _WARNED.add(expected)
     log.warning(
         "camera %s has no body mask (expected %s): every pixel counts as usable, the vehicle's body "
-        "included; write that PNG (255 = usable) or pass data.datamodule.masks={%s: FILE}",
+        "included; estimate it from a recording (fisheyedepth-estimate-mask --root ROOT --sequence SEQ "
+        "--camera %s), write that PNG yourself (255 = usable) or pass data.datamodule.masks={%s: FILE}",
         camera,
         expected,
+        camera,
         camera,
     )
 
@@ -44,7 +46,10 @@ class Kitti360Layout:
         cameras: list[str] | None = None,
         masks: dict[str, str | os.PathLike] | None = None,
         keep_tangential: bool = False,
+        warn_missing_masks: bool = True,
     ):
+        """``warn_missing_masks``: warn (once per file) about a camera without a body mask; off for the
+        command that is about to write it."""
         self.root = Path(root)
         calib = self.root / "calibration"
         extrinsics_file = existing(calib / "calib_cam_to_pose.txt", "calibration file")
@@ -60,7 +65,7 @@ class Kitti360Layout:
             mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
             if masks and name in masks:
                 existing(mask, "body mask")
-            if not mask.is_file():
+            if not mask.is_file() and warn_missing_masks:
                 warn_no_mask(name, mask)
             self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
         self.cam_to_pose, self._extrinsics_file = extrinsics, extrinsics_file  # every camera, image_00 too

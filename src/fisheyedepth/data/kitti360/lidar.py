@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ...cameras import CameraModel
-from ...utils import atomic_write_bytes
+from ...utils import atomic_write_bytes, file_key
 from .files import read_velodyne
 
 log = logging.getLogger(__name__)
@@ -84,11 +84,20 @@ class LidarGroundTruth:
     """Projected LiDAR per frame, built lazily and cached in ``cache_dir`` one file per frame, keyed by
     the calibration (the camera model at its size and the Velodyne-to-camera transform) and the scan
     (its path, size and modification time): a new calibration or a replaced scan is projected again,
-    never served stale. ``occlusion``: the filter's ratio applied when reading (None: every point)."""
+    never served stale (unless a replacement keeps the size and the modification time, as ``cp -p``
+    does: delete the cache then). Entries of old calibrations or scans are not pruned.
+    ``occlusion``: the filter's ratio applied when reading (None: every point)."""
 
     def __init__(self, layout, cache_dir: str | os.PathLike, occlusion: float | None = OCCLUSION):
         self.layout, self.cache_dir, self.occlusion = layout, Path(cache_dir), occlusion
         self._calibration: dict[tuple[str, CameraModel], tuple[str, np.ndarray]] = {}
+        self._unwritable = False
+
+    @property
+    def source(self) -> str:
+        """What a sample's ``distance_source`` says of this ground truth: "lidar" (every projected point)
+        or "lidar_filtered" (occlusion-filtered), so a protocol can refuse what it must not score."""
+        return "lidar" if self.occlusion is None else "lidar_filtered"
 
     def calibration_key(self, camera_name: str, camera: CameraModel) -> tuple[str, np.ndarray]:
         """``(key, T_velo_to_cam)`` of one camera at one size (one small entry per camera and size)."""
@@ -102,8 +111,7 @@ class LidarGroundTruth:
     def path(self, sequence: str, camera_name: str, camera: CameraModel, scan: Path) -> Path:
         """The cache file of one scan seen by one calibrated camera."""
         calibration, _ = self.calibration_key(camera_name, camera)
-        stat = scan.stat()
-        key = _digest(str(scan.resolve()), str(stat.st_size), str(stat.st_mtime_ns))
+        key = file_key(scan)[:16]
         folder = f"{camera_name}_{camera.width}x{camera.height}_{calibration}"
         return self.cache_dir / "lidar" / sequence / folder / f"{scan.stem}_{key}.npz"
 
@@ -124,6 +132,21 @@ class LidarGroundTruth:
             log.warning("%s: unreadable LiDAR cache (%s); projecting the scan again", path, exc)
             return None
 
+    def _store(self, path: Path, entry: tuple[np.ndarray, ...]) -> None:
+        """Write one projection; concurrent workers may both write it, none reads half a file. A cache
+        that cannot be written (read-only, full) is reported once and the projection used uncached."""
+        if self._unwritable:
+            return
+        buffer = io.BytesIO()
+        np.savez(buffer, index=entry[0], distance=entry[1], z=entry[2])
+        try:
+            atomic_write_bytes(path, buffer.getvalue())
+        except OSError as exc:
+            self._unwritable = True
+            log.warning(
+                "%s: cannot cache LiDAR projections (%s); projecting every scan on each read", path, exc
+            )
+
     def __call__(
         self, sequence: str, camera_name: str, camera: CameraModel, frame
     ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -135,9 +158,7 @@ class LidarGroundTruth:
         entry = self._cached(path)
         if entry is None:
             entry = self.project(camera_name, camera, scan)
-            buffer = io.BytesIO()
-            np.savez(buffer, index=entry[0], distance=entry[1], z=entry[2])
-            atomic_write_bytes(path, buffer.getvalue())  # concurrent workers may both write, none sees half
+            self._store(path, entry)
         idx, d, z = entry
         d_img = np.zeros(camera.height * camera.width, np.float32)
         z_img = np.zeros_like(d_img)
