@@ -510,7 +510,7 @@ def test_a_kitti360_camera_without_a_body_mask_is_warned_once_by_name(kitti_data
     caplog.clear()
     (root / "calibration" / "body_mask_image_02.png").unlink()
     with caplog.at_level(logging.WARNING, logger="fisheyedepth.data.kitti360.layout"):
-        Kitti360Layout(root, ["image_02"], warn_missing_masks=False)  # the mask command, about to write it
+        Kitti360Layout(root, ["image_02"], expect_masks=False)  # the mask command, about to write it
         Kitti360Layout(root, ["image_02"])
     assert [r.getMessage()[:36] for r in caplog.records] == ["camera image_02 has no body mask (ex"]
     assert layout.cameras["image_03"].mask is None and layout.cameras["image_02"].mask is not None

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..cameras import CameraModel, compute_rays, load_yaml
+from ..cameras import CameraModel, compute_rays
 from ..utils import atomic_write_bytes
 from .dataset import read_checked
 from .kitti360 import Kitti360Layout
@@ -171,26 +171,10 @@ def body_up(layout: Layout, sequence: str, camera: str) -> np.ndarray:
 
 
 def default_mask_path(layout: Layout, camera: str) -> Path:
-    """Where ``layout`` reads ``camera``'s body mask: the file it already uses, else KITTI-360's
-    ``calibration/body_mask_<camera>.png``, or the rig's ``mask:`` in ``rig.yaml`` (default:
-    ``masks/<camera>.png``, which ``rig.yaml`` must then name)."""
-    mask = layout.cameras[camera].mask
-    if mask is not None:
-        return Path(mask)
-    if isinstance(layout, Kitti360Layout):
-        return layout.root / "calibration" / f"body_mask_{camera}.png"
-    configured = rig_mask_entry(layout.root, camera)
-    return layout.root / (configured or f"masks/{camera}.png")
-
-
-def rig_mask_entry(root: Path, camera: str) -> str | None:
-    """The ``mask:`` that ``root/rig.yaml`` gives ``camera``, if any."""
-    rig_file = root / "rig.yaml"
-    rig = load_yaml(rig_file.read_text(encoding="utf-8"), rig_file)
-    for entry in rig.get("cameras") or []:
-        if isinstance(entry, dict) and str(entry.get("name")) == camera and entry.get("mask"):
-            return str(entry["mask"])
-    return None
+    """Where ``layout`` reads ``camera``'s body mask (KITTI-360: ``calibration/body_mask_<camera>.png``;
+    a rig: the ``mask:`` in ``rig.yaml``), or ``masks/<camera>.png`` for a rig camera that names none
+    (``rig.yaml`` must then name it)."""
+    return layout.mask_paths[camera] or layout.root / "masks" / f"{camera}.png"
 
 
 def read_frames(paths: Sequence[Path], camera: CameraModel, progress: bool = True) -> Iterator[np.ndarray]:
@@ -251,12 +235,10 @@ def write_body_mask(
 
 
 def open_layout(kind: str, root: Path, camera: str) -> Layout:
-    """The layout at ``root`` with ``camera`` alone. The camera's mask need not exist yet, as this command
-    may be about to write it: the KITTI-360 layout does not warn about it, and ``masks={camera: None}``
-    keeps the rig layout from looking for the one ``rig.yaml`` names."""
-    if kind == "rig":
-        return RigLayout(root, cameras=[camera], masks={camera: None})  # type: ignore[dict-item]
-    return Kitti360Layout(root, cameras=[camera], warn_missing_masks=False)
+    """The layout at ``root`` with ``camera`` alone, not expecting its mask: this command may be about
+    to write it."""
+    layout = RigLayout if kind == "rig" else Kitti360Layout
+    return layout(root, cameras=[camera], expect_masks=False)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -303,7 +285,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"(std threshold {summary['threshold']:.4g}, {summary['frames']} frames, up {summary['up']})"
     )
     print(f"wrote {summary['mask']}")
-    if args.layout == "rig" and rig_mask_entry(args.root, args.camera) is None and args.out is None:
+    if args.layout == "rig" and layout.mask_paths[args.camera] is None and args.out is None:
         print(f"add 'mask: masks/{args.camera}.png' to camera {args.camera} in {args.root / 'rig.yaml'}")
     return 0
 

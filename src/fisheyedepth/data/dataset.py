@@ -319,7 +319,7 @@ class FisheyeDataset(Dataset):
         return sample
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
-        """``(distance [1, H, W], source)``, source "rendered" (a dense map) or "lidar" (sparse)."""
+        """``(distance [1, H, W], source)``: a ``distance_source`` of :mod:`.batch`."""
         if self.ground_truth in ("distance", "auto"):
             path = self.layout.distance(item.sequence, item.camera, frame)
             if path is not None:

@@ -53,7 +53,11 @@ class RigLayout:
         root: str | os.PathLike,
         cameras: list[str] | None = None,
         masks: dict[str, str | os.PathLike] | None = None,
+        expect_masks: bool = True,
     ):
+        """``expect_masks``: a mask that ``rig.yaml`` (or ``masks``) names must exist; off for the
+        command that is about to write it. ``mask_paths``: each camera's named mask, existing or not
+        (None: the camera has none)."""
         self.root = Path(root)
         rig_file = existing(self.root / "rig.yaml", "rig description")
         try:
@@ -65,6 +69,7 @@ class RigLayout:
         if not isinstance(entries, list) or not entries:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
         self.cameras = {}
+        self.mask_paths: dict[str, Path | None] = {}
         for i, entry in enumerate(entries):
             where = f"cameras[{i}]"
             if not isinstance(entry, dict) or "name" not in entry:
@@ -82,7 +87,11 @@ class RigLayout:
                 raise CalibrationError(rig_file, f"{where}.cam_to_body", "missing")
             extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
             mask = masks.get(name) if masks else entry.get("mask")
-            mask = None if mask is None else existing(self.root / mask, "body mask")
+            self.mask_paths[name] = mask = None if mask is None else self.root / mask
+            if mask is not None and (expect_masks or mask.is_file()):
+                existing(mask, "body mask")
+            else:
+                mask = None
             self.cameras[name] = CameraSpec(name, camera, extrinsic, mask)
         if cameras is not None and set(cameras) - set(self.cameras):
             raise CalibrationError(

@@ -46,10 +46,11 @@ class Kitti360Layout:
         cameras: list[str] | None = None,
         masks: dict[str, str | os.PathLike] | None = None,
         keep_tangential: bool = False,
-        warn_missing_masks: bool = True,
+        expect_masks: bool = True,
     ):
-        """``warn_missing_masks``: warn (once per file) about a camera without a body mask; off for the
-        command that is about to write it."""
+        """``expect_masks``: warn (once per file) about a camera without a body mask; off for the
+        command that is about to write it. ``mask_paths``: where each camera's mask is read from,
+        whether it exists or not."""
         self.root = Path(root)
         calib = self.root / "calibration"
         extrinsics_file = existing(calib / "calib_cam_to_pose.txt", "calibration file")
@@ -57,6 +58,7 @@ class Kitti360Layout:
         if cameras is None:
             cameras = self.discover_cameras()
         self.cameras: dict[str, CameraSpec] = {}
+        self.mask_paths: dict[str, Path | None] = {}
         for name in cameras:
             if name not in extrinsics:
                 raise KeyError(f"{extrinsics_file}: no line for camera {name!r}")
@@ -65,8 +67,9 @@ class Kitti360Layout:
             mask = Path(masks[name]) if masks and name in masks else calib / f"body_mask_{name}.png"
             if masks and name in masks:
                 existing(mask, "body mask")
-            if not mask.is_file() and warn_missing_masks:
+            if not mask.is_file() and expect_masks:
                 warn_no_mask(name, mask)
+            self.mask_paths[name] = mask
             self.cameras[name] = CameraSpec(name, camera, extrinsics[name], mask if mask.is_file() else None)
         self.cam_to_pose, self._extrinsics_file = extrinsics, extrinsics_file  # every camera, image_00 too
         self._cam0_to_velo: np.ndarray | None = None

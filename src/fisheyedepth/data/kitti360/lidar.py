@@ -111,9 +111,8 @@ class LidarGroundTruth:
     def path(self, sequence: str, camera_name: str, camera: CameraModel, scan: Path) -> Path:
         """The cache file of one scan seen by one calibrated camera."""
         calibration, _ = self.calibration_key(camera_name, camera)
-        key = file_key(scan)[:16]
         folder = f"{camera_name}_{camera.width}x{camera.height}_{calibration}"
-        return self.cache_dir / "lidar" / sequence / folder / f"{scan.stem}_{key}.npz"
+        return self.cache_dir / "lidar" / sequence / folder / f"{scan.stem}_{file_key(scan)}.npz"
 
     def project(self, camera_name: str, camera: CameraModel, scan: Path) -> tuple[np.ndarray, ...]:
         """``(pixel index, distance, z)`` of the nearest point of each pixel hit, unfiltered."""
