@@ -98,3 +98,24 @@ def test_the_occlusion_filter_is_the_protocols_and_only_for_lidar(scene):
     assert results["kitti360", "lidar"] == pytest.approx(0.5 / 3)  # scored: |3 - 6| / 6 over 3 points
     assert results["full", "rendered"] == results["kitti360", "rendered"] == pytest.approx(0.5 / 3)
     assert PROTOCOLS["kitti360"].occlusion is None and PROTOCOLS["full"].occlusion == 0.1
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_scores_on_cuda_equal_those_on_the_cpu(scene):
+    """eval.py device=cuda feeds CUDA tensors: the metrics' states follow them, the numbers do not move."""
+    camera, gt, valid, _ = scene
+    pred = gt * torch.linspace(0.7, 1.4, gt.shape[1], dtype=gt.dtype)
+    out = {}
+    for device in ("cpu", "cuda"):
+        ev = Evaluator(PROTOCOLS["full"], ("none", "median"))
+        for name in ("image_02", "image_03"):
+            ev.update(pred.to(device), gt.to(device), valid.to(device), camera, name)
+        out[device] = ev.compute()
+    for scaling in ("none", "median"):
+        for key in ("abs_rel", "a1", "rmse"):
+            # float32 reductions (a1's mean) differ by ~1e-7 between the devices (seen on an H100)
+            assert out["cuda"][scaling][key] == pytest.approx(out["cpu"][scaling][key], rel=1e-6)
+        for name, cpu in out["cpu"][f"{scaling}_by_camera"].items():
+            assert out["cuda"][f"{scaling}_by_camera"][name] == pytest.approx(cpu, rel=1e-6)
+    assert out["cpu"]["none"]["abs_rel"] > 0.05  # the case is not trivial

@@ -115,6 +115,7 @@ class Evaluator:
         "lidar" for a projected scan (the protocol's occlusion filter applies), "lidar_filtered" for
         one filtered already (refused by a protocol without the filter), else a dense map."""
         rays, valid = self.rays.get(camera, pred.device, pred.dtype)
+        self._follow(pred.device)
         p = self.protocol
         gt_z = gt * rays[..., 2]
         keep = mask.bool() & valid & (gt > 0)
@@ -147,12 +148,18 @@ class Evaluator:
             self.ratios[scaling].append(ratio)
             self.metrics[scaling].update(q[None], g[None], keep[None])
             if name is not None:
-                per_camera = self.by_camera.setdefault((scaling, name), DepthMetrics(p.cap))
+                per_camera = self.by_camera.setdefault((scaling, name), DepthMetrics(p.cap).to(pred.device))
                 per_camera.update(q[None], g[None], keep[None])
             for lo, hi in ANGLE_BINS:
                 self.by_angle[(scaling, (lo, hi))].update(
                     q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]
                 )
+
+    def _follow(self, device: torch.device) -> None:
+        """Keep every metric's state on the device of the images it is fed (``eval.py device=cuda``)."""
+        for metric in (*self.metrics.values(), *self.by_angle.values(), *self.by_camera.values()):
+            if metric.device != device:
+                metric.to(device)
 
     def compute(self) -> dict[str, Any]:
         out: dict[str, Any] = {"protocol": dataclasses.asdict(self.protocol)}

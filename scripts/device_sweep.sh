@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Train several recipes side by side on one GPU machine and score each on held-out synthetic worlds
+# (BENCHMARKS.md, "Time to accuracy": the GPU rows). Every variant trains on world 0 and is scored,
+# at its last checkpoint, on the worlds named by SEEDS. A variant is one line of VARIANTS:
+#   NAME OVERRIDE [OVERRIDE ...]          (Hydra overrides of train.py)
+# Usage: SEEDS="1001 1002 1003" OUT=out [TRAIN_LIMIT=seconds] bash scripts/device_sweep.sh VARIANTS
+# (on the lent machine, Python packages it lacks: scripts need hydra-core, omegaconf, antlr4 wheels).
+# Measured on an H100 (16 cores): three make-train recipes side by side ran 5 it/s each, about 7 min
+# for 22 of their 24 epochs, plus 2-3 min of rendering: give one call two recipes at most.
+# Writes OUT/sweep.tar.gz (each run's results, held-out results, metrics.csv and config; no checkpoints)
+# and OUT/summary.md (one row per run, scripts/heldout.py's format).
+set -u -o pipefail
+VARIANTS=$1
+SEEDS=${SEEDS:-1001 1002 1003}
+RIG=${RIG:-kitti360}
+FRAMES=${FRAMES:-200}
+WORKERS=${WORKERS:-2}
+PY=${PY:-python3}
+RUNS=${RUNS:-sweep_runs}
+mkdir -p "$RUNS" "$OUT"
+
+# render every world first (train world 0 and the held-out ones), each in parallel
+for seed in 0 $SEEDS; do
+  dir=data/synthetic_${RIG}_256_seed${seed}_f${FRAMES}
+  [ -d "$dir" ] || $PY -m fisheyedepth.data.synthetic.cli --out "$dir" --rig "$RIG" --frames "$FRAMES" \
+    --size 256 --seed "$seed" --supersample 2 --workers "${RENDER_WORKERS:-3}" --quiet &
+done
+wait
+echo "rendered: $(ls data)"
+
+# progress while training: the last logged row of every run, every 30 s (survives a timeout)
+(while sleep 30; do
+  for m in "$RUNS"/*/logs/version_0/metrics.csv; do [ -f "$m" ] && echo "$m $(tail -n 1 "$m" | cut -c1-80)"; done \
+    >"$OUT/progress.txt" 2>/dev/null
+  cp "$RUNS"/*.log "$OUT/" 2>/dev/null
+done) &
+watcher=$!
+
+while read -r name overrides; do
+  [ -z "$name" ] || [ "${name:0:1}" = "#" ] && continue
+  (
+    start=$(date +%s)
+    # shellcheck disable=SC2086
+    timeout "${TRAIN_LIMIT:-0}" $PY train.py trainer=gpu data.datamodule.num_workers=$WORKERS data.generate.rig=$RIG \
+      hydra.run.dir="$RUNS/$name" logger=csv $overrides >"$RUNS/$name.log" 2>&1
+    echo "$name trained rc=$? in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
+    $PY scripts/heldout.py "$RUNS/$name" --rig "$RIG" --seeds $SEEDS --set device=cuda \
+      >"$RUNS/$name.row" 2>>"$RUNS/$name.log"
+    echo "$name scored in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
+  ) &
+done <"$VARIANTS"
+wait $(jobs -p | grep -v "^$watcher$")
+kill "$watcher"
+
+{
+  echo "seeds: $SEEDS, rig $RIG"
+  for row in "$RUNS"/*.row; do tail -n 1 "$row"; done
+} | tee "$OUT/summary.md"
+tar czf "$OUT/sweep.tar.gz" --exclude='*.ckpt' --exclude='*.png' "$RUNS"
