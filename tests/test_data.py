@@ -41,15 +41,22 @@ def cache(tmp_path):
     return tmp_path / "cache"
 
 
-def photometric_l1(s: dict, j: int = 0) -> float:
-    """Mean |warped source j - target| over valid pixels, warping with the sample's own GT and geometry."""
+def warp_l1(s: dict, j: int = 0, scale: float = 1.0) -> tuple[float, float]:
+    """``(mean |warped source j - target|, fraction of target pixels warped)``, warping with the sample's
+    own GT distance times ``scale`` and its geometry (the source's own camera and mask when it has one)."""
     rays, valid = RayCache().get(s["camera"])
     usable = valid & (s["distance"][0] > 0) & (s["mask"][0] > 0.5)  # the target's own body mask too
-    warp = warp_to_source(
-        rays[None], usable[None], s["distance"][None], s["poses"][j][None], s["camera"], s["mask"][None]
-    )
+    camera = s["source_camera"][j] if "source_camera" in s else s["camera"]
+    mask = s["source_mask"][j] if "source_mask" in s else s["mask"]
+    distance = s["distance"][None] * scale
+    warp = warp_to_source(rays[None], usable[None], distance, s["poses"][j][None], camera, mask[None])
     warped = grid_sample_image(s["sources"][j][None], warp.grid)[0]
-    return (warped - s["image"]).abs().mean(0)[warp.valid[0]].mean().item()
+    return (warped - s["image"]).abs().mean(0)[warp.valid[0]].mean().item(), warp.valid.float().mean().item()
+
+
+def photometric_l1(s: dict, j: int = 0) -> float:
+    """Mean |warped source j - target| over valid pixels, warping with the sample's own GT and geometry."""
+    return warp_l1(s, j)[0]
 
 
 def test_datamodule_batches(kitti_data, cache):
@@ -107,6 +114,105 @@ def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
     assert torch.allclose(scale, torch.tensor([min(c.paraxial_focal()) / base for c in batch.camera]))
     loss, _ = module.losses(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss)
+
+
+def test_rig_sources_are_the_other_cameras_warped_with_extrinsics_and_odometry(tmp_path, cache):
+    from fisheyedepth.data.synthetic import generate
+
+    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+    layout = Kitti360Layout(root)
+    names = sorted(layout.cameras)
+    ds = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], rig_offsets=(0,), cache_dir=cache)
+    poses = read_poses(root / "data_poses" / TRAIN_SEQ / "poses.txt")
+    E = read_cam_to_pose(root / "calibration" / "calib_cam_to_pose.txt")
+    frames = sorted(poses)
+    assert len(ds) == 4 * (3 - 2) and ds.dropped["no neighbour"] == 4 * 2  # rig sources drop no frame here
+    better = []
+    for i in range(len(ds)):  # every camera once as the target
+        item, s = ds.items[i], ds[i]
+        others = [n for n in names if n != item.camera]
+        assert s["sources"].shape == (2 + 3, 3, 64, 64) and s["source_mask"].shape == (5, 1, 64, 64)
+        assert s["source_camera"][:2] == [s["camera"]] * 2  # the temporal sources: the target's camera
+        for j, other in enumerate(others, start=2):
+            assert s["source_camera"][j] == layout.cameras[other].camera
+            assert torch.equal(
+                s["sources"][j],
+                ds._image(
+                    layout.image(TRAIN_SEQ, other, layout.frames(TRAIN_SEQ, other)[item.row]),
+                    s["source_camera"][j],
+                    layout.cameras[other].camera,
+                ),
+            )
+            t = poses[frames[item.row]]
+            expected = np.linalg.inv(E[other]) @ np.linalg.inv(t) @ t @ E[item.camera]  # same instant
+            assert np.allclose(s["poses"][j].numpy(), expected, atol=1e-5)
+            error, coverage = warp_l1(s, j)
+            if coverage > 0.1:  # the two cameras see the same part of the world: GT explains it best
+                better.append((error, warp_l1(s, j, scale=0.7)[0], warp_l1(s, j, scale=1.4)[0]))
+        for j in range(2):  # the temporal sources are unchanged
+            assert warp_l1(s, j)[0] < 0.03
+        flipped = flip_sample(s)
+        for j in range(5):
+            a, b = warp_l1(s, j), warp_l1(flipped, j)
+            assert b[1] == pytest.approx(a[1], abs=0.02) and b[0] == pytest.approx(a[0], rel=0.05, abs=2e-3)
+    assert len(better) >= 5  # of 12 camera pairs at 64 px (measured: 6, covering 13-31% of the target)
+    assert all(gt < min(near, far) and gt < 0.035 for gt, near, far in better)  # 0.014-0.030 at GT
+
+
+def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(tmp_path, cache):
+    from fisheyedepth.data.synthetic import generate
+
+    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+    dm = FisheyeDataModule(
+        root,
+        size=(64, 64),
+        batch_size=4,
+        splits={"train": "splits/train.txt"},
+        cache_dir=cache,
+        rig_offsets=(0,),
+    )
+    batch = next(iter(dm.train_dataloader()))
+    assert batch.sources.shape == (4, 5, 3, 64, 64) and batch.source_mask.shape == (4, 5, 1, 64, 64)
+    assert {type(c).__name__ for cams in batch.source_camera for c in cams} == {
+        "MeiCamera",
+        "KannalaBrandtCamera",
+    }
+    module = FisheyeDepthModule(scales=(0, 1), base_focal=dm.base_focal("train"), rig_offsets=(0,))
+    loss, _ = module.losses(batch, module(batch.image, batch.camera))
+    loss.backward()
+    grads = [p.grad for p in module.depth_net.parameters() if p.grad is not None]
+    assert torch.isfinite(loss) and grads and all(torch.isfinite(g).all() for g in grads)
+    with pytest.raises(ValueError, match="rig_offsets.*real_scale=true"):
+        FisheyeDepthModule(real_scale=False, rig_offsets=(0,))
+
+
+def test_rig_frames_are_paired_by_nearest_timestamp_and_a_missing_one_drops_the_target(
+    kitti_data, tmp_path, cache
+):
+    kitti, stamp = write_rig(kitti_data, tmp_path / "rig")
+    folder = tmp_path / "rig" / "drive" / "images" / "image_03"
+    keys = sorted(stamp.values())
+    for k in keys:  # image_03 is triggered 3 ms after image_02 (its own poses: interpolated)
+        (folder / f"{k}.png").rename(folder / f"{k + 3_000_000}.png")
+    (folder / f"{keys[2] + 3_000_000}.png").unlink()  # and drops one frame
+    rig = RigLayout(tmp_path / "rig")
+    ds = FisheyeDataset(rig, [{"sequence": "drive"}], size=(64, 64), rig_offsets=(0,), cache_dir=cache)
+    assert ds.rig_frame("drive", "image_03", keys[1]) == 1
+    assert ds.rig_frame("drive", "image_03", keys[2]) is None  # 97 ms from the nearest: no partner
+    assert ds.rig_frame("drive", "image_03", keys[3]) == 2  # the row after the gap
+    assert ds.rig_frame("drive", "image_02", keys[3] + 3_000_000) == 3
+    plain = FisheyeDataset(rig, [{"sequence": "drive"}], size=(64, 64), cache_dir=cache)
+    targets = {(i.camera, i.row) for i in ds.items}
+    assert ("image_02", 2) not in targets and ("image_02", 1) in targets
+    assert len(ds) == len(plain) - 1 and ds.dropped["no neighbour"] == plain.dropped["no neighbour"] + 1
+    s = ds[[i for i, it in enumerate(ds.items) if (it.camera, it.row) == ("image_02", 1)][0]]
+    assert s["source_camera"][2] == rig.cameras["image_03"].camera.resize(64, 64)
+    target, partner = rig.frames("drive", "image_02")[1], rig.frames("drive", "image_03")[1]
+    assert partner.key == keys[1] + 3_000_000
+    E_t, E_s = (rig.cameras[c].cam_to_body for c in ("image_02", "image_03"))
+    expected = np.linalg.inv(E_s) @ np.linalg.inv(partner.pose) @ target.pose @ E_t
+    assert np.allclose(s["poses"][2].numpy(), expected, atol=1e-5)
+    assert not np.allclose(partner.pose, target.pose)  # the 3 ms later pose is the partner's own
 
 
 def test_relative_pose_equals_the_files(kitti_data, cache):

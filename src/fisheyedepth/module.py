@@ -60,6 +60,7 @@ class FisheyeDepthModule(L.LightningModule):
         base_focal: float | None = None,
         scales: tuple[int, ...] = (0, 1, 2, 3),
         source_offsets: tuple[int, ...] = (-1, 1),
+        rig_offsets: tuple[int, ...] = (),
         automask: bool = True,
         smoothness: float = 1e-3,
         lr: float = 1e-4,
@@ -98,6 +99,10 @@ class FisheyeDepthModule(L.LightningModule):
         with 32 bins: ``model=fisheyedepth_lite``, the robot variant of BENCHMARKS.md "Inference").
         ``lr_schedule``: "step" (Monodepth2: x ``lr_gamma`` after ``lr_step`` epochs) or "cosine"
         (cosine annealing to ``lr * lr_gamma`` over the run's ``max_epochs``).
+        ``rig_offsets``: the rig's other cameras are sources too, at these time offsets (cross-camera
+        consistency, as in Full Surround Monodepth: 0 the same instant, +-1 the neighbouring frames); the
+        extrinsics and odometry give their poses, so a PoseNet row cannot use them. The data module
+        loads them after the ``source_offsets`` frames; the minimum reprojection treats every source alike.
         ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
         ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
         parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
@@ -112,6 +117,11 @@ class FisheyeDepthModule(L.LightningModule):
             raise ValueError(f"lr_schedule: {lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}")
         if pinhole_focal not in PINHOLE_FOCALS:
             raise ValueError(f"pinhole_focal: {pinhole_focal!r} is not one of {', '.join(PINHOLE_FOCALS)}")
+        if rig_offsets and not real_scale:
+            raise ValueError(
+                "rig_offsets: the other cameras' poses come from the extrinsics and odometry "
+                "(real_scale=true); a PoseNet predicts one camera's own motion"
+            )
         self.save_hyperparameters()
         self.scales = tuple(scales)
         self.source_offsets = tuple(source_offsets)

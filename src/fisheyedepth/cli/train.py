@@ -97,7 +97,8 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     resumed = check_resumable(cfg.ckpt_path) if cfg.get("ckpt_path") else None
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
-    datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg))
+    rig = [int(o) for o in cfg.model.get("rig_offsets") or ()]
+    datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg), rig_offsets=rig)
     resolved = {}
     if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
         resolved["base_focal"] = resolve_base_focal(datamodule, resumed)

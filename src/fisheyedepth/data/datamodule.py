@@ -41,6 +41,8 @@ class FisheyeDataModule(L.LightningDataModule):
             only (the scored ones; by default not train, where nothing reads it). LiDAR is projected
             lazily per frame and cached on disk; ``lidar_occlusion``: its occlusion filter (None: off).
         offsets: source frames of a training target (``scoring_loader`` reads none).
+        rig_offsets: the rig's other cameras as sources too, at these time offsets (cross-camera
+            consistency; empty: none; see ``FisheyeDataset``).
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
     """
 
@@ -66,8 +68,10 @@ class FisheyeDataModule(L.LightningDataModule):
         pose_noise: PoseNoise | dict | None = None,
         ground_truth_splits: tuple[str, ...] | list[str] = ("val", "test"),
         lidar_occlusion: float | None = OCCLUSION,
+        rig_offsets: tuple[int, ...] = (),
     ):
         super().__init__()
+        self.rig_offsets = tuple(rig_offsets)
         if layout not in LAYOUTS:
             raise ValueError(f"unknown layout {layout!r}; one of {sorted(LAYOUTS)}")
         self.root, self.layout_name, self.cameras, self.masks = root, layout, cameras, masks
@@ -115,6 +119,7 @@ class FisheyeDataModule(L.LightningDataModule):
                 self.cache_dir,
                 lidar_occlusion=self.lidar_occlusion,
                 pose_noise=self.pose_noise,
+                rig_offsets=self.rig_offsets,
             )
         return self.datasets[split]
 

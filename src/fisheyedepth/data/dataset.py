@@ -176,15 +176,20 @@ class FisheyeDataset(Dataset):
         cache_dir: str | os.PathLike | None = None,
         lidar_occlusion: float | None = OCCLUSION,
         pose_noise: PoseNoise | None = None,
+        rig_offsets: tuple[int, ...] = (),
     ):
         """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
         "auto" (whichever exists), or "none"; LiDAR is projected lazily, per frame, when a sample is
         read (``lidar_occlusion``: the occlusion filter's ratio, None for every point). ``offsets``:
         the source frames; empty for evaluation, which scores every frame of the split (no neighbour
         needed, no translation bound). ``pose_noise``: seeded odometry error on the relative poses (the
-        paper's claim that the multi-channel head copes with noisy real poses)."""
+        paper's claim that the multi-channel head copes with noisy real poses). ``rig_offsets``: the
+        rig's other cameras as sources too, at these time offsets (Full Surround Monodepth's spatial
+        (0) and spatio-temporal (+-1) contexts): the known extrinsics and odometry warp one camera into
+        another where their fields of view overlap; see :meth:`rig_frame` for how frames are paired."""
         self.pose_noise = pose_noise or PoseNoise()
         self.layout, self.size, self.offsets = layout, size, tuple(offsets)
+        self.rig_offsets = tuple(rig_offsets)
         self.augment, self.skip_bad_frames = augment, skip_bad_frames
         self.cache = ImageCache(cache_dir)
         self.cameras = cameras or list(layout.cameras)
@@ -208,6 +213,9 @@ class FisheyeDataset(Dataset):
             "no pose": 0,
         }
         self.items: list[Item] = []
+        self._keys: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
+        if self.rig_offsets:
+            self._check_rig_sizes()
         for sequence, keys, stride, cams in parse_split(split, layout):
             for cam in cams or self.cameras:
                 if cam not in self.cameras:
@@ -216,6 +224,8 @@ class FisheyeDataset(Dataset):
                 rows = self._rows(frames, keys, layout, sequence)
                 for row in rows[::stride]:
                     reason = self._check(frames, row, min_translation, max_translation)
+                    if reason is None and self.rig_offsets and not self._rig_frames(sequence, cam, row):
+                        reason = "no neighbour"
                     if reason:
                         self.dropped[reason] += 1
                     else:
@@ -274,6 +284,50 @@ class FisheyeDataset(Dataset):
     def __len__(self) -> int:
         return len(self.items)
 
+    def _check_rig_sizes(self) -> None:
+        sizes = {
+            n: (self.layout.cameras[n].camera.width, self.layout.cameras[n].camera.height)
+            for n in self.cameras
+        }
+        if self.size is None and len(set(sizes.values())) > 1:
+            raise ValueError(
+                f"{self.layout.root}: rig_offsets stack every camera's images as one target's sources, but "
+                f"the cameras differ in size ({sizes}); set a training size"
+            )
+
+    def rig_frame(self, sequence: str, camera: str, key: int) -> int | None:
+        """The row of ``camera``'s frame taken with the frame ``key`` of another camera: the nearest key
+        within half of ``camera``'s median frame interval (KITTI-360's frame indices: the same index;
+        a rig's timestamps: the same trigger), else None. The pose of that frame is its own, so a
+        small time offset between the cameras moves no pixel of a static world."""
+        if (sequence, camera) not in self._keys:
+            keys = np.array([f.key for f in self.layout.frames(sequence, camera)], dtype=np.int64)
+            spacing = float(np.median(np.diff(keys))) if len(keys) > 1 else 1.0
+            self._keys[(sequence, camera)] = (keys, spacing / 2)
+        keys, tolerance = self._keys[(sequence, camera)]
+        if len(keys) == 0:
+            return None
+        row = int(np.clip(np.searchsorted(keys, key), 1, len(keys) - 1)) if len(keys) > 1 else 0
+        if len(keys) > 1 and abs(keys[row - 1] - key) <= abs(keys[row] - key):
+            row -= 1
+        return row if abs(int(keys[row]) - key) <= tolerance else None
+
+    def _rig_frames(self, sequence: str, camera: str, row: int) -> list[tuple[str, int]] | None:
+        """``(camera, row)`` of every rig source of the target, or None when one is missing."""
+        frames = self.layout.frames(sequence, camera)
+        out = []
+        for offset in self.rig_offsets:
+            if not 0 <= row + offset < len(frames):
+                return None
+            for other in self.cameras:
+                if other == camera:
+                    continue
+                match = self.rig_frame(sequence, other, frames[row + offset].key)
+                if match is None:
+                    return None
+                out.append((other, match))
+        return out
+
     def _image(self, path: Path, camera, native) -> torch.Tensor:
         size, expect = (camera.width, camera.height), (native.width, native.height)
         bgr = read_checked(path, expect) if size == expect else self.cache.read(path, size, expect)
@@ -297,26 +351,46 @@ class FisheyeDataset(Dataset):
             sources.append(self._image(self.layout.image(item.sequence, item.camera, other), camera, native))
             T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E)
             poses.append(self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{offset}"))
+        sample["mask"] = self._mask(spec, camera)
+        if self.rig_offsets:
+            source_cameras, source_masks = [camera] * len(sources), [sample["mask"]] * len(sources)
+            for name, row in self._rig_frames(item.sequence, item.camera, item.row) or []:
+                other_spec = self.layout.cameras[name]
+                other_cam = other_spec.camera.resize(camera.width, camera.height)
+                other = self.layout.frames(item.sequence, name)[row]
+                path_s = self.layout.image(item.sequence, name, other)
+                sources.append(self._image(path_s, other_cam, other_spec.camera))
+                E_s = torch.from_numpy(other_spec.cam_to_body)
+                T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E, E_s)
+                poses.append(
+                    self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{name}|{other.key}")
+                )
+                source_cameras.append(other_cam)
+                source_masks.append(self._mask(other_spec, other_cam))
+            sample["source_camera"], sample["source_mask"] = source_cameras, torch.stack(source_masks)
         if sources:
             sample["sources"], sample["poses"] = torch.stack(sources), torch.stack(poses).float()
         else:  # evaluation: the target alone
             sample["sources"] = sample["image"].new_zeros(0, *sample["image"].shape)
             sample["poses"] = torch.zeros(0, 4, 4)
         sample["cam_to_body"] = E.float()  # lets a PoseNet predict the body's motion, like odometry
-        size = (camera.width, camera.height)
-        if spec.mask is not None:
-            mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
-            if mask.shape[1::-1] != size:
-                mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-            sample["mask"] = torch.from_numpy((mask > 127).astype(np.float32))[None]
-        else:
-            sample["mask"] = torch.ones(1, camera.height, camera.width)
         gt = self._ground_truth(item, camera, target)
         if gt is not None:
             sample["distance"], sample["distance_source"] = gt
         if not all(torch.isfinite(v).all() for v in sample.values() if isinstance(v, torch.Tensor)):
             raise ValueError(f"{path}: sample has non-finite values")
         return sample
+
+    @staticmethod
+    def _mask(spec, camera) -> torch.Tensor:
+        """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used."""
+        size = (camera.width, camera.height)
+        if spec.mask is None:
+            return torch.ones(1, camera.height, camera.width)
+        mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
+        if mask.shape[1::-1] != size:
+            mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+        return torch.from_numpy((mask > 127).astype(np.float32))[None]
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
         """``(distance [1, H, W], source)``: a ``distance_source`` of :mod:`.batch`."""
