@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 import warnings
 
 import lightning as L
@@ -453,7 +454,7 @@ def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_
 
 
 DDP_SCRIPT = """
-import sys, warnings
+import os, sys, warnings
 import torch, lightning as L
 from torch.utils.data import DataLoader
 sys.path.insert(0, sys.argv[2])
@@ -481,7 +482,8 @@ trainer = L.Trainer(strategy="ddp", accelerator="cpu", devices=2, max_steps=5, l
 trainer.fit(module, DataLoader(samples, batch_size=2, collate_fn=collate))
 finite = all(bool(torch.isfinite(p).all()) for p in module.parameters())
 rank, steps = trainer.global_rank, trainer.global_step
-print(f"RANK {rank} skipped {module.skipped_batches} steps {steps} finite {finite}")
+# one write per rank: both ranks share the pipe, and print's text and newline can interleave with the other's
+os.write(1, f"RANK {rank} skipped {module.skipped_batches} steps {steps} finite {finite}\\n".encode())
 """
 
 
@@ -500,7 +502,7 @@ def test_ddp_never_hangs_when_one_rank_meets_a_bad_step(kitti_data, tmp_path):
         capture_output=True, text=True, timeout=600, cwd=tmp_path,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
-    lines = sorted(line for line in proc.stdout.splitlines() if line.startswith("RANK"))
+    lines = sorted(re.findall(r"RANK \d+ skipped \d+ steps \d+ finite \w+", proc.stdout))
     assert lines == ["RANK 0 skipped 2 steps 5 finite True", "RANK 1 skipped 2 steps 5 finite True"], (
         proc.stdout
     )
