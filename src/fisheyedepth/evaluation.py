@@ -148,8 +148,9 @@ class Evaluator:
             self.ratios[scaling].append(ratio)
             self.metrics[scaling].update(q[None], g[None], keep[None])
             if name is not None:
-                per_camera = self.by_camera.setdefault((scaling, name), DepthMetrics(p.cap).to(pred.device))
-                per_camera.update(q[None], g[None], keep[None])
+                if (scaling, name) not in self.by_camera:  # built once, on the images' device
+                    self.by_camera[(scaling, name)] = DepthMetrics(p.cap).to(pred.device)
+                self.by_camera[(scaling, name)].update(q[None], g[None], keep[None])
             for lo, hi in ANGLE_BINS:
                 self.by_angle[(scaling, (lo, hi))].update(
                     q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]

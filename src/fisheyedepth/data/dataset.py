@@ -214,6 +214,7 @@ class FisheyeDataset(Dataset):
         }
         self.items: list[Item] = []
         self._keys: dict[tuple[str, str], tuple[np.ndarray, float]] = {}
+        self._masks: dict[tuple[str, tuple[int, int]], torch.Tensor] = {}
         if self.rig_offsets:
             self._check_rig_sizes()
         for sequence, keys, stride, cams in parse_split(split, layout):
@@ -305,12 +306,10 @@ class FisheyeDataset(Dataset):
             spacing = float(np.median(np.diff(keys))) if len(keys) > 1 else 1.0
             self._keys[(sequence, camera)] = (keys, spacing / 2)
         keys, tolerance = self._keys[(sequence, camera)]
-        if len(keys) == 0:
-            return None
-        row = int(np.clip(np.searchsorted(keys, key), 1, len(keys) - 1)) if len(keys) > 1 else 0
-        if len(keys) > 1 and abs(keys[row - 1] - key) <= abs(keys[row] - key):
-            row -= 1
-        return row if abs(int(keys[row]) - key) <= tolerance else None
+        i = int(np.searchsorted(keys, key))
+        near = [j for j in (i - 1, i) if 0 <= j < len(keys)]  # the keys either side; the earlier on a tie
+        row = min(near, key=lambda j: abs(int(keys[j]) - key), default=None)
+        return row if row is not None and abs(int(keys[row]) - key) <= tolerance else None
 
     def _rig_frames(self, sequence: str, camera: str, row: int) -> list[tuple[str, int]] | None:
         """``(camera, row)`` of every rig source of the target, or None when one is missing."""
@@ -381,16 +380,19 @@ class FisheyeDataset(Dataset):
             raise ValueError(f"{path}: sample has non-finite values")
         return sample
 
-    @staticmethod
-    def _mask(spec, camera) -> torch.Tensor:
-        """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used."""
+    def _mask(self, spec, camera) -> torch.Tensor:
+        """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used. Decoded once
+        per file and size for this dataset's life (a sample with rig sources needs every camera's mask)."""
         size = (camera.width, camera.height)
         if spec.mask is None:
             return torch.ones(1, camera.height, camera.width)
-        mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
-        if mask.shape[1::-1] != size:
-            mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-        return torch.from_numpy((mask > 127).astype(np.float32))[None]
+        key = (str(spec.mask), size)
+        if key not in self._masks:
+            mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
+            if mask.shape[1::-1] != size:
+                mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+            self._masks[key] = torch.from_numpy((mask > 127).astype(np.float32))[None]
+        return self._masks[key].clone()
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
         """``(distance [1, H, W], source)``: a ``distance_source`` of :mod:`.batch`."""
