@@ -7,6 +7,8 @@ from pathlib import Path
 
 from fisheyedepth.utils import atomic_write_text
 
+# The world `make train` renders (conf/data/synthetic.yaml): benchmarks read its frames.
+WORLD = Path(__file__).resolve().parents[1] / "data" / "synthetic_kitti360_256_seed0_f600"
 HEADER = "# Benchmarks\n\nEach section names the command that produced it.\n\n"
 
 

@@ -28,11 +28,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import publish
+from _benchmarks import WORLD, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_dataset:start -->", "<!-- bench_dataset:end -->"
-WORLD = ROOT / "data" / "synthetic_kitti360_256_seed0_f200"
 DRIVES = {"train": (2, 0.8, 1), "val": (10, 0.1, 10), "test": (0, 0.1, 5)}  # drive, share, row stride
 TARGET = 80_000
 

@@ -39,13 +39,13 @@ from fisheyedepth.runtimes import (
     onnx_session,
 )
 
-from _benchmarks import publish
+from _benchmarks import WORLD, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_inference:start -->", "<!-- bench_inference:end -->"
 LITE = {"decoder_width": 0.5, "n_bins": 32}  # conf/model/fisheyedepth_lite.yaml
 BLOCK = 3  # timed frames per runner and round: a deployment runs one runtime frame after frame
-DEFAULT_CALIBRATION = ROOT / "data" / "synthetic_kitti360_256_seed0_f200" / "data_2d_raw"
+DEFAULT_CALIBRATION = WORLD / "data_2d_raw"
 
 
 def softmax_expectation(logits, depth_scale, bins, min_distance, max_distance):

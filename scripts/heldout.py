@@ -7,11 +7,11 @@
 
 RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
 split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
-scored by ``eval.py`` on the world rendered with each held-out seed (rendered on first use), into
-``RUN/heldout_<rig>_seed<S>/results.json``; an existing one is reused. ``--set`` passes more Hydra
-overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers: full-range abs_rel and
-a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the held-out seeds before
-training, and never train or tune on them.
+scored by ``eval.py`` on the test split of the world rendered with each held-out seed (200 frames,
+rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json``; an existing one is reused.
+``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
+full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the
+held-out seeds before training, and never train or tune on them.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+FRAMES = 200  # the held-out worlds as they were named: 200 frames each, whatever the training default
 
 
 def scores(path: Path) -> str:
@@ -50,6 +51,7 @@ def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: l
         f"ckpt_path={ckpt}",
         f"data.generate.rig={rig}",
         f"data.generate.seed={seed}",
+        f"data.generate.frames={FRAMES}",
         f"hydra.run.dir={out}",
         "eval.pictures=4",
     ]
