@@ -23,7 +23,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-FRAMES = 200  # the held-out worlds as they were named: 200 frames each, whatever the training default
+FRAMES = 200  # the held-out worlds as they were named, whatever the training default (--set may differ)
 
 
 def scores(path: Path) -> str:
@@ -51,10 +51,11 @@ def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: l
         f"ckpt_path={ckpt}",
         f"data.generate.rig={rig}",
         f"data.generate.seed={seed}",
-        f"data.generate.frames={FRAMES}",
         f"hydra.run.dir={out}",
         "eval.pictures=4",
     ]
+    if not any(o.startswith("data.generate.frames=") for o in extra):
+        command.append(f"data.generate.frames={FRAMES}")
     if upsample:
         command.append(f"upsample={upsample}")
     command += extra

@@ -3,6 +3,7 @@ checkpoint, resuming, wandb offline, the tables; a CPU DDP run with two processe
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -112,13 +113,34 @@ def test_trainers_share_one_base_and_clipping_has_one_name():
 
 
 @pytest.mark.parametrize("experiment", TABLE_EXPERIMENTS)
-def test_table_experiments_keep_the_papers_loss_in_float32(experiment):
-    """The default model takes the speed levers (native-resolution loss, bf16 where native); the
-    Table 1/2 rows keep Monodepth2's full-resolution loss in float32, as their kept runs did."""
+def test_table_experiments_keep_the_papers_loss_frames_and_float32(experiment):
+    """The default model takes the speed levers (native-resolution loss, bf16 where native) and the
+    accuracy levers of make train (sources two frames away, 600 rendered frames); the Table 1/2 rows
+    keep Monodepth2's full-resolution loss on the +-1 neighbours in float32, as their kept runs did."""
     default = compose_train([])
     assert default.model.loss_resolution == "native" and default.model.compile_kernels is True
+    assert list(default.model.source_offsets) == [-2, 2] and default.data.generate.frames == 600
     cfg = compose_train([f"+experiment={experiment}"])
     assert cfg.model.loss_resolution == "full" and cfg.trainer.precision == "32-true"
+    assert list(cfg.model.source_offsets) == [-1, 1]
+
+
+def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, monkeypatch):
+    """The held-out worlds were named as 200-frame renders; a training default of 600 frames must not
+    make scripts/heldout.py render and score other worlds (the 200-frame world 0 is the first third
+    of the 600-frame one, so the same slip on world 0 would score training frames)."""
+    spec = importlib.util.spec_from_file_location("heldout", ROOT / "scripts" / "heldout.py")
+    heldout = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(heldout)
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").touch()
+    commands = []
+    monkeypatch.setattr(heldout.subprocess, "run", lambda command, **kw: commands.append(command))
+    heldout.score_heldout(tmp_path, 2001, "kitti360", None, ["paths.data_dir=x"])
+    heldout.score_heldout(tmp_path, 2002, "kitti360", None, ["data.generate.frames=12"])
+    frames = [[o for o in c if o.startswith("data.generate.frames=")] for c in commands]
+    assert frames == [["data.generate.frames=200"], ["data.generate.frames=12"]]
+    assert "data.generate.seed=2001" in commands[0] and "data.generate.seed=2002" in commands[1]
 
 
 def test_debug_tiny_is_what_the_smoke_tests_use():
