@@ -6,23 +6,26 @@
 # Usage: SEEDS="1001 1002 1003" OUT=out [TRAIN_LIMIT=seconds] bash scripts/device_sweep.sh VARIANTS
 # (on the lent machine, Python packages it lacks: scripts need hydra-core, omegaconf, antlr4 wheels).
 # Measured on an H100 (16 cores): three make-train recipes side by side ran 5 it/s each, about 7 min
-# for 22 of their 24 epochs, plus 2-3 min of rendering: give one call two recipes at most.
+# for 22 of their 24 epochs (the 200-frame recipe of the time), plus 2-3 min of rendering: give one
+# call two recipes at most.
 # Writes OUT/sweep.tar.gz (each run's results, held-out results, metrics.csv and config; no checkpoints)
 # and OUT/summary.md (one row per run, scripts/heldout.py's format).
 set -u -o pipefail
 VARIANTS=$1
 SEEDS=${SEEDS:-1001 1002 1003}
 RIG=${RIG:-kitti360}
-FRAMES=${FRAMES:-200}
+FRAMES=${FRAMES:-200}            # the held-out worlds' renders (scripts/heldout.py)
+TRAIN_FRAMES=${TRAIN_FRAMES:-600}  # world 0 as train.py's default renders it (conf/data/synthetic.yaml)
 WORKERS=${WORKERS:-2}
 PY=${PY:-python3}
 RUNS=${RUNS:-sweep_runs}
 mkdir -p "$RUNS" "$OUT"
 
 # render every world first (train world 0 and the held-out ones), each in parallel
-for seed in 0 $SEEDS; do
-  dir=data/synthetic_${RIG}_256_seed${seed}_f${FRAMES}
-  [ -d "$dir" ] || $PY -m fisheyedepth.data.synthetic.cli --out "$dir" --rig "$RIG" --frames "$FRAMES" \
+for world in "0:$TRAIN_FRAMES" $(for s in $SEEDS; do echo "$s:$FRAMES"; done); do  # seed:frames
+  seed=${world%:*}; frames=${world#*:}
+  dir=data/synthetic_${RIG}_256_seed${seed}_f${frames}
+  [ -d "$dir" ] || $PY -m fisheyedepth.data.synthetic.cli --out "$dir" --rig "$RIG" --frames "$frames" \
     --size 256 --seed "$seed" --supersample 2 --workers "${RENDER_WORKERS:-3}" --quiet &
 done
 wait

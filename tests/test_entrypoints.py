@@ -104,10 +104,10 @@ def test_trainers_share_one_base_and_clipping_has_one_name():
     cpu, gpu, ddp = (compose_train([f"trainer={t}"]).trainer for t in ("cpu", "gpu", "ddp"))
     for trainer in (cpu, gpu, ddp):
         assert trainer.gradient_clip_val == 1.0 and trainer.num_sanity_val_steps == 1
-    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 24, 10)
-    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 24, 50)
-    assert all(t.precision == "auto" for t in (cpu, gpu, ddp))
-    assert compose_train([]).model.lr_step == 18  # the decay for the last quarter of every trainer
+    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 8, 10)
+    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 8, 50)
+    assert ddp.max_epochs == 8 and all(t.precision == "auto" for t in (cpu, gpu, ddp))
+    assert compose_train([]).model.lr_step == 6  # the decay for the last quarter of every trainer
     assert ddp.strategy == "ddp" and ddp.sync_batchnorm is True
     assert "grad_clip" not in compose_train([]).model
 
@@ -454,11 +454,11 @@ def test_the_data_module_loads_the_sources_the_model_warps(tmp_path):
     neighbours); a contradicting ``data.datamodule.offsets`` is refused, naming both."""
     from fisheyedepth.cli.train import source_offsets
 
-    cfg = compose_train(["model.source_offsets=[-2,2]", f"paths.data_dir={tmp_path}"])
-    assert source_offsets(cfg) == [-2, 2]
+    cfg = compose_train(["model.source_offsets=[-3,1]", f"paths.data_dir={tmp_path}"])
+    assert source_offsets(cfg) == [-3, 1]
     datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg))
-    assert datamodule.offsets == (-2, 2)
-    assert source_offsets(compose_train([])) == [-1, 1]
+    assert datamodule.offsets == (-3, 1)
+    assert source_offsets(compose_train([])) == [-2, 2]
     clash = compose_train(["model.source_offsets=[-2,2]", "+data.datamodule.offsets=[-1,1]"])
     with pytest.raises(
         ValueError, match=r"data.datamodule.offsets=\[-1, 1\] differs from model.source_offsets=\[-2, 2\]"
