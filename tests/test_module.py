@@ -506,3 +506,46 @@ def test_ddp_never_hangs_when_one_rank_meets_a_bad_step(kitti_data, tmp_path):
     assert lines == ["RANK 0 skipped 2 steps 5 finite True", "RANK 1 skipped 2 steps 5 finite True"], (
         proc.stdout
     )
+
+
+def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, checkpoint, tmp_path):
+    """``scripts/error_bands.py``: each camera's bands share its pixels and their parts add up to its
+    abs_rel; the training objective at the ground truth is below the one at a barely trained model's
+    prediction, and below the truth's at twice the distance."""
+    import importlib.util
+    from pathlib import Path
+
+    from fisheyedepth.data import FisheyeDataset, Kitti360Layout
+
+    from conftest import TRAIN_SEQ
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "error_bands.py"
+    spec = importlib.util.spec_from_file_location("error_bands", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    module = FisheyeDepthModule.from_checkpoint(checkpoint)
+    dataset = FisheyeDataset(
+        Kitti360Layout(kitti_data),
+        [{"sequence": TRAIN_SEQ}],
+        size=(64, 64),
+        offsets=(-1, 1),
+        ground_truth="distance",
+        cache_dir=tmp_path,
+    )
+    table = script.error_bands(module, dataset, edges=(0.0, 4.0, 10.0, 80.0), every=2)
+    assert sorted(table) == ["image_02", "image_03"]
+    for camera, bands in table.items():
+        whole = bands.pop("all")
+        assert whole["pixels"] == sum(b["pixels"] for b in bands.values()) > 500, camera
+        assert sum(b["share"] for b in bands.values()) == pytest.approx(1.0)
+        assert sum(b["part"] for b in bands.values()) == pytest.approx(whole["abs_rel"], rel=1e-5)
+        assert 0.0 <= whole["used"] <= 1.0
+        assert whole["loss_truth"] < 0.9 * whole["loss_pred"], (camera, whole)
+    batch = collate([dataset[i] for i in range(4)])
+    gt = torch.where(
+        batch.distance[:, 0] > 0, batch.distance[:, 0], torch.full_like(batch.distance[:, 0], 1e4)
+    )
+    with torch.no_grad():
+        truth, _, usable = script.objective(module, batch, gt)
+        doubled, _, _ = script.objective(module, batch, gt * 2)
+    assert truth[usable].mean() < 0.9 * doubled[usable].mean()

@@ -1,0 +1,148 @@
+#!/usr/bin/env python
+"""Where is a checkpoint's error, and does its training objective know better? Per camera and by
+ground-truth distance band, on a dataset with rendered distance maps (the synthetic worlds):
+
+- ``share``: the band's share of the camera's scored pixels; ``abs_rel``, ``ratio`` (median of
+  prediction / truth) and ``part`` (the band's part of the camera's abs_rel: the parts add up to it);
+- ``loss truth`` and ``loss pred``: the training objective per pixel (scale 0, minimum reprojection
+  over the sources with auto-masking, as training computes it, without its tie-breaking noise) with
+  the ground-truth distance and with the checkpoint's prediction, over the true relative poses;
+- ``used``: the share of the band's pixels whose loss depends on the prediction (a warp reaches them
+  and wins against every unwarped source); the others give the network no gradient.
+
+A band whose ``loss truth`` is well below its ``loss pred`` is one the objective would fix: the network
+has not got there (too few steps, a local minimum), not a loss that prefers the wrong answer.
+
+    python scripts/error_bands.py CHECKPOINT DATASET [--split splits/test.txt] [--offsets -2 2]
+                                  [--bands 0 1.5 3 6 10 20 40 80] [--every 1]
+
+Everything is computed at the checkpoint's input size (the dataset is resized to it). Scored pixels:
+ground truth in (0, last band edge), inside the body mask and the camera's field of view.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+from fisheyedepth.geometry.warp import sample, warp_to_source
+from fisheyedepth.losses.selfsup import min_reprojection
+from fisheyedepth.module import FisheyeDepthModule
+
+SKY = 1e4  # metres given to pixels without ground truth (the sky) when warping with the truth
+BANDS = (0.0, 1.5, 3.0, 6.0, 10.0, 20.0, 40.0, 80.0)
+
+
+def objective(module: FisheyeDepthModule, batch, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel training objective at scale 0 for ``distance [B, H, W]``: ``(loss, used, usable)``,
+    each ``[B, H, W]``; ``usable``: pixels inside the body mask with a ray (what training averages)."""
+    cameras = [module.warp_model(c) for c in batch.camera]
+    rays, rays_valid = module.rays.batch(cameras, batch.image.device, batch.image.dtype)
+    usable = (batch.mask[:, 0] > 0.5) & rays_valid
+    unwarped = module.reprojection.identity(batch.sources, batch.image)
+    warped, valid = [], []
+    for j in range(batch.n_sources):
+        sources = [module.warp_model(c[j]) for c in batch.source_camera]
+        warp = warp_to_source(rays, rays_valid, distance, batch.poses[:, j], sources, batch.source_mask[:, j])
+        warped.append(sample(batch.sources[:, j], warp.grid))
+        valid.append(warp.valid)
+    errors = module.reprojection.photometric(torch.stack(warped, 1), batch.image)
+    valid = torch.stack(valid, 1) & usable[:, None]
+    loss, used = min_reprojection(errors, valid, unwarped, module.hparams.automask, noise=0.0)
+    return loss, used & usable, usable
+
+
+@torch.no_grad()
+def error_bands(
+    module: FisheyeDepthModule, dataset: FisheyeDataset, edges=BANDS, every: int = 1, batch_size: int = 4
+) -> dict[str, dict[str, dict[str, float]]]:
+    """``{camera: {band: {share, abs_rel, ratio, part, loss_truth, loss_pred, used, pixels}}}``; the
+    band "all" is the camera's whole scored range."""
+    module = module.eval()
+    bands = [(f"{lo:g}-{hi:g} m", lo, hi) for lo, hi in itertools.pairwise(edges)]
+    bands.append(("all", edges[0], edges[-1]))
+    acc: dict[str, dict[str, dict[str, list]]] = {}
+    indices = list(range(0, len(dataset), every))
+    for start in range(0, len(indices), batch_size):
+        batch = collate([dataset[i] for i in indices[start : start + batch_size]])
+        gt = batch.distance[:, 0]
+        pred = module.depth_net.for_cameras(batch.image, batch.camera)["distance"][0][:, 0].float()
+        loss_truth, _, usable = objective(module, batch, torch.where(gt > 0, gt, torch.full_like(gt, SKY)))
+        loss_pred, used, _ = objective(module, batch, pred)
+        names = batch.camera_name or [f"camera {i}" for i in range(len(batch))]
+        for i, name in enumerate(names):
+            scored = usable[i] & (gt[i] > edges[0]) & (gt[i] < edges[-1])
+            for band, lo, hi in bands:
+                sel = scored & (gt[i] >= lo) & (gt[i] < hi)
+                a = acc.setdefault(name, {}).setdefault(band, {k: [] for k in ("g", "p", "lt", "lp", "u")})
+                a["g"].append(gt[i][sel])
+                a["p"].append(pred[i][sel])
+                a["lt"].append(loss_truth[i][sel])
+                a["lp"].append(loss_pred[i][sel])
+                a["u"].append(used[i][sel])
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    for name, by_band in acc.items():
+        total = sum(int(torch.cat(by_band[b]["g"]).numel()) for b, _, _ in bands[:-1])
+        for band, a in by_band.items():
+            g, p = torch.cat(a["g"]), torch.cat(a["p"])
+            if g.numel() == 0:
+                continue
+            rel = (p - g).abs() / g
+            table.setdefault(name, {})[band] = {
+                "pixels": int(g.numel()),
+                "share": g.numel() / total,
+                "abs_rel": float(rel.mean()),
+                "ratio": float((p / g).median()),
+                "part": float(rel.sum()) / total,
+                "loss_truth": float(torch.cat(a["lt"]).mean()),
+                "loss_pred": float(torch.cat(a["lp"]).mean()),
+                "used": float(torch.cat(a["u"]).float().mean()),
+            }
+    return table
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("dataset", type=Path, help="a dataset in the KITTI-360 layout with distance maps")
+    parser.add_argument("--split", default="splits/test.txt")
+    parser.add_argument("--offsets", type=int, nargs="+", help="source frames (default: the checkpoint's)")
+    parser.add_argument("--bands", type=float, nargs="+", default=list(BANDS), help="band edges, metres")
+    parser.add_argument("--every", type=int, default=1, help="use every n-th sample")
+    args = parser.parse_args(argv)
+    module = FisheyeDepthModule.from_checkpoint(args.checkpoint)
+    size = module.hparams.get("input_size")
+    offsets = args.offsets or list(module.hparams.source_offsets)
+    with tempfile.TemporaryDirectory() as cache:
+        dataset = FisheyeDataset(
+            Kitti360Layout(args.dataset),
+            args.split,
+            size=None if size is None else tuple(size),
+            offsets=tuple(offsets),
+            ground_truth="distance",
+            cache_dir=cache,
+        )
+        table = error_bands(module, dataset, tuple(args.bands), args.every)
+    print(f"{args.checkpoint} on {args.dataset} ({args.split}, sources {offsets})\n")
+    print("| camera | band | share | abs_rel | ratio | part | loss truth | loss pred | used |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in sorted(table):
+        for band, r in table[name].items():
+            bold = "**" if band == "all" else ""
+            print(
+                f"| {name} | {bold}{band}{bold} | {r['share']:.3f} | {r['abs_rel']:.3f} | {r['ratio']:.3f} | "
+                f"{r['part']:.3f} | {r['loss_truth']:.4f} | {r['loss_pred']:.4f} | {r['used']:.3f} |"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
