@@ -4,9 +4,10 @@ ground-truth distance band, on a dataset with rendered distance maps (the synthe
 
 - ``share``: the band's share of the camera's scored pixels; ``abs_rel``, ``ratio`` (median of
   prediction / truth) and ``part`` (the band's part of the camera's abs_rel: the parts add up to it);
-- ``loss truth`` and ``loss pred``: the training objective per pixel (scale 0, minimum reprojection
-  over the sources with auto-masking, as training computes it, without its tie-breaking noise) with
-  the ground-truth distance and with the checkpoint's prediction, over the true relative poses;
+- ``loss truth`` and ``loss pred``: the training objective per pixel
+  (``FisheyeDepthModule.pixel_objective``: scale 0, minimum reprojection over the sources with
+  auto-masking, without training's tie-breaking noise) with the ground-truth distance and with the
+  checkpoint's prediction, over the true relative poses;
 - ``used``: the share of the band's pixels whose loss depends on the prediction (a warp reaches them
   and wins against every unwarped source); the others give the network no gradient.
 
@@ -28,34 +29,12 @@ import tempfile
 from pathlib import Path
 
 import torch
-from torch import Tensor
 
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
-from fisheyedepth.geometry.warp import sample, warp_to_source
-from fisheyedepth.losses.selfsup import min_reprojection
 from fisheyedepth.module import FisheyeDepthModule
 
 SKY = 1e4  # metres given to pixels without ground truth (the sky) when warping with the truth
 BANDS = (0.0, 1.5, 3.0, 6.0, 10.0, 20.0, 40.0, 80.0)
-
-
-def objective(module: FisheyeDepthModule, batch, distance: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-pixel training objective at scale 0 for ``distance [B, H, W]``: ``(loss, used, usable)``,
-    each ``[B, H, W]``; ``usable``: pixels inside the body mask with a ray (what training averages)."""
-    cameras = [module.warp_model(c) for c in batch.camera]
-    rays, rays_valid = module.rays.batch(cameras, batch.image.device, batch.image.dtype)
-    usable = (batch.mask[:, 0] > 0.5) & rays_valid
-    unwarped = module.reprojection.identity(batch.sources, batch.image)
-    warped, valid = [], []
-    for j in range(batch.n_sources):
-        sources = [module.warp_model(c[j]) for c in batch.source_camera]
-        warp = warp_to_source(rays, rays_valid, distance, batch.poses[:, j], sources, batch.source_mask[:, j])
-        warped.append(sample(batch.sources[:, j], warp.grid))
-        valid.append(warp.valid)
-    errors = module.reprojection.photometric(torch.stack(warped, 1), batch.image)
-    valid = torch.stack(valid, 1) & usable[:, None]
-    loss, used = min_reprojection(errors, valid, unwarped, module.hparams.automask, noise=0.0)
-    return loss, used & usable, usable
 
 
 @torch.no_grad()
@@ -73,8 +52,9 @@ def error_bands(
         batch = collate([dataset[i] for i in indices[start : start + batch_size]])
         gt = batch.distance[:, 0]
         pred = module.depth_net.for_cameras(batch.image, batch.camera)["distance"][0][:, 0].float()
-        loss_truth, _, usable = objective(module, batch, torch.where(gt > 0, gt, torch.full_like(gt, SKY)))
-        loss_pred, used, _ = objective(module, batch, pred)
+        truth = torch.where(gt > 0, gt, torch.full_like(gt, SKY))
+        loss_truth, _, usable = module.pixel_objective(batch, truth, batch.poses)
+        loss_pred, used, _ = module.pixel_objective(batch, pred, batch.poses)
         names = batch.camera_name or [f"camera {i}" for i in range(len(batch))]
         for i, name in enumerate(names):
             scored = usable[i] & (gt[i] > edges[0]) & (gt[i] < edges[-1])
@@ -88,7 +68,7 @@ def error_bands(
                 a["u"].append(used[i][sel])
     table: dict[str, dict[str, dict[str, float]]] = {}
     for name, by_band in acc.items():
-        total = sum(int(torch.cat(by_band[b]["g"]).numel()) for b, _, _ in bands[:-1])
+        total = sum(int(g.numel()) for g in by_band["all"]["g"])  # the bands partition "all"
         for band, a in by_band.items():
             g, p = torch.cat(a["g"]), torch.cat(a["p"])
             if g.numel() == 0:

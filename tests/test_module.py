@@ -510,8 +510,8 @@ def test_ddp_never_hangs_when_one_rank_meets_a_bad_step(kitti_data, tmp_path):
 
 def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, checkpoint, tmp_path):
     """``scripts/error_bands.py``: each camera's bands share its pixels and their parts add up to its
-    abs_rel; the training objective at the ground truth is below the one at a barely trained model's
-    prediction, and below the truth's at twice the distance."""
+    abs_rel; the training objective (``pixel_objective``) at the ground truth is below the one at a
+    barely trained model's prediction, and below the truth's at twice the distance."""
     import importlib.util
     from pathlib import Path
 
@@ -546,6 +546,6 @@ def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, chec
         batch.distance[:, 0] > 0, batch.distance[:, 0], torch.full_like(batch.distance[:, 0], 1e4)
     )
     with torch.no_grad():
-        truth, _, usable = script.objective(module, batch, gt)
-        doubled, _, _ = script.objective(module, batch, gt * 2)
+        truth, _, usable = module.pixel_objective(batch, gt, batch.poses)
+        doubled, _, _ = module.pixel_objective(batch, gt * 2, batch.poses)
     assert truth[usable].mean() < 0.9 * doubled[usable].mean()

@@ -33,7 +33,7 @@ from .geometry import (
     translation_direction_error_deg,
     warp_to_source,
 )
-from .losses import ReprojectionLoss, edge_aware_smoothness
+from .losses import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation
@@ -260,6 +260,36 @@ class FisheyeDepthModule(L.LightningModule):
             target, sources, source_mask, source_cameras, rays, rays_valid, body & rays_valid, identity
         )
 
+    def _warp_sources(self, level: _Level, distance: Tensor, poses: Tensor) -> tuple[Tensor, Tensor]:
+        """Every source of ``level`` sampled where ``distance`` and the ``[B, S, 4, 4]`` target-to-source
+        ``poses`` put each target pixel: ``([B, S, 3, H, W] images, [B, S, H, W] warp validity)``."""
+        warped, valid = [], []
+        for j in range(level.sources.shape[1]):
+            cams = [c[j] for c in level.source_cameras]
+            warp = warp_to_source(
+                level.rays, level.rays_valid, distance, poses[:, j], cams, level.source_mask[:, j]
+            )
+            warped.append(sample(level.sources[:, j], warp.grid))
+            valid.append(warp.valid)
+        return torch.stack(warped, 1), torch.stack(valid, 1)
+
+    @torch.no_grad()
+    def pixel_objective(
+        self, batch: Batch, distance: Tensor, poses: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The photometric objective per pixel for ``distance [B, H, W]`` at the input size, as a
+        training step computes it at scale 0 (minimum reprojection, auto-masking as configured) but
+        without its tie-breaking noise; ``poses`` default to :meth:`relative_poses`. Returns
+        ``(error, used, usable)``, each ``[B, H, W]``: ``used``, the pixels whose error depends on
+        ``distance``; ``usable``, those a training step averages over (body mask, a ray)."""
+        level = self._level(batch, None)
+        poses = self.relative_poses(batch) if poses is None else poses
+        warped, valid = self._warp_sources(level, distance, poses.to(batch.image.dtype))
+        errors = self.reprojection.photometric(warped, level.target)
+        valid = valid & level.mask[:, None]
+        error, used = min_reprojection(errors, valid, level.identity, self.reprojection.automask, noise=0.0)
+        return error, used & level.mask, level.mask
+
     def _losses(
         self, batch: Batch, outputs: dict[str, dict[int, Tensor]], poses: Tensor
     ) -> tuple[Tensor, dict[str, Tensor]]:
@@ -279,21 +309,9 @@ class FisheyeDepthModule(L.LightningModule):
                     level = self._level(batch, tuple(distance.shape[-2:]))
                 else:
                     distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
-            warped, valid = [], []
-            for j in range(batch.n_sources):
-                cams = [c[j] for c in level.source_cameras]
-                warp = warp_to_source(
-                    level.rays, level.rays_valid, distance, poses[:, j], cams, level.source_mask[:, j]
-                )
-                warped.append(sample(level.sources[:, j], warp.grid))
-                valid.append(warp.valid)
+            warped, valid = self._warp_sources(level, distance, poses)
             photo, used, measured = self.reprojection(
-                level.target,
-                torch.stack(warped, 1),
-                torch.stack(valid, 1),
-                level.identity,
-                level.mask,
-                not self.training,
+                level.target, warped, valid, level.identity, level.mask, not self.training
             )
             disp = outputs["disp"][s]
             image_s = level.target  # native resolution: already the target at this scale
