@@ -78,8 +78,6 @@ class FisheyeDepthModule(L.LightningModule):
         lr_schedule: str = "step",
         upsample: str = "distance",
         decoder_width: float = 1.0,
-        bin_search: float = 0.0,
-        bin_search_scale: int = 2,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -105,13 +103,6 @@ class FisheyeDepthModule(L.LightningModule):
         consistency, as in Full Surround Monodepth: 0 the same instant, +-1 the neighbouring frames); the
         extrinsics and odometry give their poses, so a PoseNet row cannot use them. The data module
         loads them after the ``source_offsets`` frames; the minimum reprojection treats every source alike.
-        ``bin_search``: weight of the distance search (a switch beyond the paper; 0: off): at scale
-        ``bin_search_scale`` every bin's distance is warped (a sweep of spheres around the camera) and
-        the binned head's softmax is asked to put its mass where the photometric error is low (the
-        expected error over the bins, :meth:`_bin_search`). The warp of the expected distance gives a
-        gradient only within a pixel or two of where it lands; the search reaches every bin, so a near
-        pole predicted three times too far is pulled toward its match. Training only: inference is
-        unchanged. Needs the binned head.
         ``pose_translation_scale``: the PoseNet's metres per raw output unit; None keeps Monodepth2's
         ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
         parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
@@ -131,14 +122,6 @@ class FisheyeDepthModule(L.LightningModule):
                 "rig_offsets: the other cameras' poses come from the extrinsics and odometry "
                 "(real_scale=true); a PoseNet predicts one camera's own motion"
             )
-        if bin_search < 0:
-            raise ValueError(f"bin_search: {bin_search} is a loss weight, expected >= 0")
-        if bin_search and not multi_channel:
-            raise ValueError(
-                "bin_search: the distance search supervises the binned head (multi_channel=true)"
-            )
-        if bin_search and bin_search_scale not in tuple(scales):
-            raise ValueError(f"bin_search_scale: {bin_search_scale} is not one of the scales {tuple(scales)}")
         self.save_hyperparameters()
         self.scales = tuple(scales)
         self.source_offsets = tuple(source_offsets)
@@ -314,22 +297,16 @@ class FisheyeDepthModule(L.LightningModule):
         distance is upsampled to the input size and warped there. ``"native"`` compares each scale at its
         own size instead (downsampled images, resized cameras; Monodepth1's choice), a speed lever."""
         H, W = batch.image.shape[-2:]
-        levels = {(H, W): self._level(batch, None)}
-
-        def level_at(size: tuple[int, int]) -> _Level:
-            if size not in levels:
-                levels[size] = self._level(batch, size)
-            return levels[size]
-
+        full = self._level(batch, None)
         native = self.hparams.loss_resolution == "native"
         logs: dict[str, Tensor] = {}
         total = batch.image.new_zeros(())
         for s in self.scales:
             distance = outputs["distance"][s]
-            level = levels[(H, W)]
+            level = full
             if distance.shape[-2:] != (H, W):
                 if native:
-                    level = level_at(tuple(distance.shape[-2:]))
+                    level = self._level(batch, tuple(distance.shape[-2:]))
                 else:
                     distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
             warped, valid = self._warp_sources(level, distance, poses)
@@ -346,59 +323,8 @@ class FisheyeDepthModule(L.LightningModule):
             if measured is not None:  # validation's criterion; not computed in the training step
                 logs[f"automasked/{s}"] = measured
         total = total / len(self.scales)
-        if self.hparams.bin_search:
-            logits = outputs["logits"][self.hparams.bin_search_scale]
-            search = self._bin_search(level_at(tuple(logits.shape[-2:])), logits, batch.camera, poses)
-            total = total + self.hparams.bin_search * search
-            logs["bin_search"] = search
         logs["loss"] = total
         return total, logs
-
-    def bin_costs(self, level: _Level, bins: Tensor, poses: Tensor) -> tuple[Tensor, Tensor]:
-        """The photometric error of every bin's distance: ``bins [B, K]`` (metres, per sample) placed
-        at every pixel of ``level`` and warped into each source, the minimum over the sources (a bin
-        no source reaches costs what not warping costs). Returns ``(cost [B, K, h, w], static [B, h,
-        w])``: ``static``, the pixels an unwarped source explains better than every bin (auto-masking:
-        nothing moves there, no distance can be read). No gradient: a measurement of the images.
-
-        The K distances are one warp: the rays are tiled K times along the width, so each source is
-        sampled once for all bins."""
-        with torch.no_grad():
-            B, K = bins.shape
-            h, w = level.target.shape[-2:]
-            rays = level.rays.repeat(1, 1, K, 1)  # [B, h, K*w, 3]: block k holds bin k
-            rays_valid = level.rays_valid.repeat(1, 1, K)
-            distance = bins[:, None, :, None].expand(B, h, K, w).reshape(B, h, K * w)
-            best = None
-            for j in range(level.sources.shape[1]):
-                cams = [c[j] for c in level.source_cameras]
-                warp = warp_to_source(rays, rays_valid, distance, poses[:, j], cams, level.source_mask[:, j])
-                warped = sample(level.sources[:, j], warp.grid).unflatten(-1, (K, w)).permute(0, 3, 1, 2, 4)
-                error = self.reprojection.photometric(warped, level.target)  # [B, K, h, w]
-                valid = warp.valid.unflatten(-1, (K, w)).permute(0, 2, 1, 3)
-                error = torch.where(valid, error, torch.full_like(error, float("inf")))
-                best = error if best is None else torch.minimum(best, error)
-            unwarped = level.identity.min(1).values  # [B, h, w]
-            cost = torch.where(torch.isfinite(best), best, unwarped[:, None].expand_as(best))
-            static = (
-                unwarped <= cost.min(1).values
-                if self.reprojection.automask
-                else torch.zeros_like(unwarped, dtype=torch.bool)
-            )
-        return cost, static
-
-    def _bin_search(self, level: _Level, logits: Tensor, cameras: list[CameraModel], poses: Tensor) -> Tensor:
-        """The expected photometric error under the binned head's softmax at one scale,
-        ``sum_k p_k cost_k`` (:meth:`bin_costs`), averaged over the usable pixels that are not static.
-        Its gradient, ``p_k (cost_k - E[cost])`` per logit, moves mass toward every bin that explains
-        the pixel better than the current mixture, however far from the expected distance it is."""
-        scale = self.depth_net.depth_scale(cameras).to(logits)
-        bins = self.depth_net.bins.to(logits)[None] * scale[:, None]  # [B, K] metres
-        cost, static = self.bin_costs(level, bins, poses)
-        p = torch.softmax(logits.clamp(-10.0, 10.0), dim=1)  # the head's expectation weights
-        expected = (p * cost).sum(1)  # [B, h, w]
-        keep = level.mask & ~static
-        return (expected * keep).sum() / keep.sum().clamp_min(1)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""

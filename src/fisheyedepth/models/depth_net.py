@@ -164,12 +164,10 @@ class DepthNet(nn.Module):
         self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
     ) -> dict[str, dict[int, Tensor]]:
         """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}`` for ``scales`` (default:
-        all; inference needs only scale 0, and skips the other heads); the binned head adds its raw
-        ``"logits": {scale: [B, K, H/2^s, W/2^s]}``."""
-        distance, disp, logits = {}, {}, {}
+        all; inference needs only scale 0, and skips the other heads)."""
+        distance, disp = {}, {}
         for s, y in self.head_outputs(image, scales).items():
             if self.multi_channel:
-                logits[s] = y
                 distance[s], disp[s] = self.expectation(
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
                 )
@@ -179,8 +177,6 @@ class DepthNet(nn.Module):
                     scale = torch.as_tensor(depth_scale, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
                     distance[s] = sigmoid_to_distance(y, self.min_distance, self.max_distance) * scale
                     disp[s] = y
-        if self.multi_channel:
-            return {"distance": distance, "disp": disp, "logits": logits}
         return {"distance": distance, "disp": disp}
 
     def depth_scale(self, cameras) -> Tensor:
