@@ -49,7 +49,9 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     return ckpt
 
 
-RETIRED_HPARAMS = ("grad_clip",)  # 2026-11-23: clipping is the trainer's gradient_clip_val only
+# 2026-11-23: clipping is the trainer's gradient_clip_val only; 2026-11-24: the distance search (a
+# training-only loss, commit a350cf1) was measured and removed (BENCHMARKS.md, "Time to accuracy")
+RETIRED_HPARAMS = ("grad_clip", "bin_search", "bin_search_scale")
 # 2026-11-23: one name for the evaluation cap, as in the protocols and DepthMetrics
 RENAMED_HPARAMS = {("eval_min", "eval_max"): "eval_cap"}
 
