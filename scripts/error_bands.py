@@ -51,7 +51,7 @@ def error_bands(
     for start in range(0, len(indices), batch_size):
         batch = collate([dataset[i] for i in indices[start : start + batch_size]])
         gt = batch.distance[:, 0]
-        pred = module.depth_net.for_cameras(batch.image, batch.camera)["distance"][0][:, 0].float()
+        pred = module.depth_net.distance(batch.image, batch.camera)[:, 0].float()  # scale 0 only
         truth = torch.where(gt > 0, gt, torch.full_like(gt, SKY))
         loss_truth, _, usable = module.pixel_objective(batch, truth, batch.poses)
         loss_pred, used, _ = module.pixel_objective(batch, pred, batch.poses)

@@ -116,6 +116,16 @@ def realdata() -> Path:
 TRAIN_SEQ = "2013_05_28_drive_0000_sync"
 
 
+def load_script(name: str):
+    """``scripts/<name>.py`` as a module, to test its functions without a subprocess."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    return script
+
+
 def quaternion_xyzw(R: np.ndarray) -> list[float]:
     """A rotation matrix as a unit quaternion (x, y, z, w), through its axis-angle (any rotation)."""
     rvec = cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)

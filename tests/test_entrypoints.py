@@ -3,7 +3,6 @@ checkpoint, resuming, wandb offline, the tables; a CPU DDP run with two processe
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import re
@@ -24,7 +23,7 @@ from fisheyedepth.checkpoints import read_checkpoint
 from fisheyedepth.cli.evaluate import experiment_of
 from fisheyedepth.cli.train import resolve_base_focal, resolve_precision, selected_checkpoint
 
-from conftest import TINY
+from conftest import TINY, load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
@@ -129,9 +128,7 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     """The held-out worlds were named as 200-frame renders; a training default of 600 frames must not
     make scripts/heldout.py render and score other worlds (the 200-frame world 0 is the first third
     of the 600-frame one, so the same slip on world 0 would score training frames)."""
-    spec = importlib.util.spec_from_file_location("heldout", ROOT / "scripts" / "heldout.py")
-    heldout = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(heldout)
+    heldout = load_script("heldout")
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "last.ckpt").touch()
     commands = []

@@ -512,17 +512,11 @@ def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, chec
     """``scripts/error_bands.py``: each camera's bands share its pixels and their parts add up to its
     abs_rel; the training objective (``pixel_objective``) at the ground truth is below the one at a
     barely trained model's prediction, and below the truth's at twice the distance."""
-    import importlib.util
-    from pathlib import Path
-
     from fisheyedepth.data import FisheyeDataset, Kitti360Layout
 
-    from conftest import TRAIN_SEQ
+    from conftest import TRAIN_SEQ, load_script
 
-    path = Path(__file__).resolve().parents[1] / "scripts" / "error_bands.py"
-    spec = importlib.util.spec_from_file_location("error_bands", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("error_bands")
     module = FisheyeDepthModule.from_checkpoint(checkpoint)
     dataset = FisheyeDataset(
         Kitti360Layout(kitti_data),
