@@ -11,7 +11,8 @@ scored by ``eval.py`` on the test split of the world rendered with each held-out
 rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json``; an existing one is reused.
 ``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
 full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the
-held-out seeds before training, and never train or tune on them.
+held-out seeds before training, and never train or tune on them: the seed of the world the run
+trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its rig.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 200  # the held-out worlds as they were named, whatever the training default (--set may differ)
@@ -36,8 +39,19 @@ def scores(path: Path) -> str:
         return f"({path}: {type(err).__name__})"
 
 
+def trained_world(run: Path) -> tuple[str, int] | None:
+    """The rig and seed of the synthetic world ``run`` trained on (None: no synthetic world recorded)."""
+    path = run / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return None
+    gen = ((yaml.safe_load(path.read_text()) or {}).get("data") or {}).get("generate") or {}
+    return (str(gen.get("rig", "kitti360")), int(gen["seed"])) if "seed" in gen else None
+
+
 def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: list[str]) -> Path:
     """Evaluate the run's last checkpoint on world ``seed``; returns its results.json."""
+    if trained_world(run) == (rig, seed):  # the 200-frame world is the start of a longer one's drive
+        raise ValueError(f"{run}: world {seed} ({rig}) is the world it trained on, not a held-out one")
     suffix = f"_{upsample}" if upsample else ""
     out = run / f"heldout_{rig}_seed{seed}{suffix}"
     if (out / "results.json").is_file():
@@ -83,6 +97,9 @@ def main(argv=None) -> int:
                 cells.append(scores(score_heldout(run, seed, args.rig, args.upsample, args.set)))
             except FileNotFoundError as err:  # a kept record without its checkpoint, not yet scored here
                 cells.append(f"({err})")
+            except ValueError as err:  # its own training world
+                print(f"error: {err}", file=sys.stderr)
+                return 2
         print("| " + " | ".join(cells) + " |")
     return 0
 

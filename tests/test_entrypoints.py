@@ -140,6 +140,24 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     assert "data.generate.seed=2001" in commands[0] and "data.generate.seed=2002" in commands[1]
 
 
+def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):
+    heldout = load_script("heldout")
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").touch()
+    (tmp_path / ".hydra").mkdir()
+    config = {"data": {"generate": {"rig": "kitti360", "seed": 2001, "frames": 600}}}
+    (tmp_path / ".hydra" / "config.yaml").write_text(yaml.safe_dump(config))
+    commands = []
+    monkeypatch.setattr(heldout.subprocess, "run", lambda command, **kw: commands.append(command))
+    assert heldout.trained_world(tmp_path) == ("kitti360", 2001)
+    with pytest.raises(ValueError, match=r"world 2001 \(kitti360\) is the world it trained on"):
+        heldout.score_heldout(tmp_path, 2001, "kitti360", None, [])
+    heldout.score_heldout(tmp_path, 2001, "surround4", None, [])  # another rig: another world
+    heldout.score_heldout(tmp_path, 2002, "kitti360", None, [])
+    assert len(commands) == 2 and "data.generate.seed=2002" in commands[1]
+    assert heldout.main([str(tmp_path), "--seeds", "2001"]) == 2 and len(commands) == 2
+
+
 def test_debug_tiny_is_what_the_smoke_tests_use():
     cfg = compose_train(["+debug=tiny"])
     assert cfg.data.generate.frames == 12 and list(cfg.data.datamodule.size) == [64, 64]
