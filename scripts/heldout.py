@@ -23,7 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import yaml
+from fisheyedepth.utils import run_config
 
 ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 200  # the held-out worlds as they were named, whatever the training default (--set may differ)
@@ -41,10 +41,7 @@ def scores(path: Path) -> str:
 
 def trained_world(run: Path) -> tuple[str, int] | None:
     """The rig and seed of the synthetic world ``run`` trained on (None: no synthetic world recorded)."""
-    path = run / ".hydra" / "config.yaml"
-    if not path.is_file():
-        return None
-    gen = ((yaml.safe_load(path.read_text()) or {}).get("data") or {}).get("generate") or {}
+    gen = (run_config(run).get("data") or {}).get("generate") or {}
     return (str(gen.get("rig", "kitti360")), int(gen["seed"])) if "seed" in gen else None
 
 

@@ -18,7 +18,7 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-import yaml
+from fisheyedepth.utils import run_config
 
 PANELS = (
     ("val/loss", "validation loss (self-supervised)"),
@@ -41,12 +41,8 @@ def runs_under(paths: list[str]) -> list[Path]:
 
 
 def run_name(run: Path) -> str:
-    config = run / ".hydra" / "config.yaml"
-    name = run.name
-    if config.is_file():
-        cfg = yaml.safe_load(config.read_text()) or {}
-        name = f"{cfg.get('experiment_name', name)} s{cfg.get('seed', '?')}"
-    return name
+    cfg = run_config(run)
+    return f"{cfg.get('experiment_name', run.name)} s{cfg.get('seed', '?')}" if cfg else run.name
 
 
 def curves(run: Path) -> dict[str, dict[int, float]]:

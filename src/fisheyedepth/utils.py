@@ -6,6 +6,21 @@ import hashlib
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+def run_config(run: str | os.PathLike) -> dict[str, Any]:
+    """A run folder's Hydra config (``RUN/.hydra/config.yaml``) as plain data; {} when it has none."""
+    path = Path(run) / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return {}
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path}: not readable YAML ({err})") from err
+    return data if isinstance(data, dict) else {}
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import yaml
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from rich.console import Console
@@ -17,7 +16,7 @@ from rich.table import Table
 
 from ..evaluation import evaluate
 from ..runtimes import OnnxRuntime, as_runtime
-from ..utils import atomic_write_text
+from ..utils import atomic_write_text, run_config
 from . import free_path, load_runtime, prepare_data
 
 
@@ -99,14 +98,7 @@ def run_evaluation(
 def experiment_of(ckpt_path: str | Path) -> str | None:
     """The experiment a checkpoint was trained by, from its run folder's ``.hydra/config.yaml``
     (``RUN/checkpoints/X.ckpt``); None when the checkpoint sits elsewhere."""
-    config = Path(ckpt_path).resolve().parent.parent / ".hydra" / "config.yaml"
-    if not config.is_file():
-        return None
-    try:
-        data = yaml.safe_load(config.read_text())
-    except yaml.YAMLError as err:
-        raise ValueError(f"{config}: not readable YAML ({err})") from err
-    return data.get("experiment_name") if isinstance(data, dict) else None
+    return run_config(Path(ckpt_path).resolve().parent.parent).get("experiment_name")
 
 
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
