@@ -173,15 +173,12 @@ def tiny_samples(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64
     from fisheyedepth.data import FisheyeDataset, Kitti360Layout
 
     layout = Kitti360Layout(root)
-    dataset = FisheyeDataset(
-        layout,
-        [{"sequence": TRAIN_SEQ}],
-        size=size,
-        ground_truth="distance",
-        cache_dir=tempfile.mkdtemp(prefix="fd-cache-"),
-    )
-    index = {(layout.frames(it.sequence)[it.row].key, it.camera): i for i, it in enumerate(dataset.items)}
-    return [dataset[index[(f, c)]] for f in frames for c in cameras]
+    with tempfile.TemporaryDirectory(prefix="fd-cache-") as cache:  # removed once the samples are read
+        dataset = FisheyeDataset(
+            layout, [{"sequence": TRAIN_SEQ}], size=size, ground_truth="distance", cache_dir=cache
+        )
+        index = {(layout.frames(it.sequence)[it.row].key, it.camera): i for i, it in enumerate(dataset.items)}
+        return [dataset[index[(f, c)]] for f in frames for c in cameras]
 
 
 @pytest.fixture(scope="session")
