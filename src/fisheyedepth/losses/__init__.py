@@ -6,7 +6,9 @@ from .selfsup import (
     INVALID_WARP_ERROR,
     ReprojectionLoss,
     automasked_error,
+    best_warp_error,
     edge_aware_smoothness,
+    hint_loss,
     min_reprojection,
 )
 
@@ -14,8 +16,10 @@ __all__ = [
     "INVALID_WARP_ERROR",
     "ReprojectionLoss",
     "automasked_error",
+    "best_warp_error",
     "box_mean3",
     "edge_aware_smoothness",
+    "hint_loss",
     "min_reprojection",
     "photometric_error",
     "ssim",
