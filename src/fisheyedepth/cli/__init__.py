@@ -1,7 +1,7 @@
 """The commands behind ``train.py``, ``eval.py``, ``predict.py`` and ``export.py``: the only place where
 configs become objects (``hydra.utils.instantiate``). One small module per command; this one holds what
-they share: how an input error ends a command, the first-use rendering of the synthetic data, and
-output paths that never replace an earlier run's file."""
+they share: how an input error ends a command, process-wide settings, the first-use rendering of the
+synthetic data, and output paths that never replace an earlier run's file."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..data.synthetic import ensure_dataset, is_complete
 from ..module import FisheyeDepthModule
 from ..runtimes import OnnxRuntime, TorchRuntime
+from ..utils import keep_freed_memory
 
 log = logging.getLogger("fisheyedepth")
 
@@ -29,6 +30,13 @@ def model_file_alias(argv: list[str]) -> list[str]:
     config group: Hydra reads ``model=`` as a choice from ``conf/model/`` wherever that group exists, so
     their entry points pass it on as ``model_file=`` (the config key)."""
     return ["model_file=" + a[len("model=") :] if a.startswith("model=") else a for a in argv]
+
+
+def prepare_process(cfg: DictConfig) -> None:
+    """Process-wide settings, before any work: ``keep_freed_memory`` (glibc keeps the memory of freed
+    tensors for reuse instead of unmapping it; :func:`fisheyedepth.utils.keep_freed_memory`)."""
+    if cfg.get("keep_freed_memory"):
+        log.info("keep_freed_memory: %s", "on" if keep_freed_memory() else "not glibc, nothing changed")
 
 
 def run_command(command, cfg: DictConfig):

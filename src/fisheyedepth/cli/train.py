@@ -17,12 +17,10 @@ from omegaconf import DictConfig
 
 from ..checkpoints import check_resumable
 from ..module import FisheyeDepthModule
-from . import EXIT_SIGTERM, prepare_data
+from . import EXIT_SIGTERM, prepare_data, prepare_process
 from .evaluate import run_evaluation
 
 log = logging.getLogger("fisheyedepth")
-
-
 SELECT = ("last", "best")
 
 
@@ -95,6 +93,7 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     select = cfg.get("select", "last")
     resumed = check_resumable(cfg.ckpt_path) if cfg.get("ckpt_path") else None
+    prepare_process(cfg)
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
     rig = [int(o) for o in cfg.model.get("rig_offsets") or ()]

@@ -1,0 +1,140 @@
+#!/usr/bin/env python
+"""The memory allocator as a speed lever: the full model's training step with glibc's defaults against
+the same step after ``fisheyedepth.utils.keep_freed_memory()`` (``keep_freed_memory: true`` in
+``conf/train.yaml``); results go into BENCHMARKS.md.
+
+The setting is process-wide, so each measurement is a fresh child process (2 threads) that takes
+``--steps`` steps of the ``cpu_30min`` step: batch 4 at 256x256, two sources, bf16 autocast of the
+networks, channels_last, the loss at each scale's native resolution, compiled kernels. The two kinds
+of child alternate for ``--rounds`` rounds (the order swapped every round) and the speed-up is the
+median over rounds of the paired ratio. Page faults (minor, per step) and the peak resident set say
+why. Reads world 0 of ``make train`` (rendered on first use, like ``make train`` does).
+
+Usage: python scripts/bench_allocator.py [--rounds 4] [--steps 8] [--no-write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _benchmarks import WORLD, publish
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_allocator:start -->", "<!-- bench_allocator:end -->"
+KINDS = ("glibc defaults", "keep_freed_memory")
+
+
+def child(kind: str, steps: int, cache: Path) -> None:
+    """One measurement: ``steps`` training steps, printed as JSON (median step, faults, peak)."""
+    if kind == KINDS[1]:
+        from fisheyedepth.utils import keep_freed_memory
+
+        assert keep_freed_memory(), "keep_freed_memory needs glibc"
+    import torch
+
+    from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+    from fisheyedepth.module import FisheyeDepthModule
+
+    torch.set_num_threads(2)
+    torch.manual_seed(0)
+    dataset = FisheyeDataset(
+        Kitti360Layout(WORLD), "splits/train.txt", size=(256, 256), cache_dir=cache, offsets=(-2, 2)
+    )
+    batch = collate([dataset[i] for i in range(0, 40, 10)])
+    module = FisheyeDepthModule(
+        base_focal=None,
+        source_offsets=(-2, 2),
+        channels_last=True,
+        loss_resolution="native",
+        compile_kernels=True,
+        log_images_every=0,
+    ).train()
+    module.on_fit_start()
+    optimizer = torch.optim.Adam(module.parameters(), lr=1e-4)
+    times, faults = [], 0
+    for i in range(steps + 2):  # two warm-up steps (compilation, first allocations)
+        if i == 2:
+            faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        t0 = time.perf_counter()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            outputs = module(batch.image_aug, batch.camera)
+        loss, _ = module.losses(batch, outputs)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        times.append(time.perf_counter() - t0)
+    faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / steps
+    status = Path("/proc/self/status").read_text()
+    peak = next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:"))
+    print(json.dumps({"step": statistics.median(times[2:]), "faults": faults, "peak_mb": peak / 1024}))
+
+
+def measure(kind: str, steps: int, cache: Path) -> dict[str, float]:
+    command = [sys.executable, __file__, "--child", kind, "--steps", str(steps), "--cache", str(cache)]
+    out = subprocess.run(command, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=8)
+    parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
+    parser.add_argument("--child", choices=KINDS, help=argparse.SUPPRESS)
+    parser.add_argument("--cache", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child(args.child, args.steps, args.cache)
+        return 0
+    if not (WORLD / "splits" / "train.txt").exists():
+        raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
+    results: dict[str, list[dict[str, float]]] = {k: [] for k in KINDS}
+    with tempfile.TemporaryDirectory(prefix="fd-bench-alloc-") as tmp:
+        for r in range(args.rounds):
+            for kind in KINDS if r % 2 == 0 else KINDS[::-1]:
+                results[kind].append(measure(kind, args.steps, Path(tmp)))
+                print(f"round {r}: {kind}: {results[kind][-1]}", file=sys.stderr)
+    ratio = statistics.median(
+        a["step"] / b["step"] for a, b in zip(results[KINDS[0]], results[KINDS[1]], strict=True)
+    )
+    lines = [
+        START,
+        "## Memory allocator (`scripts/bench_allocator.py`)",
+        "",
+        f"Command: `python scripts/bench_allocator.py --rounds {args.rounds} --steps {args.steps}`  ",
+        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), {platform.libc_ver()[0]} "
+        f"{platform.libc_ver()[1]}, 2 threads; {time.strftime('%Y-%m-%d')}. The `cpu_30min` training "
+        f"step (batch 4 at 256x256, two sources, bf16, channels_last, native-resolution loss, compiled "
+        f"kernels), {args.steps} steps per fresh process after two warm-up steps; the two kinds alternate "
+        f"for {args.rounds} rounds.",
+        "",
+        "| allocator | step time (median of rounds) | minor page faults per step | peak RSS |",
+        "|---|---|---|---|",
+    ]
+    for kind in KINDS:
+        rows = results[kind]
+        lines.append(
+            f"| {kind} | {statistics.median(r['step'] for r in rows):.3f} s | "
+            f"{statistics.median(r['faults'] for r in rows):,.0f} | "
+            f"{statistics.median(r['peak_mb'] for r in rows):,.0f} MB |"
+        )
+    lines += ["", f"Speed-up (median of the paired per-round ratios): **{ratio:.2f}x**.", END]
+    publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
