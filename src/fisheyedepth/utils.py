@@ -77,8 +77,8 @@ def keep_freed_memory(top_pad: int = 1 << 29, trim_threshold: int = 1 << 30) -> 
 
     By default glibc gives every allocation above 32 MB (a training step's activations, the warps'
     grids) its own ``mmap`` and returns it to the kernel when freed, so the next step faults in and
-    zeroes the same pages again: about 115,000 page faults per 256 px training step here, a sixth of
-    its time (BENCHMARKS.md, "Training step"). With ``mmap`` off (``M_MMAP_MAX`` 0) and a high trim
+    zeroes the same pages again: tens of thousands of page faults per 256 px training step here
+    (what they cost: BENCHMARKS.md, "Memory allocator"). With ``mmap`` off (``M_MMAP_MAX`` 0) and a high trim
     threshold, freed blocks stay in the heap and are reused. The process keeps its peak memory.
     Process-wide; the DataLoader's forked workers inherit it. Returns False (and changes nothing)
     where the C library is not glibc."""
