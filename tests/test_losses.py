@@ -9,10 +9,8 @@ from fisheyedepth.losses import (
     INVALID_WARP_ERROR,
     ReprojectionLoss,
     automasked_error,
-    best_warp_error,
     box_mean3,
     edge_aware_smoothness,
-    hint_loss,
     min_reprojection,
     photometric_error,
     ssim,
@@ -153,30 +151,3 @@ def test_automasked_error_only_falls_as_warps_improve():
     assert (
         automasked_error(rep, valid, None, torch.zeros_like(mask)).item() == 0.0
     )  # nothing usable: 0, not NaN
-
-
-def test_best_warp_error_ignores_invalid_warps():
-    errors = torch.tensor([[[[0.3, 0.1]], [[0.2, 0.05]]]])  # [1, 2 sources, 1, 2]
-    valid = torch.tensor([[[[True, True]], [[True, False]]]])
-    best = best_warp_error(errors, valid)
-    assert best.flatten().tolist() == pytest.approx([0.2, 0.1])
-    assert torch.isinf(best_warp_error(errors, torch.zeros_like(valid))).all()
-
-
-def test_hint_loss_pulls_only_where_the_hint_is_decisively_better():
-    """Four pixels: the hint wins by more than the margin (supervised), wins by less (not), wins but
-    the unwarped sources match as well (not: no distance information), and one outside the mask."""
-    distance = torch.tensor([[[[2.0, 2.0, 2.0, 2.0]]]], requires_grad=True)
-    hint = torch.tensor([[[[0.5, 1.0, 1.0, 1.0]]]])
-    hint_error = torch.tensor([[[0.05, 0.19, 0.05, 0.05]]])
-    error = torch.tensor([[[0.20, 0.20, 0.20, 0.20]]])
-    unwarped = torch.tensor([[[0.30, 0.30, 0.04, 0.30]]])
-    mask = torch.tensor([[[True, True, True, False]]])
-    loss, used = hint_loss(distance, hint, hint_error, error, unwarped, mask, margin=0.02)
-    assert loss.item() == pytest.approx(torch.log(torch.tensor(4.0)).item() / 3, rel=1e-6)
-    assert used.item() == pytest.approx(1 / 3)
-    loss.backward()
-    # d/dd |log d - log h| = 1/d where d > h: only the supervised pixel, towards the hint
-    assert distance.grad.flatten().tolist() == pytest.approx([1 / 3 / 2.0, 0.0, 0.0, 0.0])
-    none, used = hint_loss(distance, hint, error, error, unwarped, mask, margin=0.0)
-    assert none.item() == 0.0 and used.item() == 0.0  # a hint no better than the prediction

@@ -366,37 +366,6 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
         FisheyeDepthModule(loss_resolution="half")
 
 
-def test_hints_find_the_distance_a_warp_gradient_cannot_reach(kitti_data):
-    """``hints``: with every surface predicted 2.5x too far, the search over scaled copies of the
-    prediction finds better distances (it keeps each pixel's cheapest, closer to the truth where it
-    supervises), and the term's gradient moves those pixels towards it; off, there is no such term,
-    and only training steps search. Bad settings are refused."""
-    batch = tiny_batch(kitti_data, size=None)  # 256 px: the parallax is resolved
-    surface = batch.distance > 0
-    gt = torch.where(surface, batch.distance, torch.full_like(batch.distance, 1e4))
-    wrong = torch.where(surface, gt * 2.5, gt).clamp(max=150.0).requires_grad_(True)
-    outputs = {"distance": {0: wrong}, "disp": {0: torch.full_like(wrong, 0.5)}}
-    torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0,), hints=1.0, hint_candidates=4, hint_spread=4.0)
-    level = module._level(batch, None)
-    warped, valid = module._warp_sources(level, wrong.detach(), batch.poses)
-    loss, used = module._hint_loss(level, wrong, batch.poses, warped, valid)
-    assert 0.05 < used.item() < 1.0 and loss.item() > 0.0
-    loss.backward()
-    pulled = wrong.grad[surface] > 0  # a positive gradient lowers the distance under gradient descent
-    assert pulled.float().mean().item() > 0.05 and (wrong.grad[surface] >= 0).float().mean() > 0.99
-    module.train()
-    logs = module.losses(batch, {"distance": {0: wrong.detach()}, "disp": outputs["disp"]})[1]
-    assert logs["hints/used_pixels"].item() > 0.05
-    module.eval()
-    assert "hints/loss" not in module.losses(batch, outputs)[1]  # validation measures, never searches
-    off = FisheyeDepthModule(scales=(0,)).train()
-    assert "hints/loss" not in off.losses(batch, outputs)[1]
-    for bad in (dict(hints=-1.0), dict(hint_candidates=0), dict(hint_spread=1.0), dict(hint_margin=-0.1)):
-        with pytest.raises(ValueError, match="hints: weight"):
-            FisheyeDepthModule(**bad)
-
-
 def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after_fitting(kitti_data):
     """``compile_kernels``: while fitting, the bin expectation and the photometric error are
     ``torch.compile``'d (fused kernels): the same loss and gradients; after fitting the plain functions

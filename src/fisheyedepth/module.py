@@ -33,13 +33,7 @@ from .geometry import (
     translation_direction_error_deg,
     warp_to_source,
 )
-from .losses import (
-    ReprojectionLoss,
-    best_warp_error,
-    edge_aware_smoothness,
-    hint_loss,
-    min_reprojection,
-)
+from .losses import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation
@@ -84,10 +78,6 @@ class FisheyeDepthModule(L.LightningModule):
         lr_schedule: str = "step",
         upsample: str = "distance",
         decoder_width: float = 1.0,
-        hints: float = 0.0,
-        hint_candidates: int = 2,
-        hint_spread: float = 4.0,
-        hint_margin: float = 0.02,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -117,14 +107,7 @@ class FisheyeDepthModule(L.LightningModule):
         ratio to the depth head's initial distance (0.01 m per 0.2 m), so the PoseNet starts with the
         parallax Monodepth2 starts with whatever the head (1 m for the sigmoid head, 26 m for the
         binned one at 0.5-150 m). Monodepth2's fixed 0.01 leaves the first warps 5x to 130x too short
-        here, and the PoseNet rows learn only once the PoseNet has grown its output that much.
-        ``hints``: weight of a search for better distances at scale 0 (a switch beyond the paper; 0:
-        off). Each training step warps the sources with ``hint_candidates`` candidate maps, the
-        prediction times a factor drawn per image log-uniformly in [1/``hint_spread``, ``hint_spread``],
-        and where a candidate's photometric error beats the prediction's by more than ``hint_margin``
-        (and beats not warping) the prediction is pulled towards it (:func:`~fisheyedepth.losses.
-        hint_loss`, Depth Hints' loss with hints from this search instead of a stereo matcher). A warp's
-        gradient reaches a pixel or two; the search reaches a thin pole predicted 2.6x too far."""
+        here, and the PoseNet rows learn only once the PoseNet has grown its output that much."""
         super().__init__()
         if loss_resolution not in LOSS_RESOLUTIONS:
             raise ValueError(
@@ -134,11 +117,6 @@ class FisheyeDepthModule(L.LightningModule):
             raise ValueError(f"lr_schedule: {lr_schedule!r} is not one of {', '.join(LR_SCHEDULES)}")
         if pinhole_focal not in PINHOLE_FOCALS:
             raise ValueError(f"pinhole_focal: {pinhole_focal!r} is not one of {', '.join(PINHOLE_FOCALS)}")
-        if hints < 0 or hint_candidates < 1 or hint_spread <= 1 or hint_margin < 0:
-            raise ValueError(
-                f"hints: weight {hints} must be >= 0, hint_candidates {hint_candidates} >= 1, "
-                f"hint_spread {hint_spread} > 1 and hint_margin {hint_margin} >= 0"
-            )
         if rig_offsets and not real_scale:
             raise ValueError(
                 "rig_offsets: the other cameras' poses come from the extrinsics and odometry "
@@ -344,36 +322,9 @@ class FisheyeDepthModule(L.LightningModule):
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
             if measured is not None:  # validation's criterion; not computed in the training step
                 logs[f"automasked/{s}"] = measured
-            if s == 0 and self.hparams.hints and self.training:
-                hinted, logs["hints/used_pixels"] = self._hint_loss(level, distance, poses, warped, valid)
-                logs["hints/loss"] = hinted
-                total = total + self.hparams.hints * len(self.scales) * hinted
         total = total / len(self.scales)
         logs["loss"] = total
         return total, logs
-
-    def _hint_loss(
-        self, level: _Level, distance: Tensor, poses: Tensor, warped: Tensor, valid: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """The ``hints`` term at one level: search ``hint_candidates`` scaled copies of the prediction
-        (no gradient), keep each pixel's best, and pull the prediction towards it where it is better."""
-        hp = self.hparams
-        with torch.no_grad():
-            valid = valid & level.mask[:, None]
-            error = best_warp_error(self.reprojection.photometric(warped.detach(), level.target), valid)
-            prediction = distance.detach()
-            hint, hint_error = prediction, error
-            log_spread = torch.log(torch.tensor(float(hp.hint_spread)))
-            for _ in range(hp.hint_candidates):
-                factor = torch.exp((2 * torch.rand(len(prediction), 1, 1, 1) - 1) * log_spread)
-                candidate = (prediction * factor.to(prediction)).clamp(hp.min_distance, hp.max_distance)
-                images, ok = self._warp_sources(level, candidate, poses)
-                cost = best_warp_error(self.reprojection.photometric(images, level.target), ok & valid)
-                better = cost < hint_error
-                hint = torch.where(better[:, None], candidate, hint)
-                hint_error = torch.where(better, cost, hint_error)
-        unwarped = level.identity.min(1).values
-        return hint_loss(distance, hint, hint_error, error, unwarped, level.mask, hp.hint_margin)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""

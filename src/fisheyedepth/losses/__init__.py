@@ -6,9 +6,7 @@ from .selfsup import (
     INVALID_WARP_ERROR,
     ReprojectionLoss,
     automasked_error,
-    best_warp_error,
     edge_aware_smoothness,
-    hint_loss,
     min_reprojection,
 )
 
@@ -16,10 +14,8 @@ __all__ = [
     "INVALID_WARP_ERROR",
     "ReprojectionLoss",
     "automasked_error",
-    "best_warp_error",
     "box_mean3",
     "edge_aware_smoothness",
-    "hint_loss",
     "min_reprojection",
     "photometric_error",
     "ssim",

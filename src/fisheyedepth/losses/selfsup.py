@@ -37,7 +37,7 @@ def min_reprojection(
         ``(error [B, H, W], used [B, H, W] bool)``: every pixel has an error; it depends on the distance
         only where it is used, i.e. where a valid warp gives the minimum.
     """
-    best = best_warp_error(reprojection, valid)
+    best = torch.where(valid, reprojection, torch.full_like(reprojection, float("inf"))).min(1).values
     used = torch.isfinite(best)
     fallback = unwarped.min(1).values if unwarped is not None else torch.full_like(best, INVALID_WARP_ERROR)
     best = torch.where(used, best, fallback)
@@ -56,43 +56,6 @@ def automasked_error(reprojection: Tensor, valid: Tensor, unwarped: Tensor | Non
     ``reprojection``, ``valid``, ``unwarped``: ``[B, S, H, W]``; ``mask``: ``[B, H, W]``."""
     best, _ = min_reprojection(reprojection, valid, unwarped, automask=True, noise=0.0)
     return best[mask].mean() if bool(mask.any()) else best.new_zeros(())
-
-
-def best_warp_error(reprojection: Tensor, valid: Tensor) -> Tensor:
-    """``[B, S, H, W]`` errors -> ``[B, H, W]``: the smallest over the sources whose warp is valid there,
-    ``inf`` where none is."""
-    return torch.where(valid, reprojection, torch.full_like(reprojection, float("inf"))).min(1).values
-
-
-def hint_loss(
-    distance: Tensor,
-    hint: Tensor,
-    hint_error: Tensor,
-    error: Tensor,
-    unwarped: Tensor,
-    mask: Tensor,
-    margin: float,
-) -> tuple[Tensor, Tensor]:
-    """Depth Hints (Watson et al., ICCV 2019): where another distance warps the sources better than the
-    prediction does, pull the prediction towards it.
-
-    A pixel is supervised where the hint's photometric error beats the prediction's by more than
-    ``margin`` and beats not warping at all (a pixel that the unwarped sources match as well says
-    nothing about distance); there the loss is ``|log distance - log hint|``. Mean over ``mask``.
-
-    Args:
-        distance: ``[B, 1, H, W]`` the prediction (the gradient flows here).
-        hint: ``[B, 1, H, W]`` the candidate distances (no gradient).
-        hint_error, error: ``[B, H, W]`` the hint's and the prediction's smallest warp error
-            (:func:`best_warp_error`; ``inf`` where no warp reaches).
-        unwarped: ``[B, H, W]`` the smallest error of the unwarped sources.
-        mask: ``[B, H, W]`` the usable pixels.
-    Returns ``(loss, fraction of the usable pixels supervised)``.
-    """
-    better = (hint_error < error - margin) & (hint_error < unwarped) & mask
-    n = mask.sum().clamp_min(1)
-    gap = (distance[:, 0].log() - hint[:, 0].detach().log()).abs()
-    return torch.where(better, gap, torch.zeros_like(gap)).sum() / n, better.sum() / n
 
 
 def edge_aware_smoothness(disp: Tensor, image: Tensor) -> Tensor:
