@@ -193,15 +193,17 @@ def test_weight_shapes_that_do_not_fit_are_named(checkpoint, tmp_path):
 
 def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
     """grad_clip left the model on 2026-11-23 (the trainer's gradient_clip_val is the only one), the
-    training-only distance search (bin_search) on 2026-11-24."""
+    training-only distance search (bin_search) on 2026-11-24, the hint search on 2026-11-25."""
     ckpt = torch.load(checkpoint, weights_only=True)
     ckpt["hyper_parameters"].update(grad_clip=1.0, bin_search=0.25, bin_search_scale=2)
+    ckpt["hyper_parameters"].update(hints=1.0, hint_candidates=2, hint_spread=4.0, hint_margin=0.02)
     cap = ckpt["hyper_parameters"].pop("eval_cap")  # before 2026-11-23: eval_min and eval_max
     ckpt["hyper_parameters"].update(eval_min=0.5, eval_max=40.0)
     torch.save(ckpt, tmp_path / "old.ckpt")
     module = FisheyeDepthModule.from_checkpoint(tmp_path / "old.ckpt")
     assert "grad_clip" not in module.hparams and "eval_min" not in module.hparams
     assert "bin_search" not in module.hparams and "bin_search_scale" not in module.hparams
+    assert not any(key.startswith("hint") for key in module.hparams)
     assert tuple(module.hparams.eval_cap) == (0.5, 40.0) and module.val_metrics.cap == (0.5, 40.0)
     assert tuple(cap) == (1e-3, 80.0)
     ckpt["hyper_parameters"]["no_such_key"] = 1.0  # an unknown key is still refused, by name
