@@ -30,3 +30,10 @@ def publish(section: str, path: Path, start: str, end: str, write: bool) -> None
     if write:
         write_section(path, start, end, section)
         print(f"written to {path}", file=sys.stderr)
+
+
+def peak_rss_kb() -> int:
+    """This process's peak resident set in kB (``VmHWM``, Linux; ``ru_maxrss`` would include a forked
+    parent's)."""
+    status = Path("/proc/self/status").read_text()
+    return next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:"))

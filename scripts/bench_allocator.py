@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, publish
+from _benchmarks import WORLD, peak_rss_kb, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_allocator:start -->", "<!-- bench_allocator:end -->"
@@ -36,47 +36,27 @@ KINDS = ("glibc defaults", "keep_freed_memory")
 
 def child(kind: str, steps: int, cache: Path) -> None:
     """One measurement: ``steps`` training steps, printed as JSON (median step, faults, peak)."""
-    if kind == KINDS[1]:
+    if kind == KINDS[1]:  # before torch allocates anything
         from fisheyedepth.utils import keep_freed_memory
 
         assert keep_freed_memory(), "keep_freed_memory needs glibc"
     import torch
 
-    from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
-    from fisheyedepth.module import FisheyeDepthModule
+    from bench_training import make_batch, make_module, step
 
     torch.set_num_threads(2)
-    torch.manual_seed(0)
-    dataset = FisheyeDataset(
-        Kitti360Layout(WORLD), "splits/train.txt", size=(256, 256), cache_dir=cache, offsets=(-2, 2)
-    )
-    batch = collate([dataset[i] for i in range(0, 40, 10)])
-    module = FisheyeDepthModule(
-        base_focal=None,
-        source_offsets=(-2, 2),
-        channels_last=True,
-        loss_resolution="native",
-        compile_kernels=True,
-        log_images_every=0,
-    ).train()
-    module.on_fit_start()
-    optimizer = torch.optim.Adam(module.parameters(), lr=1e-4)
+    batch = make_batch(WORLD, 256, 4, cache)
+    module, optimizer = make_module("FFT + RS + MC (full)", True, "native", True)  # cpu_30min's step
     times, faults = [], 0
     for i in range(steps + 2):  # two warm-up steps (compilation, first allocations)
         if i == 2:
             faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         t0 = time.perf_counter()
-        with torch.autocast("cpu", dtype=torch.bfloat16):
-            outputs = module(batch.image_aug, batch.camera)
-        loss, _ = module.losses(batch, outputs)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
+        step(module, optimizer, batch, bf16=True)
         times.append(time.perf_counter() - t0)
     faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / steps
-    status = Path("/proc/self/status").read_text()
-    peak = next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:"))
-    print(json.dumps({"step": statistics.median(times[2:]), "faults": faults, "peak_mb": peak / 1024}))
+    peak = peak_rss_kb() / 1024
+    print(json.dumps({"step": statistics.median(times[2:]), "faults": faults, "peak_mb": peak}))
 
 
 def measure(kind: str, steps: int, cache: Path) -> dict[str, float]:

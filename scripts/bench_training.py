@@ -38,7 +38,7 @@ from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.synthetic import generate
 from fisheyedepth.module import FisheyeDepthModule
 
-from _benchmarks import publish
+from _benchmarks import peak_rss_kb, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_training:start -->", "<!-- bench_training:end -->"
@@ -129,9 +129,7 @@ def memory_child(config: str, root: Path, size: int, batch: int) -> None:
     module, optimizer = make_module(config)
     for _ in range(2):
         step(module, optimizer, data)
-    # VmHWM: this process's peak resident set (ru_maxrss would include the parent's, inherited at fork)
-    status = Path("/proc/self/status").read_text()
-    print(next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:")))  # kB
+    print(peak_rss_kb())
 
 
 def main(argv=None) -> int:
