@@ -59,8 +59,13 @@ def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
     (loss_a, grads_a, _), (loss_b, grads_b, state_b) = results[False], results[True]
     assert loss_b == pytest.approx(loss_a, rel=1e-5)
     assert grads_a.keys() == grads_b.keys() and len(grads_a) >= 90
+    # float32 rounding only: NHWC and NCHW kernels sum in other orders. The whole gradient agrees to
+    # about 2e-4; the deepest layers' own gradients (norms near 1e-5, through BatchNorm over 2x2 maps)
+    # differ by up to 2e-3 on an AMX Xeon's oneDNN kernels, and a wrong memory order would differ by O(1)
+    total = torch.cat([(grads_b[n] - g).flatten() for n, g in grads_a.items()]).norm()
+    assert float(total / torch.cat([g.flatten() for g in grads_a.values()]).norm()) < 1e-3
     worst = max(float((grads_b[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads_a.items())
-    assert worst < 1e-3, worst
+    assert worst < 1e-2, worst
     FisheyeDepthModule(channels_last=False).load_state_dict(state_b)
 
 
