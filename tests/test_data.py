@@ -3,6 +3,7 @@ bad input."""
 
 from __future__ import annotations
 
+import math
 import shutil
 
 import cv2
@@ -20,6 +21,7 @@ from fisheyedepth.data import (
     Kitti360Layout,
     RigLayout,
     collate,
+    colour_jitter,
     flip_sample,
 )
 from fisheyedepth.data.kitti360 import (
@@ -263,6 +265,46 @@ def test_colour_jitter_only_on_the_network_input(kitti_data, cache):
     assert torch.equal(s["image"], p["image"]) and torch.equal(s["sources"], p["sources"])
     assert not torch.allclose(s["image_aug"], s["image"])
     assert (s["image_aug"] >= 0).all() and (s["image_aug"] <= 1).all()
+
+
+def _jitter_step_by_step(images, brightness, contrast, saturation, hue, generator):
+    """Monodepth2's colour jitter as a chain of operations (the reference for the one-map version)."""
+
+    def draw(spread):
+        return 1.0 + (2 * torch.rand((), generator=generator).item() - 1) * spread
+
+    grey_w = torch.tensor([0.299, 0.587, 0.114], dtype=images.dtype)[:, None, None]
+    out = images * draw(brightness)
+    mean = (out * grey_w).sum(-3, keepdim=True).mean((-2, -1), keepdim=True)
+    out = mean + draw(contrast) * (out - mean)
+    grey = (out * grey_w).sum(-3, keepdim=True)
+    out = grey + draw(saturation) * (out - grey)
+    angle = (2 * torch.rand((), generator=generator).item() - 1) * hue * 2 * math.pi
+    y = out[..., 0, :, :] * 0.299 + out[..., 1, :, :] * 0.587 + out[..., 2, :, :] * 0.114
+    i = out[..., 0, :, :] * 0.596 - out[..., 1, :, :] * 0.274 - out[..., 2, :, :] * 0.322
+    q = out[..., 0, :, :] * 0.211 - out[..., 1, :, :] * 0.523 + out[..., 2, :, :] * 0.312
+    i, q = math.cos(angle) * i - math.sin(angle) * q, math.sin(angle) * i + math.cos(angle) * q
+    yiq = torch.stack((y, i, q), -3)
+    m = torch.tensor(
+        [[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]], dtype=torch.float64
+    )
+    out = torch.einsum("ij,...jhw->...ihw", torch.linalg.inv(m).to(images), yiq)
+    return out.clamp(0, 1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_colour_jitter_in_one_map_equals_the_chain_of_operations(dtype):
+    images = torch.rand(3, 3, 17, 23, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    for seed in range(6):
+        args = (0.4, 0.4, 0.6, 0.25)
+        fast = colour_jitter(images, *args, generator=torch.Generator().manual_seed(seed))
+        slow = _jitter_step_by_step(images, *args, generator=torch.Generator().manual_seed(seed))
+        assert fast.dtype == dtype and fast.shape == images.shape
+        assert torch.allclose(fast, slow, atol=1e-5 if dtype == torch.float32 else 1e-12, rtol=0)
+        assert float((fast - images).abs().max()) > 0.02  # it did jitter
+    # identity ranges leave the images alone; each image's contrast pivots about its own mean grey
+    same = colour_jitter(images, 0.0, 0.0, 0.0, 0.0)
+    assert torch.allclose(same, images, atol=1e-6)
 
 
 def test_worker_seeding_is_deterministic(kitti_data, cache):

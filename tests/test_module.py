@@ -416,18 +416,45 @@ def test_cosine_schedule_anneals_to_lr_gamma_over_the_run():
         FisheyeDepthModule(lr_schedule="linear")
 
 
-class _NanGradientOnce(L.Callback):
-    """A finite loss whose gradients turn non-finite at one step (a hook on one weight)."""
+def test_adam_is_fused_on_cpu_and_steps_like_the_foreach_kernel():
+    """The fused Adam (a speed lever) takes the steps the per-tensor kernels take, weight decay included."""
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(lr=1e-3, weight_decay=1e-2)
+    optimizer = module.configure_optimizers()["optimizer"]
+    assert optimizer.param_groups[0]["fused"] is True
+    params = list(module.parameters())
+    start = [p.detach().clone() for p in params]
+    reference = [p.detach().clone().requires_grad_() for p in params]
+    plain = torch.optim.Adam(reference, lr=1e-3, weight_decay=1e-2, foreach=True)
+    for step in range(3):
+        for p, q in zip(params, reference, strict=True):
+            p.grad = torch.randn_like(p) * 10.0 ** (-step)
+            q.grad = p.grad.clone()
+        optimizer.step()
+        plain.step()
+    moved = min(float((p.detach() - p0).abs().max()) for p, p0 in zip(params, start, strict=True))
+    apart = max(float((p.detach() - q.detach()).abs().max()) for p, q in zip(params, reference, strict=True))
+    assert moved > 1e-3  # every tensor took three steps of about lr
+    assert apart < 1e-6
 
-    def __init__(self, step: int):
-        self.step = step
+
+class _NanGradientOnce(L.Callback):
+    """A finite loss whose gradient turns non-finite at one step, in one element of one weight (a hook)."""
+
+    def __init__(self, step: int, value: float = float("nan")):
+        self.step, self.value = step, value
         self.before: dict[str, torch.Tensor] = {}
+
+    def _poison(self, grad):
+        grad = grad.clone()
+        grad.view(-1)[grad.numel() // 2] = self.value
+        return grad
 
     def on_train_batch_start(self, trainer, module, batch, batch_idx):
         weight = module.depth_net.heads["0"].logits[1].weight
         if trainer.global_step == self.step:
             self.before = {n: p.detach().clone() for n, p in module.named_parameters()}
-            self.handle = weight.register_hook(lambda g: torch.full_like(g, float("nan")))
+            self.handle = weight.register_hook(self._poison)
 
     def on_train_batch_end(self, trainer, module, outputs, batch, batch_idx):
         if getattr(self, "handle", None) is not None:
@@ -436,13 +463,15 @@ class _NanGradientOnce(L.Callback):
             self.after = {n: p.detach().clone() for n, p in module.named_parameters()}
 
 
-def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_path):
-    """The gradients are dropped before the optimiser: no parameter moves (Adam's moments neither, as a
-    parameter without a gradient is left alone), BatchNorm is restored, the skip is counted."""
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), float("-inf")])
+def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_path, value):
+    """One non-finite element among 14 M finite ones: the gradients are dropped before the optimiser, no
+    parameter moves (Adam's moments neither, as a parameter without a gradient is left alone), BatchNorm
+    is restored, the skip is counted."""
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     train = DataLoader(flat, batch_size=2, collate_fn=collate)
     module = FisheyeDepthModule(scales=(0,))
-    probe = _NanGradientOnce(step=1)
+    probe = _NanGradientOnce(step=1, value=value)
     trainer = L.Trainer(
         max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
         accelerator="cpu", enable_model_summary=False, limit_val_batches=0, callbacks=[probe],

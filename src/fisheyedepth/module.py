@@ -482,15 +482,21 @@ class FisheyeDepthModule(L.LightningModule):
                 p.grad = None
             return
         grads = [p.grad for p in self.parameters() if p.grad is not None]
-        finite = not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())  # one sync
+        # one norm over every gradient (foreach kernels, ~4x cheaper than a finiteness test per tensor):
+        # non-finite when any element is, or when the sum of squares overflows float32 (no usable step)
+        finite = not grads or bool(torch.isfinite(torch.nn.utils.get_total_norm(grads)))  # one sync
         if self._any_rank(not finite):
             for p in self.parameters():
                 p.grad = None
             self._skip_step("non-finite gradients on a rank", -1, 0)
 
     def configure_optimizers(self):
+        params = list(self.parameters())
+        # the fused kernel (one pass per step on CPU and CUDA; 3x faster than foreach on 2 CPU cores,
+        # BENCHMARKS.md "Training step") where every parameter lives on a device that has it
+        fused = all(p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point for p in params)
         optimizer = torch.optim.Adam(
-            self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay
+            params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay, fused=fused or None
         )
         if self.hparams.lr_schedule == "cosine":
             epochs = max(1, self.trainer.max_epochs or 1)  # -1 or None: a run bounded by max_steps
