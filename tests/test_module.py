@@ -309,6 +309,8 @@ def test_bf16_autocast_runs_the_networks_in_bf16_and_the_geometry_in_float32(
 
 
 def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
+    """As train.py runs: bf16-mixed, gradient clipping and the fused Adam together (Lightning's own
+    clipping refuses a fused optimiser under mixed precision; the module clips instead)."""
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     loader = DataLoader(flat, batch_size=2, collate_fn=collate)
     torch.manual_seed(0)
@@ -317,6 +319,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
     trainer = L.Trainer(
         max_epochs=1,
         precision="bf16-mixed",
+        gradient_clip_val=1.0,
         default_root_dir=tmp_path,  # the validation panel is written there
         logger=False,
         enable_checkpointing=False,
@@ -331,6 +334,40 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
         k for k, v in module.state_dict().items() if v.is_floating_point() and not torch.equal(v, before[k])
     ]
     assert len(moved) > 50
+    assert trainer.optimizers[0].param_groups[0]["fused"] is True
+
+
+@pytest.mark.parametrize("algorithm", ["norm", "value"])
+def test_the_module_clips_gradients_as_torch_does(algorithm):
+    """By the norm that the non-finite test took (once per step), or by value: torch's own numbers."""
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(scales=(0,))
+    optimizer = module.configure_optimizers()["optimizer"]
+    params = list(module.parameters())
+    expected = []
+    for p in params:
+        p.grad = torch.randn_like(p) * 1e-3  # a total norm near 3.8
+        expected.append(torch.nn.Parameter(p.detach().clone()))
+        expected[-1].grad = p.grad.clone()
+    limit = 1.0 if algorithm == "norm" else 1e-4
+    if algorithm == "norm":
+        total = float(torch.nn.utils.clip_grad_norm_(expected, limit))
+    else:
+        torch.nn.utils.clip_grad_value_(expected, limit)
+    module.on_before_optimizer_step(optimizer)
+    if algorithm == "norm":
+        assert total > 3 and float(module._grad_norm) == pytest.approx(total, rel=1e-5)
+    module.configure_gradient_clipping(optimizer, limit, algorithm)
+    assert module._grad_norm is None  # used once: the next step takes its own
+    worst = max(float((p.grad - e.grad).abs().max()) for p, e in zip(params, expected, strict=True))
+    assert worst < 1e-9
+    after = [p.grad for p in params]
+    if algorithm == "norm":
+        assert float(torch.nn.utils.get_total_norm(after)) == pytest.approx(1.0, rel=1e-4)
+    else:
+        assert max(float(g.abs().max()) for g in after) == pytest.approx(1e-4)
+    with pytest.raises(ValueError, match="gradient_clip_algorithm='max'"):
+        module.configure_gradient_clipping(optimizer, 1.0, "max")
 
 
 def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):

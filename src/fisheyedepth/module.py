@@ -152,6 +152,7 @@ class FisheyeDepthModule(L.LightningModule):
         self.skipped_batches = 0
         self._saved_statistics: dict[str, Tensor] = {}
         self._dropping = False  # the step was skipped: drop its gradients before the optimiser
+        self._grad_norm: Tensor | None = None  # this step's gradient norm, for the clipping
         self.skipped_frames: list[str] = []
 
     @classmethod
@@ -483,18 +484,44 @@ class FisheyeDepthModule(L.LightningModule):
             return
         grads = [p.grad for p in self.parameters() if p.grad is not None]
         # one norm over every gradient (foreach kernels, ~4x cheaper than a finiteness test per tensor):
-        # non-finite when any element is, or when the sum of squares overflows float32 (no usable step)
-        finite = not grads or bool(torch.isfinite(torch.nn.utils.get_total_norm(grads)))  # one sync
+        # non-finite when any element is, or when the sum of squares overflows float32 (no usable step);
+        # gradient clipping reuses it
+        self._grad_norm = torch.nn.utils.get_total_norm(grads) if grads else None
+        finite = self._grad_norm is None or bool(torch.isfinite(self._grad_norm))  # one sync
         if self._any_rank(not finite):
             for p in self.parameters():
                 p.grad = None
             self._skip_step("non-finite gradients on a rank", -1, 0)
 
+    def configure_gradient_clipping(self, optimizer, gradient_clip_val=None, gradient_clip_algorithm=None):
+        """``trainer.gradient_clip_val`` by the norm of every gradient (the one the non-finite test took in
+        :meth:`on_before_optimizer_step`) or by value. Done here rather than by Lightning's precision
+        plugin, which refuses to clip for a fused optimiser under any mixed precision: its gradients are
+        already unscaled here (bf16 has no scaler; with float16's scaler the optimiser is not fused)."""
+        norm, self._grad_norm = self._grad_norm, None
+        if not gradient_clip_val:
+            return
+        params = [p for group in optimizer.param_groups for p in group["params"] if p.grad is not None]
+        if not params:
+            return  # a skipped step: its gradients were dropped
+        if gradient_clip_algorithm in (None, "norm"):
+            if norm is None:
+                norm = torch.nn.utils.get_total_norm([p.grad for p in params])
+            torch.nn.utils.clip_grads_with_norm_(params, gradient_clip_val, norm)
+        elif gradient_clip_algorithm == "value":
+            torch.nn.utils.clip_grad_value_(params, gradient_clip_val)
+        else:
+            raise ValueError(f"gradient_clip_algorithm={gradient_clip_algorithm!r}: expected norm or value")
+
     def configure_optimizers(self):
         params = list(self.parameters())
         # the fused kernel (one pass per step on CPU and CUDA; 3x faster than foreach on 2 CPU cores,
-        # BENCHMARKS.md "Training step") where every parameter lives on a device that has it
-        fused = all(p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point for p in params)
+        # BENCHMARKS.md "Training loop") where every parameter lives on a device that has it, except
+        # under float16 mixed precision, whose gradient scaler then unscales inside the step
+        scaler = self._trainer is not None and str(self.trainer.precision) in ("16-mixed", "16")
+        fused = not scaler and all(
+            p.device.type in ("cpu", "cuda") and p.dtype.is_floating_point for p in params
+        )
         optimizer = torch.optim.Adam(
             params, lr=self.hparams.lr, weight_decay=self.hparams.weight_decay, fused=fused or None
         )

@@ -1,0 +1,213 @@
+#!/usr/bin/env python
+"""The training loop's step as ``train.py`` runs it (Lightning, the data loader's worker on the same cores,
+gradient clipping, the non-finite-gradient check, Adam), before and after the trims outside the network;
+results go into BENCHMARKS.md.
+
+``scripts/bench_training.py`` times forward, loss, backward and a plain Adam step on one batch; a real
+training step also waits for the loader (whose worker shares the 2 cores), checks the gradients, clips
+them and logs. Each measurement here is a fresh ``train.py +experiment=cpu_30min`` process (world 0 of
+``make train``, rendered on first use) that trains ``--steps`` steps of one epoch and reports the median
+cycle (one batch start to the next: the loader's wait plus the step) after ``--warmup`` steps. The
+"before" process puts back, in itself only, the paths the trims replaced:
+
+- Adam with the per-tensor (foreach) kernel instead of the fused one;
+- the finiteness test of every gradient tensor instead of one norm over all of them;
+- the colour jitter as its chain of eight operations instead of one affine map.
+
+The two kinds alternate for ``--rounds`` rounds (the order swapped every round); the speed-up is the
+median of the paired per-round ratios.
+
+Usage: python scripts/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no-write]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import runpy
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _benchmarks import WORLD, publish
+
+ROOT = Path(__file__).resolve().parents[1]
+START, END = "<!-- bench_fit:start -->", "<!-- bench_fit:end -->"
+KINDS = ("before the trims", "after the trims")
+
+
+def chain_jitter(images, brightness, contrast, saturation, hue, generator=None):
+    """The colour jitter as it was: one operation after another (the same numbers as the one map)."""
+    import torch
+
+    def draw(spread: float) -> float:
+        return 1.0 + (2 * torch.rand((), generator=generator).item() - 1) * spread
+
+    w = torch.tensor([0.299, 0.587, 0.114]).to(images)[:, None, None]
+    out = images * draw(brightness)
+    grey = (out * w).sum(-3, keepdim=True)
+    out = grey.mean((-2, -1), keepdim=True) + draw(contrast) * (out - grey.mean((-2, -1), keepdim=True))
+    grey = (out * w).sum(-3, keepdim=True)
+    out = grey + draw(saturation) * (out - grey)
+    if hue:
+        angle = (2 * torch.rand((), generator=generator).item() - 1) * hue * 2 * math.pi
+        yiq = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
+        c, s = math.cos(angle), math.sin(angle)
+        rot = torch.tensor([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+        m = (torch.linalg.inv(yiq) @ rot @ yiq).to(out)
+        out = torch.einsum("ij,...jhw->...ihw", m, out)
+    return out.clamp(0, 1)
+
+
+def restore_before() -> None:
+    """Put back the three paths the trims replaced, in this process (and its forked loader worker)."""
+    import torch
+
+    import fisheyedepth.data.augment as augment
+    from fisheyedepth.module import FisheyeDepthModule
+
+    plain_adam = torch.optim.Adam
+
+    class ForeachAdam(plain_adam):
+        def __init__(self, params, **kwargs):
+            kwargs.update(fused=None, foreach=True)
+            super().__init__(params, **kwargs)
+
+    torch.optim.Adam = ForeachAdam
+
+    def per_tensor_check(self, optimizer) -> None:  # the hook as it was before the one-norm test
+        if self._dropping:
+            self._dropping = False
+            for p in self.parameters():
+                p.grad = None
+            return
+        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        finite = not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
+        if self._any_rank(not finite):
+            for p in self.parameters():
+                p.grad = None
+            self._skip_step("non-finite gradients on a rank", -1, 0)
+
+    FisheyeDepthModule.on_before_optimizer_step = per_tensor_check
+    augment.colour_jitter = chain_jitter
+
+
+def child(kind: str, steps: int, warmup: int, out_dir: Path) -> None:
+    """One measurement: a ``train.py`` process that trains ``steps`` steps; prints JSON."""
+    import lightning as L
+
+    if kind == KINDS[0]:
+        restore_before()
+    cycles: list[float] = []
+
+    class Cycle(L.Callback):
+        last: float | None = None
+
+        def on_train_batch_start(self, trainer, module, batch, batch_idx):
+            now = time.perf_counter()
+            if self.last is not None:
+                cycles.append(now - self.last)
+            self.last = now
+
+    import fisheyedepth.cli.train as entry
+
+    instantiate = entry.instantiate
+
+    def with_cycle(config, *args, **kwargs):  # the trainer gets the timing callback too
+        if "callbacks" in kwargs and str(config.get("_target_", "")).endswith("Trainer"):
+            kwargs["callbacks"] = [*kwargs["callbacks"], Cycle()]
+        return instantiate(config, *args, **kwargs)
+
+    entry.instantiate = with_cycle
+    sys.argv = [
+        "train.py",
+        "+experiment=cpu_30min",
+        f"hydra.run.dir={out_dir}",
+        "trainer.max_epochs=1",
+        f"trainer.limit_train_batches={steps + 1}",
+        "trainer.limit_val_batches=0",
+        "trainer.num_sanity_val_steps=0",
+        "test=false",
+        "logger=none",
+        "~callbacks.progress",
+        f"paths.data_dir={WORLD.parent}",
+    ]
+    try:  # as ``python train.py``: Hydra finds conf/ beside the script
+        runpy.run_path(str(ROOT / "train.py"), run_name="__main__")
+    except SystemExit as exc:
+        if exc.code:
+            raise
+    kept = cycles[warmup:]
+    print(json.dumps({"cycle": statistics.median(kept), "steps": len(kept)}))
+
+
+def measure(kind: str, steps: int, warmup: int, tmp: Path, index: int) -> dict[str, float]:
+    out_dir = tmp / f"run{index}"
+    command = [sys.executable, __file__, "--child", kind, "--steps", str(steps), "--warmup", str(warmup)]
+    command += ["--out", str(out_dir)]
+    env = dict(os.environ, OMP_NUM_THREADS="2", PYTHONPATH=os.pathsep.join([str(ROOT / "src"), str(ROOT)]))
+    out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT)
+    if out.returncode:
+        raise RuntimeError(f"{kind}: child failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=60)
+    parser.add_argument("--warmup", type=int, default=15)
+    parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
+    parser.add_argument("--child", choices=KINDS, help=argparse.SUPPRESS)
+    parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        child(args.child, args.steps, args.warmup, args.out)
+        return 0
+    if args.steps <= args.warmup:
+        raise SystemExit(f"--steps {args.steps} must exceed --warmup {args.warmup}")
+    if not (WORLD / "splits" / "train.txt").exists():
+        raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
+    results: dict[str, list[dict[str, float]]] = {k: [] for k in KINDS}
+    with tempfile.TemporaryDirectory(prefix="fd-bench-fit-") as tmp:
+        index = 0
+        for r in range(args.rounds):
+            for kind in KINDS if r % 2 == 0 else KINDS[::-1]:
+                results[kind].append(measure(kind, args.steps, args.warmup, Path(tmp), index))
+                index += 1
+                print(f"round {r}: {kind}: {results[kind][-1]}", file=sys.stderr)
+    ratio = statistics.median(
+        a["cycle"] / b["cycle"] for a, b in zip(results[KINDS[0]], results[KINDS[1]], strict=True)
+    )
+    lines = [
+        START,
+        "## Training loop (`scripts/bench_fit.py`)",
+        "",
+        f"Command: `python scripts/bench_fit.py --rounds {args.rounds} --steps {args.steps} "
+        f"--warmup {args.warmup}`  ",
+        f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), 2 threads; {time.strftime('%Y-%m-%d')}. "
+        f"`train.py +experiment=cpu_30min` (batch 4 at 256x256, two sources, the loader's worker on the "
+        f"same cores), {args.steps} steps per fresh process, the median cycle after {args.warmup} "
+        f"warm-up steps; the two kinds alternate for {args.rounds} rounds.",
+        "",
+        "| training loop | cycle per step (median of rounds) |",
+        "|---|---|",
+    ]
+    for kind in KINDS:
+        lines.append(f"| {kind} | {statistics.median(r['cycle'] for r in results[kind]):.3f} s |")
+    lines += ["", f"Speed-up (median of the paired per-round ratios): **{ratio:.2f}x**.", END]
+    publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
