@@ -11,7 +11,8 @@ cycle (one batch start to the next: the loader's wait plus the step) after ``--w
 "before" process puts back, in itself only, the paths the trims replaced:
 
 - Adam with the per-tensor (foreach) kernel instead of the fused one;
-- the finiteness test of every gradient tensor instead of one norm over all of them;
+- the finiteness test of every gradient tensor instead of one norm over all of them, and Lightning's
+  gradient clipping, which takes the norm again, instead of the module's, which reuses it;
 - the colour jitter as its chain of eight operations instead of one affine map.
 
 The two kinds alternate for ``--rounds`` rounds (the order swapped every round); the speed-up is the
@@ -67,6 +68,7 @@ def chain_jitter(images, brightness, contrast, saturation, hue, generator=None):
 
 def restore_before() -> None:
     """Put back the three paths the trims replaced, in this process (and its forked loader worker)."""
+    import lightning as L
     import torch
 
     import fisheyedepth.data.augment as augment
@@ -95,6 +97,8 @@ def restore_before() -> None:
             self._skip_step("non-finite gradients on a rank", -1, 0)
 
     FisheyeDepthModule.on_before_optimizer_step = per_tensor_check
+    # and Lightning's clipping, which takes the gradients' norm again
+    FisheyeDepthModule.configure_gradient_clipping = L.LightningModule.configure_gradient_clipping
     augment.colour_jitter = chain_jitter
 
 

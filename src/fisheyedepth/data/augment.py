@@ -64,8 +64,7 @@ def colour_jitter(
         return 1.0 + (2 * torch.rand((), generator=generator).item() - 1) * spread
 
     b, c, s = draw(brightness), draw(contrast), draw(saturation)
-    w = _GREY
-    A = s * torch.eye(3, dtype=torch.float64) + (1 - s) * torch.ones(3, 1, dtype=torch.float64) * w
+    A = s * torch.eye(3, dtype=torch.float64) + (1 - s) * torch.ones(3, 1, dtype=torch.float64) * _GREY
     if hue:
         angle = (2 * torch.rand((), generator=generator).item() - 1) * hue * 2 * math.pi
         cos, sin = math.cos(angle), math.sin(angle)
