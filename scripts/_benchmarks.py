@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import statistics
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from fisheyedepth.utils import atomic_write_text
@@ -37,3 +39,19 @@ def peak_rss_kb() -> int:
     parent's)."""
     status = Path("/proc/self/status").read_text()
     return next(int(line.split()[1]) for line in status.splitlines() if line.startswith("VmHWM:"))
+
+
+def alternate(kinds: Sequence[str], rounds: int, measure: Callable[[str], dict]) -> dict[str, list[dict]]:
+    """``measure(kind)`` once per kind and round, the order swapped every other round (so neither kind
+    always runs first on a warming or cooling machine): ``{kind: [one result per round]}``."""
+    results: dict[str, list[dict]] = {k: [] for k in kinds}
+    for r in range(rounds):
+        for kind in kinds if r % 2 == 0 else kinds[::-1]:
+            results[kind].append(measure(kind))
+            print(f"round {r}: {kind}: {results[kind][-1]}", file=sys.stderr)
+    return results
+
+
+def paired_ratio(before: list[dict], after: list[dict], key: str) -> float:
+    """The median over rounds of ``before[key] / after[key]``: the speed-up, paired per round."""
+    return statistics.median(a[key] / b[key] for a, b in zip(before, after, strict=True))

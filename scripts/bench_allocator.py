@@ -27,7 +27,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, peak_rss_kb, publish
+from _benchmarks import WORLD, alternate, paired_ratio, peak_rss_kb, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_allocator:start -->", "<!-- bench_allocator:end -->"
@@ -81,15 +81,9 @@ def main(argv=None) -> int:
         return 0
     if not (WORLD / "splits" / "train.txt").exists():
         raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
-    results: dict[str, list[dict[str, float]]] = {k: [] for k in KINDS}
     with tempfile.TemporaryDirectory(prefix="fd-bench-alloc-") as tmp:
-        for r in range(args.rounds):
-            for kind in KINDS if r % 2 == 0 else KINDS[::-1]:
-                results[kind].append(measure(kind, args.steps, Path(tmp)))
-                print(f"round {r}: {kind}: {results[kind][-1]}", file=sys.stderr)
-    ratio = statistics.median(
-        a["step"] / b["step"] for a, b in zip(results[KINDS[0]], results[KINDS[1]], strict=True)
-    )
+        results = alternate(KINDS, args.rounds, lambda kind: measure(kind, args.steps, Path(tmp)))
+    ratio = paired_ratio(results[KINDS[0]], results[KINDS[1]], "step")
     lines = [
         START,
         "## Memory allocator (`scripts/bench_allocator.py`)",

@@ -24,6 +24,7 @@ Usage: python scripts/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -36,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, publish
+from _benchmarks import WORLD, alternate, paired_ratio, publish
 
 ROOT = Path(__file__).resolve().parents[1]
 START, END = "<!-- bench_fit:start -->", "<!-- bench_fit:end -->"
@@ -181,17 +182,12 @@ def main(argv=None) -> int:
         raise SystemExit(f"--steps {args.steps} must exceed --warmup {args.warmup}")
     if not (WORLD / "splits" / "train.txt").exists():
         raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
-    results: dict[str, list[dict[str, float]]] = {k: [] for k in KINDS}
     with tempfile.TemporaryDirectory(prefix="fd-bench-fit-") as tmp:
-        index = 0
-        for r in range(args.rounds):
-            for kind in KINDS if r % 2 == 0 else KINDS[::-1]:
-                results[kind].append(measure(kind, args.steps, args.warmup, Path(tmp), index))
-                index += 1
-                print(f"round {r}: {kind}: {results[kind][-1]}", file=sys.stderr)
-    ratio = statistics.median(
-        a["cycle"] / b["cycle"] for a, b in zip(results[KINDS[0]], results[KINDS[1]], strict=True)
-    )
+        runs = itertools.count()  # each child writes its run into a folder of its own
+        results = alternate(
+            KINDS, args.rounds, lambda kind: measure(kind, args.steps, args.warmup, Path(tmp), next(runs))
+        )
+    ratio = paired_ratio(results[KINDS[0]], results[KINDS[1]], "cycle")
     lines = [
         START,
         "## Training loop (`scripts/bench_fit.py`)",
