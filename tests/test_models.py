@@ -12,6 +12,8 @@ from fisheyedepth.models import (
     ResNetEncoder,
     WeightsError,
     bin_expectation,
+    bin_sums_conv,
+    bin_sums_reduced,
     distance_bins,
     sigmoid_to_distance,
 )
@@ -137,8 +139,10 @@ def test_gather_output_is_a_monotone_expectation_within_the_bins():
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("channels_last", [False, True])
-def test_fused_bin_expectation_equals_the_softmax_written_out(dtype, channels_last):
-    """The fused form (exp of the clamped logits, one 1x1 convolution) against the paper's
+@pytest.mark.parametrize("sums", [bin_sums_conv, bin_sums_reduced])
+def test_fused_bin_expectation_equals_the_softmax_written_out(dtype, channels_last, sums):
+    """The fused form (exp of the clamped logits, then the bin sums as one 1x1 convolution or as two
+    channel reductions, the compiled training kernel's form) against the paper's
     ``sum_k softmax(l)_k b_k``: values and gradients, at the clamp's edges and beyond them."""
     bins = distance_bins(64, 0.5, 150.0).to(dtype)
     gen = torch.Generator().manual_seed(3)
@@ -150,7 +154,7 @@ def test_fused_bin_expectation_equals_the_softmax_written_out(dtype, channels_la
         logits = logits.contiguous(memory_format=torch.channels_last)
     a = logits.clone().requires_grad_(True)
     b = logits.clone().requires_grad_(True)
-    fused, disp = bin_expectation(a, torch.tensor([1.0, 2.5]), bins, 0.5, 150.0)
+    fused, disp = bin_expectation(a, torch.tensor([1.0, 2.5]), bins, 0.5, 150.0, sums=sums)
     p = torch.softmax(b.clamp(-10.0, 10.0), dim=1)
     written = (p * bins[None, :, None, None]).sum(1, keepdim=True) * torch.tensor([1.0, 2.5]).to(
         dtype

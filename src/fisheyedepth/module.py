@@ -11,6 +11,7 @@ One switch per ablation of the paper's Table 2:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import warnings
 from pathlib import Path
@@ -36,7 +37,7 @@ from .geometry import (
 from .losses import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
-from .models import DepthNet, PoseNet, bin_expectation
+from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .viz import panel
 
@@ -89,9 +90,10 @@ class FisheyeDepthModule(L.LightningModule):
         speed lever for oneDNN convolutions that ``scripts/bench_training.py`` measures against NCHW.
         ``loss_resolution``: "full" (Monodepth2: every scale's distance upsampled and warped at the input
         size) or "native" (each scale warped at its own size: a speed lever, see ``_losses``).
-        ``compile_kernels``: while fitting, the bin expectation and the photometric error run as
-        ``torch.compile``'d kernels (fused, the same numbers; compiled once per process, about a minute
-        on 2 CPU cores); evaluation after fitting, prediction and export use the plain functions.
+        ``compile_kernels``: while fitting, the bin expectation (its bin sums as channel reductions, which
+        the compiler fuses with their backward) and the photometric error run as ``torch.compile``'d
+        kernels (fused, the same numbers; compiled once per process, about a minute on 2 CPU cores);
+        evaluation after fitting, prediction and export use the plain functions.
         ``upsample``: how a distance at the training size reaches a larger image at evaluation and
         prediction: "distance" (bilinear in inverse distance, the reference's) or "logits" (the binned
         head's logits upsampled, then the expectation: sharper edges; the sigmoid head ignores it).
@@ -465,7 +467,10 @@ class FisheyeDepthModule(L.LightningModule):
 
     def on_fit_start(self) -> None:
         if self.hparams.compile_kernels:
-            self.depth_net.expectation = torch.compile(bin_expectation)
+            # the bin sums as channel reductions, which the compiler fuses (forward and backward)
+            self.depth_net.expectation = torch.compile(
+                functools.partial(bin_expectation, sums=bin_sums_reduced)
+            )
             self.reprojection.error_fn = torch.compile(photometric_error)
 
     def on_fit_end(self) -> None:

@@ -1,7 +1,15 @@
 """Networks: ResNet encoders, the depth network with multi-channel or sigmoid heads, and PoseNet."""
 
 from .depth_net import DepthDecoder, DepthNet, depth_scale, distance_at_size, upsample_inverse
-from .heads import MultiChannelHead, SigmoidHead, bin_expectation, distance_bins, sigmoid_to_distance
+from .heads import (
+    MultiChannelHead,
+    SigmoidHead,
+    bin_expectation,
+    bin_sums_conv,
+    bin_sums_reduced,
+    distance_bins,
+    sigmoid_to_distance,
+)
 from .posenet import PoseNet
 from .resnet import ResNetEncoder, WeightsError
 
@@ -17,6 +25,8 @@ __all__ = [
     "distance_at_size",
     "distance_bins",
     "bin_expectation",
+    "bin_sums_conv",
+    "bin_sums_reduced",
     "sigmoid_to_distance",
     "upsample_inverse",
 ]

@@ -29,8 +29,31 @@ def at_least_float32(x: Tensor) -> Tensor:
     return x.to(torch.promote_types(x.dtype, torch.float32))
 
 
+def bin_sums_conv(weights: Tensor, bins: Tensor) -> Tensor:
+    """``[B, K, H, W]`` bin weights -> ``[B, 2, H, W]``: ``sum_k w_k b_k`` and ``sum_k w_k`` as one 1x1
+    convolution with two output channels (the fastest eager form; on CUDA without TF32)."""
+    kernel = torch.stack((bins, torch.ones_like(bins))).to(weights)[:, :, None, None]
+    # cuDNN would run the convolution in TF32 on Ampere and later
+    exact = torch.backends.cudnn.flags(enabled=True, allow_tf32=False) if weights.is_cuda else nullcontext()
+    with exact:
+        return F.conv2d(weights, kernel)
+
+
+def bin_sums_reduced(weights: Tensor, bins: Tensor) -> Tensor:
+    """:func:`bin_sums_conv` as two sums over the channels: the form ``torch.compile`` fuses with the
+    ``exp`` and its backward, where the convolution's backward is an external kernel 1.8x slower
+    (BENCHMARKS.md, "Training step")."""
+    b = bins.to(weights).reshape(1, -1, 1, 1)
+    return torch.cat(((weights * b).sum(1, keepdim=True), weights.sum(1, keepdim=True)), 1)
+
+
 def bin_expectation(
-    logits: Tensor, depth_scale: Tensor | float, bins: Tensor, min_distance: float, max_distance: float
+    logits: Tensor,
+    depth_scale: Tensor | float,
+    bins: Tensor,
+    min_distance: float,
+    max_distance: float,
+    sums=bin_sums_conv,
 ) -> tuple[Tensor, Tensor]:
     """Multi-channel logits ``[B, K, H, W]`` -> (distance ``[B, 1, H, W]``, disparity ``[B, 1, H, W]``).
 
@@ -44,18 +67,13 @@ def bin_expectation(
     max subtraction, and ``sum_k e^l_k b_k / sum_k e^l_k`` is one ``exp`` and one 1x1 convolution with
     two output channels (the bins and ones): no normalised probabilities, bin products or the layout
     copies a softmax over channels forces (a third of the whole network's time at 384x384 in
-    channels_last, BENCHMARKS.md "Inference"). On CUDA the convolution runs without TF32.
+    channels_last, BENCHMARKS.md "Inference"). ``sums``: :func:`bin_sums_conv` (eager) or
+    :func:`bin_sums_reduced` (the same numbers, for a ``torch.compile``'d kernel).
     """
     with torch.autocast(logits.device.type, enabled=False):
         logits = at_least_float32(logits)
-        weights = torch.stack((bins, torch.ones_like(bins))).to(logits)[:, :, None, None]
-        # cuDNN would run the convolution in TF32 on Ampere and later
-        exact = (
-            torch.backends.cudnn.flags(enabled=True, allow_tf32=False) if logits.is_cuda else nullcontext()
-        )
-        with exact:
-            sums = F.conv2d(torch.exp(logits.clamp(-10.0, 10.0)), weights)  # [B, 2, H, W]
-        d = sums[:, :1] / sums[:, 1:]
+        totals = sums(torch.exp(logits.clamp(-10.0, 10.0)), bins)  # [B, 2, H, W]
+        d = totals[:, :1] / totals[:, 1:]
         disp = distance_to_sigmoid(d, min_distance, max_distance)
         scale = torch.as_tensor(depth_scale, dtype=d.dtype, device=d.device).reshape(-1, 1, 1, 1)
         return d * scale, disp
