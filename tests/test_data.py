@@ -334,6 +334,64 @@ def test_translation_bounds_drop_samples(kitti_data, cache):
     assert len(jumpy) == 0 and jumpy.dropped["above max_translation"] == 2 * 4
 
 
+def test_baseline_rows_pick_the_frame_nearest_the_wanted_distance_on_each_side():
+    from fisheyedepth.data.dataset import baseline_rows
+
+    # a drive along x: 1.4 m per frame, then 0.4 m per frame from frame 4 on
+    x = np.concatenate([np.arange(5) * 1.4, 5.6 + np.arange(1, 10) * 0.4])
+    positions = np.stack([x, np.zeros_like(x), np.zeros_like(x)], 1)
+    # fast stretch: one frame back is 1.4 m (nearer 1.8 than 2.8); forward at frame 2: 1.4 then 2.8
+    assert baseline_rows(positions, 2, (-2, 2), 1.8) == [1, 3]
+    # slow stretch (frame 8, at 7.2 m): back 1.6 m at frame 4 ... forward 1.6 m four frames on (1.2 at
+    # three, 2.0 at five: 1.6 is the nearest to 1.8)
+    assert baseline_rows(positions, 8, (-2, 2), 1.8) == [4, 12]
+    # offsets of two sizes share the baseline in proportion: +-1 wants 0.9 m, +-2 wants 1.8 m
+    assert baseline_rows(positions, 8, (-2, -1, 1, 2), 1.8) == [4, 6, 10, 12]
+    # a tie keeps the nearer frame: at frame 10 (8.0 m) forward 0.4, 0.8, 1.2: want 1.0 -> 0.8 or 1.2
+    assert baseline_rows(positions, 10, (1,), 1.0) == [12]
+    # the sequence ends before the distance is passed: no neighbour
+    assert baseline_rows(positions, 11, (2,), 1.8) is None
+    assert baseline_rows(positions, 0, (-2, 2), 1.8) is None
+
+
+def test_source_baseline_loads_the_chosen_frames_with_their_poses(kitti_data, cache):
+    layout = Kitti360Layout(kitti_data)
+    fixed = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], offsets=(-1, 1), cache_dir=cache)
+    frames = layout.frames(TRAIN_SEQ, "image_02")
+    positions = np.stack([f.pose[:3, 3] for f in frames])
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    want = float(np.median(steps)) * 2  # about two frames' travel: the sources move out to +-2
+    ds = FisheyeDataset(
+        layout, [{"sequence": TRAIN_SEQ}], offsets=(-1, 1), source_baseline=want, cache_dir=cache
+    )
+    assert len(ds) > 0
+    moved = False
+    for item in ds.items:
+        back, ahead = item.sources
+        assert back < item.row < ahead
+        for source in (back, ahead):  # no other frame on that side is nearer the wanted distance
+            gap = abs(np.linalg.norm(positions[source] - positions[item.row]) - want)
+            side = range(0, item.row) if source < item.row else range(item.row + 1, len(frames))
+            assert all(
+                gap <= abs(np.linalg.norm(positions[k] - positions[item.row]) - want) + 1e-9 for k in side
+            )
+        moved |= (back, ahead) != (item.row - 1, item.row + 1)
+    assert moved  # the baseline chose other frames than the offsets' neighbours
+    assert all(it.sources == (it.row - 1, it.row + 1) for it in fixed.items)
+    item = ds.items[0]
+    sample = ds[0]
+    E = read_cam_to_pose(kitti_data / "calibration" / "calib_cam_to_pose.txt")[item.camera]
+    for j, source in enumerate(item.sources):
+        expected = np.linalg.inv(E) @ np.linalg.inv(frames[source].pose) @ frames[item.row].pose @ E
+        assert np.allclose(sample["poses"][j].numpy(), expected, atol=1e-5)
+    with pytest.raises(ValueError, match="source_baseline: -1.0"):
+        FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], source_baseline=-1.0, cache_dir=cache)
+    with pytest.raises(ValueError, match="needs offsets with a direction"):
+        FisheyeDataset(
+            layout, [{"sequence": TRAIN_SEQ}], offsets=(0, 1), source_baseline=1.0, cache_dir=cache
+        )
+
+
 def test_lidar_ground_truth(kitti_data, cache):
     layout = Kitti360Layout(kitti_data)
     gt = LidarGroundTruth(layout, cache, occlusion=0.1)

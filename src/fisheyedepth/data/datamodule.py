@@ -44,6 +44,8 @@ class FisheyeDataModule(L.LightningDataModule):
         rig_offsets: the rig's other cameras as sources too, at these time offsets (cross-camera
             consistency; empty: none; see ``FisheyeDataset``).
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
+        source_baseline: metres: each offset's source is the frame on its side nearest to this distance
+            (scaled by ``|offset| / max|offsets|``) instead of a fixed frame offset; None: off.
     """
 
     def __init__(
@@ -69,9 +71,10 @@ class FisheyeDataModule(L.LightningDataModule):
         ground_truth_splits: tuple[str, ...] | list[str] = ("val", "test"),
         lidar_occlusion: float | None = OCCLUSION,
         rig_offsets: tuple[int, ...] = (),
+        source_baseline: float | None = None,
     ):
         super().__init__()
-        self.rig_offsets = tuple(rig_offsets)
+        self.rig_offsets, self.source_baseline = tuple(rig_offsets), source_baseline
         if layout not in LAYOUTS:
             raise ValueError(f"unknown layout {layout!r}; one of {sorted(LAYOUTS)}")
         self.root, self.layout_name, self.cameras, self.masks = root, layout, cameras, masks
@@ -120,6 +123,7 @@ class FisheyeDataModule(L.LightningDataModule):
                 lidar_occlusion=self.lidar_occlusion,
                 pose_noise=self.pose_noise,
                 rig_offsets=self.rig_offsets,
+                source_baseline=self.source_baseline,
             )
         return self.datasets[split]
 

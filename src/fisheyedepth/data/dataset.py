@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -124,11 +125,34 @@ class ImageCache:
         return resized
 
 
+def baseline_rows(positions: np.ndarray, row: int, offsets, baseline: float) -> list[int] | None:
+    """For each offset, the row on its side of ``row`` whose position (``[N, 3]``, metres) is nearest to
+    ``baseline * |offset| / max|offsets|`` from the target's (the earlier frame on a tie), or None when
+    the sequence ends before a frame reaches that distance."""
+    top = max(abs(o) for o in offsets)
+    rows = []
+    for offset in offsets:
+        want, step = baseline * abs(offset) / top, 1 if offset > 0 else -1
+        best, k, reached = None, row + step, False
+        while 0 <= k < len(positions):
+            distance = float(np.linalg.norm(positions[k] - positions[row]))
+            if best is not None and abs(distance - want) >= best[0]:
+                reached = True  # past the nearest: distances grow along a drive
+                break
+            best, k = (abs(distance - want), k), k + step
+            reached = distance >= want
+        if best is None or not reached:
+            return None  # the sequence ended short of the wanted distance
+        rows.append(best[1])
+    return rows
+
+
 @dataclasses.dataclass(frozen=True)
 class Item:
     sequence: str
     camera: str
     row: int  # index of the target in layout.frames(sequence, camera)
+    sources: tuple[int, ...] = ()  # rows of its source frames, one per offset (training datasets)
 
 
 def parse_split(spec, layout) -> list[tuple[str, set[int] | None, int, list[str] | None]]:
@@ -177,6 +201,7 @@ class FisheyeDataset(Dataset):
         lidar_occlusion: float | None = OCCLUSION,
         pose_noise: PoseNoise | None = None,
         rig_offsets: tuple[int, ...] = (),
+        source_baseline: float | None = None,
     ):
         """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
         "auto" (whichever exists), or "none"; LiDAR is projected lazily, per frame, when a sample is
@@ -186,7 +211,17 @@ class FisheyeDataset(Dataset):
         paper's claim that the multi-channel head copes with noisy real poses). ``rig_offsets``: the
         rig's other cameras as sources too, at these time offsets (Full Surround Monodepth's spatial
         (0) and spatio-temporal (+-1) contexts): the known extrinsics and odometry warp one camera into
-        another where their fields of view overlap; see :meth:`rig_frame` for how frames are paired."""
+        another where their fields of view overlap; see :meth:`rig_frame` for how frames are paired.
+        ``source_baseline``: metres; None (default) takes the sources ``offsets`` frames away. Set, each
+        offset only gives a direction and a share of the baseline: its source is the frame on that side
+        whose distance from the target is nearest to ``source_baseline * |offset| / max|offsets|``
+        (see :func:`baseline_rows`), so a fast stretch of a drive gets nearer frames and a slow one
+        farther ones, and every target sees about the same parallax."""
+        if source_baseline is not None and not (source_baseline > 0 and math.isfinite(source_baseline)):
+            raise ValueError(f"source_baseline: {source_baseline!r}, expected metres > 0 or None")
+        if source_baseline is not None and 0 in tuple(offsets):
+            raise ValueError(f"source_baseline needs offsets with a direction; got offsets {list(offsets)}")
+        self.source_baseline = source_baseline
         self.pose_noise = pose_noise or PoseNoise()
         self.layout, self.size, self.offsets = layout, size, tuple(offsets)
         self.rig_offsets = tuple(rig_offsets)
@@ -223,14 +258,16 @@ class FisheyeDataset(Dataset):
                     continue
                 frames = layout.frames(sequence, cam)
                 rows = self._rows(frames, keys, layout, sequence)
+                positions = np.stack([f.pose[:3, 3] for f in frames]) if frames else np.zeros((0, 3))
                 for row in rows[::stride]:
-                    reason = self._check(frames, row, min_translation, max_translation)
+                    sources = self._source_rows(positions, row)
+                    reason = self._check(positions, row, sources, min_translation, max_translation)
                     if reason is None and self.rig_offsets and not self._rig_frames(sequence, cam, row):
                         reason = "no neighbour"
                     if reason:
                         self.dropped[reason] += 1
                     else:
-                        self.items.append(Item(sequence, cam, row))
+                        self.items.append(Item(sequence, cam, row, tuple(sources)))
         if any(self.dropped.values()):
             log.info(
                 "%s: %d samples kept, dropped: %s",
@@ -271,11 +308,20 @@ class FisheyeDataset(Dataset):
             self.dropped["no pose"] += len(missing)
         return sorted(index[k] for k in keys if k in index)
 
-    def _check(self, frames: list[Frame], row: int, lo: float, hi: float) -> str | None:
-        if not all(0 <= row + offset < len(frames) for offset in self.offsets):
+    def _source_rows(self, positions: np.ndarray, row: int) -> list[int] | None:
+        """The rows of the target's sources, one per offset, or None when one is outside the sequence."""
+        if self.source_baseline is None or not self.offsets:
+            rows = [row + offset for offset in self.offsets]
+            return rows if all(0 <= r < len(positions) for r in rows) else None
+        return baseline_rows(positions, row, self.offsets, self.source_baseline)
+
+    def _check(
+        self, positions: np.ndarray, row: int, sources: list[int] | None, lo: float, hi: float
+    ) -> str | None:
+        if sources is None:
             return "no neighbour"
-        for offset in self.offsets:
-            step = np.linalg.norm(frames[row + offset].pose[:3, 3] - frames[row].pose[:3, 3])
+        for source in sources:
+            step = np.linalg.norm(positions[source] - positions[row])
             if step < lo:
                 return "below min_translation"
             if step > hi:
@@ -345,8 +391,8 @@ class FisheyeDataset(Dataset):
         sample: dict[str, Any] = {"camera": camera, "image": self._image(path, camera, native)}
         sample["camera_name"] = item.camera
         sources, poses = [], []
-        for offset in self.offsets:
-            other = frames[item.row + offset]
+        for offset, source in zip(self.offsets, item.sources, strict=True):
+            other = frames[source]
             sources.append(self._image(self.layout.image(item.sequence, item.camera, other), camera, native))
             T = relative_pose(torch.from_numpy(target.pose), torch.from_numpy(other.pose), E)
             poses.append(self.pose_noise(T, f"{item.sequence}|{item.camera}|{target.key}|{offset}"))
