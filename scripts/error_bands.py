@@ -95,6 +95,12 @@ def main(argv=None) -> int:
     parser.add_argument("dataset", type=Path, help="a dataset in the KITTI-360 layout with distance maps")
     parser.add_argument("--split", default="splits/test.txt")
     parser.add_argument("--offsets", type=int, nargs="+", help="source frames (default: the checkpoint's)")
+    parser.add_argument(
+        "--source-baseline",
+        type=float,
+        help="metres: sources chosen by distance, as data.datamodule.source_baseline (cpu_30min: 1.67); "
+        "default: the offsets' frames",
+    )
     parser.add_argument("--bands", type=float, nargs="+", default=list(BANDS), help="band edges, metres")
     parser.add_argument("--every", type=int, default=1, help="use every n-th sample")
     args = parser.parse_args(argv)
@@ -109,9 +115,11 @@ def main(argv=None) -> int:
             offsets=tuple(offsets),
             ground_truth="distance",
             cache_dir=cache,
+            source_baseline=args.source_baseline,
         )
         table = error_bands(module, dataset, tuple(args.bands), args.every)
-    print(f"{args.checkpoint} on {args.dataset} ({args.split}, sources {offsets})\n")
+    chosen = f"sources {offsets}" + (f", {args.source_baseline} m away" if args.source_baseline else "")
+    print(f"{args.checkpoint} on {args.dataset} ({args.split}, {chosen})\n")
     print("| camera | band | share | abs_rel | ratio | part | loss truth | loss pred | used |")
     print("|---|---|---|---|---|---|---|---|---|")
     for name in sorted(table):

@@ -352,6 +352,13 @@ def test_baseline_rows_pick_the_frame_nearest_the_wanted_distance_on_each_side()
     # the sequence ends before the distance is passed: no neighbour
     assert baseline_rows(positions, 11, (2,), 1.8) is None
     assert baseline_rows(positions, 0, (-2, 2), 1.8) is None
+    # a stop with jittering poses (1 cm) does not end the search: the source is where the car got to
+    stop = np.concatenate([np.zeros(6), 0.01 * (-1.0) ** np.arange(6), np.arange(1, 6) * 0.5])
+    jitter = np.stack([stop, np.zeros_like(stop), np.zeros_like(stop)], 1)
+    assert baseline_rows(jitter, 0, (1,), 1.67) == [14]  # 1.5 m (nearer 1.67 than 2.0)
+    # nor does a turn back (distances that fall again before they reach the baseline)
+    back = np.array([[0, 0, 0], [0.6, 0, 0], [0.9, 0, 0], [0.5, 0, 0], [1.2, 0, 0], [1.9, 0, 0]], dtype=float)
+    assert baseline_rows(back, 0, (1,), 1.67) == [5]
 
 
 def test_source_baseline_loads_the_chosen_frames_with_their_poses(kitti_data, cache):

@@ -127,21 +127,23 @@ class ImageCache:
 
 def baseline_rows(positions: np.ndarray, row: int, offsets, baseline: float) -> list[int] | None:
     """For each offset, the row on its side of ``row`` whose position (``[N, 3]``, metres) is nearest to
-    ``baseline * |offset| / max|offsets|`` from the target's (the earlier frame on a tie), or None when
-    the sequence ends before a frame reaches that distance."""
+    ``baseline * |offset| / max|offsets|`` from the target's, among the frames up to the first one that
+    is at least that far (the one nearer the target on a tie); None when the sequence ends before a
+    frame on that side is that far. A stop with jittering poses, or a turn back, never ends the search
+    early: only reaching the distance does."""
     top = max(abs(o) for o in offsets)
     rows = []
     for offset in offsets:
         want, step = baseline * abs(offset) / top, 1 if offset > 0 else -1
-        best, k, reached = None, row + step, False
+        best, k = None, row + step
         while 0 <= k < len(positions):
             distance = float(np.linalg.norm(positions[k] - positions[row]))
-            if best is not None and abs(distance - want) >= best[0]:
-                reached = True  # past the nearest: distances grow along a drive
+            if best is None or abs(distance - want) < best[0]:
+                best = (abs(distance - want), k)
+            if distance >= want:
                 break
-            best, k = (abs(distance - want), k), k + step
-            reached = distance >= want
-        if best is None or not reached:
+            k += step
+        else:
             return None  # the sequence ended short of the wanted distance
         rows.append(best[1])
     return rows
@@ -152,7 +154,7 @@ class Item:
     sequence: str
     camera: str
     row: int  # index of the target in layout.frames(sequence, camera)
-    sources: tuple[int, ...] = ()  # rows of its source frames, one per offset (training datasets)
+    sources: tuple[int, ...]  # rows of its source frames, one per offset (none for evaluation)
 
 
 def parse_split(spec, layout) -> list[tuple[str, set[int] | None, int, list[str] | None]]:
