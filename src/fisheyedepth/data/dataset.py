@@ -221,7 +221,7 @@ class FisheyeDataset(Dataset):
         farther ones, and every target sees about the same parallax."""
         if source_baseline is not None and not (source_baseline > 0 and math.isfinite(source_baseline)):
             raise ValueError(f"source_baseline: {source_baseline!r}, expected metres > 0 or None")
-        if source_baseline is not None and 0 in tuple(offsets):
+        if source_baseline is not None and 0 in offsets:
             raise ValueError(f"source_baseline needs offsets with a direction; got offsets {list(offsets)}")
         self.source_baseline = source_baseline
         self.pose_noise = pose_noise or PoseNoise()
