@@ -3,12 +3,13 @@
 "Time to accuracy").
 
     python scripts/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
-                              [--set KEY=VALUE ...]
+                              [--post-process flip] [--set KEY=VALUE ...]
 
 RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
 split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
 scored by ``eval.py`` on the test split of the world rendered with each held-out seed (200 frames,
-rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json``; an existing one is reused.
+rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json`` (``..._flip`` with
+``--post-process flip``, Monodepth2's post-processing); an existing one is reused.
 ``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
 full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the
 held-out seeds before training, and never train or tune on them: the seed of the world the run
@@ -45,11 +46,13 @@ def trained_world(run: Path) -> tuple[str, int] | None:
     return (str(gen.get("rig", "kitti360")), int(gen["seed"])) if "seed" in gen else None
 
 
-def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: list[str]) -> Path:
+def score_heldout(
+    run: Path, seed: int, rig: str, upsample: str | None, extra: list[str], post_process: str = "none"
+) -> Path:
     """Evaluate the run's last checkpoint on world ``seed``; returns its results.json."""
     if trained_world(run) == (rig, seed):  # the 200-frame world is the start of a longer one's drive
         raise ValueError(f"{run}: world {seed} ({rig}) is the world it trained on, not a held-out one")
-    suffix = f"_{upsample}" if upsample else ""
+    suffix = (f"_{upsample}" if upsample else "") + ("_flip" if post_process == "flip" else "")
     out = run / f"heldout_{rig}_seed{seed}{suffix}"
     if (out / "results.json").is_file():
         return out / "results.json"
@@ -69,6 +72,8 @@ def score_heldout(run: Path, seed: int, rig: str, upsample: str | None, extra: l
         command.append(f"data.generate.frames={FRAMES}")
     if upsample:
         command.append(f"upsample={upsample}")
+    if post_process != "none":
+        command.append(f"post_process={post_process}")
     command += extra
     subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     return out / "results.json"
@@ -82,6 +87,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[1001, 1002])
     parser.add_argument("--rig", default="kitti360")
     parser.add_argument("--upsample", choices=("distance", "logits"))
+    parser.add_argument("--post-process", choices=("none", "flip"), default="none")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
     args = parser.parse_args(argv)
     header = ["run", "own test", *(f"world {s} (held out)" for s in args.seeds)]
@@ -91,7 +97,9 @@ def main(argv=None) -> int:
         cells = [run.name, scores(run / "results.json")]
         for seed in args.seeds:
             try:
-                cells.append(scores(score_heldout(run, seed, args.rig, args.upsample, args.set)))
+                cells.append(
+                    scores(score_heldout(run, seed, args.rig, args.upsample, args.set, args.post_process))
+                )
             except FileNotFoundError as err:  # a kept record without its checkpoint, not yet scored here
                 cells.append(f"({err})")
             except ValueError as err:  # its own training world

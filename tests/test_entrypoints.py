@@ -138,6 +138,12 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     frames = [[o for o in c if o.startswith("data.generate.frames=")] for c in commands]
     assert frames == [["data.generate.frames=200"], ["data.generate.frames=12"]]
     assert "data.generate.seed=2001" in commands[0] and "data.generate.seed=2002" in commands[1]
+    assert not any(o.startswith("post_process=") for c in commands for o in c)
+    # Monodepth2's post-processing: scored into its own folder, beside the plain score
+    heldout.score_heldout(tmp_path, 2001, "kitti360", None, [], "flip")
+    assert "post_process=flip" in commands[2]
+    assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001_flip'}" in commands[2]
+    assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001'}" in commands[0]
 
 
 def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):

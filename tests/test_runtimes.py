@@ -21,9 +21,9 @@ from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.images import FrameSource, ImageError, is_live
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime
+from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, flip_averaged
 
-from conftest import TRAIN_SEQ
+from conftest import TRAIN_SEQ, kitti02, kitti03
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -168,6 +168,71 @@ def test_bf16_runtime_stays_close_to_float32(checkpoint, kitti_data):
     assert 0 < float(rel.median()) < 0.02 and float(rel.max()) < 0.2
     with pytest.raises(ValueError, match="precision: 'fp16'"):
         TorchRuntime(module, precision="fp16")
+
+
+def test_flip_averaging_mirrors_the_second_prediction_back_and_means_inverse_distances():
+    """A network whose distance grows along the image's columns: the mirror image's prediction, mirrored
+    back, is the column ramp reversed, and the result their harmonic mean. Each mirror image gets its
+    camera flipped (cu -> W - 1 - cu), in one call of twice the batch."""
+    cameras = [kitti02().resize(8, 6), kitti03().resize(8, 6)]
+    images = torch.rand(2, 3, 6, 8, generator=torch.Generator().manual_seed(0))
+    calls = []
+
+    def ramp(batch, batch_cameras):
+        calls.append((batch.clone(), list(batch_cameras)))
+        columns = torch.arange(8, dtype=batch.dtype).expand(batch.shape[0], 1, 6, 8)
+        return 2.0 + columns
+
+    got = flip_averaged(ramp, images, cameras)
+    forward, reverse = 2.0 + torch.arange(8.0), 2.0 + torch.arange(7.0, -1.0, -1.0)
+    expected = (2.0 / (1.0 / forward + 1.0 / reverse)).expand(2, 1, 6, 8)
+    torch.testing.assert_close(got, expected)
+    assert float(got[0, 0, 0, 0]) == pytest.approx(2 / (1 / 2 + 1 / 9))  # not symmetric: 3.6, not 5.5
+    ((batch, batch_cameras),) = calls
+    torch.testing.assert_close(batch, torch.cat((images, images.flip(-1))))
+    assert batch_cameras == [*cameras, *(c.flip() for c in cameras)]
+    assert batch_cameras[2].u0 == pytest.approx(7 - cameras[0].u0) != cameras[0].u0
+
+    def by_content(batch, batch_cameras):  # a prediction that follows the image content
+        return 1.0 + batch.mean(1, keepdim=True)
+
+    torch.testing.assert_close(flip_averaged(by_content, images, cameras), by_content(images, cameras))
+
+
+def test_flip_post_processing_in_both_runtimes_and_eval(onnx_files, checkpoint, kitti_data, tmp_path):
+    """post_process=flip: the torch runtime's distance is the harmonic mean of its distance of the
+    images and, mirrored back, of their mirror images; the ONNX file's agrees with it; eval.py records
+    it in results.json and scores another number than without it; a bad value names the field."""
+    module = FisheyeDepthModule.from_checkpoint(checkpoint)
+    camera = load_camera(kitti_data / "calibration" / "image_03.yaml")
+    images = images_of(kitti_data, "image_03")
+    plain = TorchRuntime(module).distance(images, [camera] * 3)
+    mirrored = TorchRuntime(module).distance(images.flip(-1), [camera.flip()] * 3).flip(-1)
+    got = TorchRuntime(module, post_process="flip").distance(images, [camera] * 3)
+    torch.testing.assert_close(got, 2.0 / (1.0 / plain + 1.0 / mirrored), rtol=1e-5, atol=1e-6)
+    assert float(((got - plain).abs() / plain).median()) > 1e-4  # the mirror image changes the answer
+    by_file = OnnxRuntime(onnx_files[0]["path"], post_process="flip").distance(images, [camera] * 3)
+    torch.testing.assert_close(by_file, got, rtol=1e-3, atol=1e-3)
+    data = {"generate": None, "datamodule": _datamodule(kitti_data)}
+    records = [
+        eval_checkpoint(
+            load_cfg(
+                "eval",
+                ckpt_path=checkpoint,
+                post_process=pp,
+                paths={"output_dir": str(tmp_path / pp)},
+                data=data,
+            )
+        )
+        for pp in ("none", "flip")
+    ]
+    assert [r["model"]["post_process"] for r in records] == ["none", "flip"]
+    a, b = (r["results"]["full"]["none"]["abs_rel"] for r in records)
+    assert a != b and abs(a - b) < 0.5 * a
+    with pytest.raises(ValueError, match="post_process: 'mean' is not one of none, flip"):
+        TorchRuntime(module, post_process="mean")
+    with pytest.raises(ValueError, match="post_process: 'mean'"):
+        OnnxRuntime(onnx_files[0]["path"], post_process="mean")
 
 
 def test_onnx_files_without_metadata_or_unreadable_are_named(tmp_path, checkpoint):

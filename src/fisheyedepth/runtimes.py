@@ -38,6 +38,7 @@ META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
 # expectation (exp, a 1x1 convolution with the bins, a division) stay float32: quantizing them moves the
 # distance by about 100 % (every bin's weight is rounded), against a median 0.7 % without them.
 INT8_SCOPES = ("/depth_net/encoder/", "/depth_net/decoder/", "/depth_net/heads.0/attention/")
+POST_PROCESSING = ("none", "flip")  # what a runtime does with the network's distance (see flip_averaged)
 
 
 def _import_ort():
@@ -112,6 +113,30 @@ def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:
     return model.SerializeToString()
 
 
+def check_post_process(value: str) -> str:
+    """``value`` if it names a post-processing of :data:`POST_PROCESSING`, else a ValueError naming it."""
+    if value not in POST_PROCESSING:
+        raise ValueError(f"post_process: {value!r} is not one of {', '.join(POST_PROCESSING)}")
+    return value
+
+
+def flip_averaged(distance, images: Tensor, cameras) -> Tensor:
+    """Monodepth2's post-processing for calibrated cameras: ``distance(images, cameras)`` of the images and
+    of their mirror images (each camera flipped, :meth:`~fisheyedepth.cameras.CameraModel.flip`; one
+    call of twice the batch), the second mirrored back, averaged in inverse distance (Monodepth2
+    averages disparities). Mirroring keeps the length of every ray, so both are estimates of the same
+    distance at each pixel; the mean cancels what in the network's error is not mirror-symmetric."""
+    n = images.shape[0]
+    both = distance(torch.cat((images, images.flip(-1))), [*cameras, *(c.flip() for c in cameras)])
+    direct, mirrored = both[:n], both[n:].flip(-1)
+    return 2.0 / (1.0 / direct.clamp_min(1e-6) + 1.0 / mirrored.clamp_min(1e-6))
+
+
+def post_processed(run, images: Tensor, cameras, post_process: str) -> Tensor:
+    """``run(images, cameras)``, or its :func:`flip_averaged` mean with ``post_process="flip"``."""
+    return flip_averaged(run, images, cameras) if post_process == "flip" else run(images, cameras)
+
+
 class TorchRuntime:
     """A trained module in PyTorch: ``precision`` fp32 or bf16 (autocast around the network; the bin
     expectation and everything after it stay float32), weights in channels_last (the same numbers,
@@ -119,13 +144,19 @@ class TorchRuntime:
     to ``device`` and converted to channels_last, in place (no copy of its weights)."""
 
     def __init__(
-        self, module, input_size: tuple[int, int] | None = None, precision: str = "fp32", device="cpu"
+        self,
+        module,
+        input_size: tuple[int, int] | None = None,
+        precision: str = "fp32",
+        device="cpu",
+        post_process: str = "none",
     ):
         if precision not in PRECISIONS:
             raise ValueError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
         self.module = module.eval().to(device)
         self.device = torch.device(device)
         self.precision = precision
+        self.post_process = check_post_process(post_process)
         net = self.module.depth_net
         if not net.channels_last:
             net.to(memory_format=torch.channels_last)
@@ -141,20 +172,25 @@ class TorchRuntime:
             "upsample": self.module.depth_net.upsample,
             "runtime": "torch",
             "precision": self.precision,
+            "post_process": self.post_process,
         }
 
     @torch.no_grad()
     def distance(self, images: Tensor, cameras) -> Tensor:
+        def run(batch: Tensor, batch_cameras) -> Tensor:
+            return self.module.depth_net.distance(batch, batch_cameras, self.input_size)
+
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            return self.module.depth_net.distance(images.to(self.device), cameras, self.input_size)
+            return post_processed(run, images.to(self.device), cameras, self.post_process)
 
 
 class OnnxRuntime:
     """A file written by ``export.py`` in ONNX Runtime. The file's ``depth_scale`` (frozen at export) is
     replaced by each camera's own, from the base focal the file carries."""
 
-    def __init__(self, path: str | os.PathLike, threads: int | None = None):
+    def __init__(self, path: str | os.PathLike, threads: int | None = None, post_process: str = "none"):
         self.path = Path(path)
+        self.post_process = check_post_process(post_process)
         if not self.path.is_file():
             raise FileNotFoundError(f"{self.path}: no such ONNX file")
         _import_ort()
@@ -182,7 +218,13 @@ class OnnxRuntime:
 
     def describe(self) -> dict[str, Any]:
         """What results.json records: the file; its distance is resized in inverse distance."""
-        return {"runtime": "onnx", "file": str(self.path), "quantize": self.quantize, "upsample": "distance"}
+        return {
+            "runtime": "onnx",
+            "file": str(self.path),
+            "quantize": self.quantize,
+            "upsample": "distance",
+            "post_process": self.post_process,
+        }
 
     def run(self, images: Tensor) -> Tensor:
         """The file as it is: ``[B, 3, h, w]`` at ``input_size`` -> distance with the file's depth_scale."""
@@ -194,7 +236,10 @@ class OnnxRuntime:
             scale = depth_scale(small_cameras, self.base_focal) / self.file_scale
             return self.run(small) * scale.reshape(-1, 1, 1, 1)
 
-        return distance_at_size(run, images.cpu(), cameras, self.input_size)
+        def at_size(batch: Tensor, batch_cameras) -> Tensor:
+            return distance_at_size(run, batch, batch_cameras, self.input_size)
+
+        return post_processed(at_size, images.cpu(), cameras, self.post_process)
 
 
 def calibration_images(folder: str | Path, size: tuple[int, int], count: int) -> list[np.ndarray]:

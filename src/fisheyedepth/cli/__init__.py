@@ -76,7 +76,7 @@ def free_path(path: Path) -> Path:
 def load_runtime(cfg: DictConfig):
     """The network ``predict.py`` and ``eval.py`` run: ``runtime=torch`` (``ckpt_path``, ``precision``,
     ``device``, ``upsample``, ``size``) or ``runtime=onnx`` (``model_file``, typed ``model=FILE.onnx``:
-    an ``export.py`` file, which fixes the input size; ``threads``)."""
+    an ``export.py`` file, which fixes the input size; ``threads``); either with ``post_process``."""
     runtime, size = str(cfg.get("runtime", "torch")), cfg.get("size")
     if runtime == "onnx":
         if not cfg.get("model_file"):
@@ -85,7 +85,7 @@ def load_runtime(cfg: DictConfig):
             raise ValueError(
                 f"upsample: {cfg.upsample!r}; an exported file upsamples its distance (upsample=distance)"
             )
-        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"))
+        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"), str(cfg.get("post_process", "none")))
         if size and tuple(size) != tuple(onnx.input_size):
             raise ValueError(
                 f"size: {list(size)}, but {cfg.model_file} was exported at {list(onnx.input_size)}"
@@ -101,4 +101,5 @@ def load_runtime(cfg: DictConfig):
     if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
         module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     size = tuple(size) if size else None
-    return TorchRuntime(module, size, str(cfg.get("precision", "fp32")), cfg.get("device", "cpu"))
+    precision, post_process = str(cfg.get("precision", "fp32")), str(cfg.get("post_process", "none"))
+    return TorchRuntime(module, size, precision, cfg.get("device", "cpu"), post_process)
