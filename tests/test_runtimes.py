@@ -283,6 +283,15 @@ def test_predict_runs_an_exported_file_like_its_checkpoint(onnx_files, checkpoin
         a, b = np.load(npy), np.load(tmp_path / "f" / npy.name)
         ok = np.isfinite(a)
         assert np.array_equal(ok, np.isfinite(b)) and np.allclose(a[ok], b[ok], rtol=1e-4)
+    flipped = predict(
+        load_cfg("predict", ckpt_path=checkpoint, output=tmp_path / "p", post_process="flip", **common)
+    )
+    assert by_ckpt["post_process"] == "none" and flipped["post_process"] == "flip"
+    for npy in sorted((tmp_path / "c").glob("*_distance.npy")):
+        a, b = np.load(npy), np.load(tmp_path / "p" / npy.name)
+        ok = np.isfinite(a)
+        rel = np.abs(a[ok] - b[ok]) / a[ok]
+        assert np.array_equal(ok, np.isfinite(b)) and 1e-4 < np.median(rel) < 0.5
     with pytest.raises(ValueError, match="size: \\[32, 32\\], but .*fp32.onnx was exported at \\[64, 64\\]"):
         predict(
             load_cfg(

@@ -65,6 +65,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         "grayscale": grayscale,
         "runtime": runtime_name(runtime),
         "input_size": list(runtime.input_size) if runtime.input_size else None,
+        "post_process": runtime.post_process,
         "interrupted": interrupted,
         "seconds": round(seconds, 3),
         "fps": round(done / seconds, 2) if seconds > 0 else None,
