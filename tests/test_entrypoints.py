@@ -222,6 +222,7 @@ def test_train_eval_resume_tables(workdir):
     record = json.loads((first / "results.json").read_text())
     assert record["experiment"] == "ablation_full" and record["model"]["real_scale"] is True
     assert record["select"] == "best" and re.search(r"best-000\.ckpt$", record["checkpoint"])
+    assert record["model"]["device"] == "cpu" and record["model"]["post_process"] == "none"
     for protocol in ("full", "kitti360"):
         assert {"none", "median", "none_by_angle"} <= set(record["results"][protocol])
     assert set(record["results"]["full"]["none_by_angle"]) == {"0-30", "30-60", "60-90", "90-180"}
@@ -501,9 +502,11 @@ def test_train_eval_predict_on_cuda(tmp_path):
         "trainer.limit_train_batches=3",
         data,
         f"hydra.run.dir={train}",
-        "test=false",
+        "eval.pictures=1",
         *TINY,
     )
+    # the test after training runs where training ran (the checkpoint loads on the CPU)
+    assert json.loads((train / "results.json").read_text())["model"]["device"] == "cuda:0"
     ckpt = train / "checkpoints" / "last.ckpt"
     scores = {}
     for device in ("cpu", "cuda"):

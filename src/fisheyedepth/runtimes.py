@@ -172,6 +172,7 @@ class TorchRuntime:
             "upsample": self.module.depth_net.upsample,
             "runtime": "torch",
             "precision": self.precision,
+            "device": str(self.device),
             "post_process": self.post_process,
         }
 

@@ -58,11 +58,13 @@ def run_evaluation(
     ckpt: str | None,
     extra: dict[str, Any],
     split: str = "test",
+    device=None,
 ) -> dict[str, Any]:
     """Evaluate ``split`` at the ground truth's native resolution, the network at the size it was
     trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
-    trained module, or a runtime (an ONNX file, bf16) of :mod:`fisheyedepth.runtimes`."""
-    runtime = as_runtime(model)
+    trained module (run on ``device``, default the module's), or a runtime (an ONNX file, bf16) of
+    :mod:`fisheyedepth.runtimes`."""
+    runtime = as_runtime(model, device=device)
     if runtime.input_size is None and datamodule.size:  # a checkpoint that stored no input size
         runtime.input_size = tuple(datamodule.size)
     train_size = runtime.input_size

@@ -139,6 +139,9 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
                     "select": select,
                     "skipped_batches": module.skipped_batches,
                 },
+                # the training device: a checkpoint loads on the CPU, and Lightning leaves the
+                # trained module there after fit (a GPU run once tested on a crowded CPU)
+                device=trainer.strategy.root_device,
             )
         return record
     finally:
