@@ -7,7 +7,12 @@
 # (on the lent machine, Python packages it lacks: scripts need hydra-core, omegaconf, antlr4 wheels).
 # Measured on an H100 (16 cores): three make-train recipes side by side ran 5 it/s each, about 7 min
 # for 22 of their 24 epochs (the 200-frame recipe of the time), plus 2-3 min of rendering: give one
-# call two recipes at most.
+# call two recipes at most. Session 16: four cpu_30min variants beside a surround4 one (a second
+# sweep) ran 3.6-3.7 it/s each at 256 px, 10 epochs in about 11 minutes; rendering every world first
+# (3 workers each, both sweeps at once) had taken 12 minutes, so the training world now renders first
+# on every core and the held-out worlds render while the variants train.
+# The machine goes back when its device time is spent: run this under setsid in one call and collect
+# OUT in the next calls.
 # Writes OUT/sweep.tar.gz (each run's results, held-out results, metrics.csv and config; no checkpoints)
 # and OUT/summary.md (one row per run, scripts/heldout.py's format).
 set -u -o pipefail
@@ -21,15 +26,16 @@ PY=${PY:-python3}
 RUNS=${RUNS:-sweep_runs}
 mkdir -p "$RUNS" "$OUT"
 
-# render every world first (train world 0 and the held-out ones), each in parallel
-for world in "0:$TRAIN_FRAMES" $(for s in $SEEDS; do echo "$s:$FRAMES"; done); do  # seed:frames
-  seed=${world%:*}; frames=${world#*:}
-  dir=data/synthetic_${RIG}_256_seed${seed}_f${frames}
-  [ -d "$dir" ] || $PY -m fisheyedepth.data.synthetic.cli --out "$dir" --rig "$RIG" --frames "$frames" \
-    --size 256 --seed "$seed" --supersample 2 --workers "${RENDER_WORKERS:-3}" --quiet &
-done
-wait
-echo "rendered: $(ls data)"
+render() {  # seed frames workers
+  local dir=data/synthetic_${RIG}_256_seed$1_f$2
+  [ -d "$dir" ] || $PY -m fisheyedepth.data.synthetic.cli --out "$dir" --rig "$RIG" --frames "$2" \
+    --size 256 --seed "$1" --supersample 2 --workers "$3" --quiet
+}
+# the training world first, on every core; the held-out worlds while the variants train (scoring
+# waits for them: $RUNS/.rendered)
+render 0 "$TRAIN_FRAMES" "$(nproc)"
+rm -f "$RUNS/.rendered"
+(for s in $SEEDS; do render "$s" "$FRAMES" "${RENDER_WORKERS:-3}" & done; wait; touch "$RUNS/.rendered") &
 
 # progress while training: the last logged row of every run, every 30 s (survives a timeout)
 (while sleep 30; do
@@ -47,6 +53,7 @@ while read -r name overrides; do
     timeout "${TRAIN_LIMIT:-0}" $PY train.py trainer=gpu data.datamodule.num_workers=$WORKERS data.generate.rig=$RIG \
       hydra.run.dir="$RUNS/$name" logger=csv $overrides >"$RUNS/$name.log" 2>&1
     echo "$name trained rc=$? in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
+    while [ ! -f "$RUNS/.rendered" ]; do sleep 5; done
     $PY scripts/heldout.py "$RUNS/$name" --rig "$RIG" --seeds $SEEDS --set device=cuda \
       >"$RUNS/$name.row" 2>>"$RUNS/$name.log"
     echo "$name scored in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
