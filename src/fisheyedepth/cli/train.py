@@ -139,9 +139,7 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
                     "select": select,
                     "skipped_batches": module.skipped_batches,
                 },
-                # the training device: a checkpoint loads on the CPU, and Lightning leaves the
-                # trained module there after fit (a GPU run once tested on a crowded CPU)
-                device=trainer.strategy.root_device,
+                device=trainer.strategy.root_device,  # a checkpoint loads on the CPU
             )
         return record
     finally:
