@@ -24,6 +24,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fisheyedepth.runtimes import POST_PROCESSING
 from fisheyedepth.utils import run_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +53,7 @@ def score_heldout(
     """Evaluate the run's last checkpoint on world ``seed``; returns its results.json."""
     if trained_world(run) == (rig, seed):  # the 200-frame world is the start of a longer one's drive
         raise ValueError(f"{run}: world {seed} ({rig}) is the world it trained on, not a held-out one")
-    suffix = (f"_{upsample}" if upsample else "") + ("_flip" if post_process == "flip" else "")
+    suffix = (f"_{upsample}" if upsample else "") + (f"_{post_process}" if post_process != "none" else "")
     out = run / f"heldout_{rig}_seed{seed}{suffix}"
     if (out / "results.json").is_file():
         return out / "results.json"
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[1001, 1002])
     parser.add_argument("--rig", default="kitti360")
     parser.add_argument("--upsample", choices=("distance", "logits"))
-    parser.add_argument("--post-process", choices=("none", "flip"), default="none")
+    parser.add_argument("--post-process", choices=POST_PROCESSING, default="none")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
     args = parser.parse_args(argv)
     header = ["run", "own test", *(f"world {s} (held out)" for s in args.seeds)]

@@ -113,10 +113,10 @@ def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:
     return model.SerializeToString()
 
 
-def check_post_process(value: str) -> str:
-    """``value`` if it names a post-processing of :data:`POST_PROCESSING`, else a ValueError naming it."""
-    if value not in POST_PROCESSING:
-        raise ValueError(f"post_process: {value!r} is not one of {', '.join(POST_PROCESSING)}")
+def one_of(field: str, value: str, choices: tuple[str, ...]) -> str:
+    """``value`` if it is one of ``choices``, else a ValueError naming the option ``field``."""
+    if value not in choices:
+        raise ValueError(f"{field}: {value!r} is not one of {', '.join(choices)}")
     return value
 
 
@@ -151,12 +151,10 @@ class TorchRuntime:
         device="cpu",
         post_process: str = "none",
     ):
-        if precision not in PRECISIONS:
-            raise ValueError(f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+        self.precision = one_of("precision", precision, PRECISIONS)
+        self.post_process = one_of("post_process", post_process, POST_PROCESSING)
         self.module = module.eval().to(device)
         self.device = torch.device(device)
-        self.precision = precision
-        self.post_process = check_post_process(post_process)
         net = self.module.depth_net
         if not net.channels_last:
             net.to(memory_format=torch.channels_last)
@@ -191,7 +189,7 @@ class OnnxRuntime:
 
     def __init__(self, path: str | os.PathLike, threads: int | None = None, post_process: str = "none"):
         self.path = Path(path)
-        self.post_process = check_post_process(post_process)
+        self.post_process = one_of("post_process", post_process, POST_PROCESSING)
         if not self.path.is_file():
             raise FileNotFoundError(f"{self.path}: no such ONNX file")
         _import_ort()
