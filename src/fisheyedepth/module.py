@@ -28,6 +28,7 @@ from .cameras.pinhole import PINHOLE_FOCALS
 from .checkpoints import CheckpointError, module_arguments, read_checkpoint
 from .data.batch import Batch, SkippedBatch
 from .geometry import (
+    erode_field_of_view,
     invert_pose,
     rotation_error_deg,
     sample,
@@ -79,6 +80,7 @@ class FisheyeDepthModule(L.LightningModule):
         lr_schedule: str = "step",
         upsample: str = "distance",
         decoder_width: float = 1.0,
+        rim_margin: int | None = None,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -99,6 +101,10 @@ class FisheyeDepthModule(L.LightningModule):
         head's logits upsampled, then the expectation: sharper edges; the sigmoid head ignores it).
         ``decoder_width``: Monodepth2's decoder channels times this factor (1: the paper's network; 0.5
         with 32 bins: ``model=fisheyedepth_lite``, the robot variant of BENCHMARKS.md "Inference").
+        ``rim_margin``: None (the paper's) or a number of pixels: a validity mask at the fisheye rim. The
+        pixels within that margin (at the input size) of the image circle's edge (the camera's field of
+        view) join the body masks: not scored in the target, not sampled in a source; at a coarser loss
+        scale a pixel whose footprint touches them is dropped too, as at the body's edge (0: that alone).
         ``lr_schedule``: "step" (Monodepth2: x ``lr_gamma`` after ``lr_step`` epochs) or "cosine"
         (cosine annealing to ``lr * lr_gamma`` over the run's ``max_epochs``).
         ``rig_offsets``: the rig's other cameras are sources too, at these time offsets (cross-camera
@@ -124,8 +130,11 @@ class FisheyeDepthModule(L.LightningModule):
                 "rig_offsets: the other cameras' poses come from the extrinsics and odometry "
                 "(real_scale=true); a PoseNet predicts one camera's own motion"
             )
+        if rim_margin is not None and rim_margin < 0:
+            raise ValueError(f"rim_margin: {rim_margin} pixels is negative (null switches the rim mask off)")
         self.save_hyperparameters()
         self.scales = tuple(scales)
+        self.rim_margin = rim_margin
         self.source_offsets = tuple(source_offsets)
         self.depth_net = DepthNet(
             resnet,
@@ -244,6 +253,8 @@ class FisheyeDepthModule(L.LightningModule):
         source_cameras = [[self.warp_model(c) for c in cams] for cams in batch.source_camera]
         target, sources, body = batch.image, batch.sources, batch.mask[:, 0] > 0.5
         source_mask = batch.source_mask
+        if self.rim_margin is not None:  # the rim of each image circle joins its body mask
+            body, source_mask = self._without_rim(batch, body, source_mask)
         if size is not None and tuple(size) != tuple(target.shape[-2:]):
             h, w = size
 
@@ -262,6 +273,19 @@ class FisheyeDepthModule(L.LightningModule):
         return _Level(
             target, sources, source_mask, source_cameras, rays, rays_valid, body & rays_valid, identity
         )
+
+    def _without_rim(self, batch: Batch, body: Tensor, source_mask: Tensor) -> tuple[Tensor, Tensor]:
+        """``body`` ``[B, H, W]`` and ``source_mask`` ``[B, S, 1, H, W]`` without the pixels within
+        ``rim_margin`` of the edge of their camera's field of view (the real cameras', not the warp's)."""
+
+        def inside(cameras: list[CameraModel]) -> Tensor:
+            valid = self.rays.batch(cameras, body.device, batch.image.dtype).valid
+            return erode_field_of_view(valid, self.rim_margin)
+
+        body = body & inside(list(batch.camera))
+        sources = [inside([cams[j] for cams in batch.source_camera]) for j in range(source_mask.shape[1])]
+        source_mask = source_mask * torch.stack(sources, 1)[:, :, None].to(source_mask.dtype)
+        return body, source_mask
 
     def _warp_sources(self, level: _Level, distance: Tensor, poses: Tensor) -> tuple[Tensor, Tensor]:
         """Every source of ``level`` sampled where ``distance`` and the ``[B, S, 4, 4]`` target-to-source
