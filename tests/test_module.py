@@ -15,6 +15,7 @@ from torch.utils.data import DataLoader
 
 from fisheyedepth.cameras import MeiCamera, PinholeCamera, pinhole_like
 from fisheyedepth.data.batch import collate
+from fisheyedepth.geometry import erode_field_of_view
 from fisheyedepth.models import MultiChannelHead, PoseNet, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 
@@ -406,6 +407,46 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     assert level.source_mask[:, :, :, 50, 19].eq(1).all() and level.mask[:, 50, 19].all()
     with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
         FisheyeDepthModule(loss_resolution="half")
+
+
+def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(kitti_data):
+    """``rim_margin=k``: a pixel within k pixels of the image circle's edge is neither scored (target) nor
+    sampled (sources), at the input size and, through the footprint rule, at a coarser loss scale, where
+    a pixel whose footprint reaches past the circle is dropped although its centre has a ray; the body
+    masks are kept; the loss still measures geometry; a negative margin is refused."""
+    batch = tiny_batch(kitti_data, size=None)  # 256 px
+    plain, rim0, rim2 = (
+        FisheyeDepthModule(rim_margin=m, automask=False, loss_resolution="native") for m in (None, 0, 2)
+    )
+    full = plain._level(batch, None)
+    inside = full.rays_valid  # the image circle at 256 px (one Mei camera per sample)
+    assert not inside.all()  # the corners have no ray
+    ring2 = inside & ~erode_field_of_view(inside, 2)
+    level = rim2._level(batch, None)
+    assert torch.equal(level.mask, full.mask & ~ring2)
+    assert torch.equal(rim0._level(batch, None).mask, full.mask)  # margin 0: nothing at the input size
+    body = batch.source_mask[:, :, 0] > 0.5
+    assert torch.equal(level.source_mask[:, :, 0] > 0.5, body & erode_field_of_view(inside, 2)[:, None])
+    assert int(ring2.sum()) > 0 and int((full.mask & ring2).sum()) > 0
+    # at 64 px each pixel is a 4 x 4 footprint: with margin 0, one that reaches past the circle is dropped
+    coarse_plain, coarse = plain._level(batch, (64, 64)), rim0._level(batch, (64, 64))
+    partial = F.avg_pool2d(inside[:, None].double(), 4)[:, 0] < 1
+    assert torch.equal(coarse.mask, coarse_plain.mask & ~partial)
+    dropped = coarse_plain.mask & partial
+    assert int(dropped.sum()) > 0 and coarse_plain.rays_valid[dropped].all()  # their centres have rays
+    coarse_body = coarse_plain.source_mask[:, :, 0] > 0.5
+    assert torch.equal(coarse.source_mask[:, :, 0] > 0.5, coarse_body & ~partial[:, None])
+    # the loss with the truth still beats a wrong constant distance
+    gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
+
+    def photometric(distance):
+        maps = {s: F.interpolate(distance, scale_factor=0.5**s, mode="nearest") for s in (0, 1, 2, 3)}
+        outputs = {"distance": maps, "disp": {s: torch.full_like(d, 0.5) for s, d in maps.items()}}
+        return rim2.losses(batch, outputs)[1]["photometric/0"].item()
+
+    assert photometric(gt) < 0.85 * photometric(torch.where(batch.distance > 0, torch.full_like(gt, 5.0), gt))
+    with pytest.raises(ValueError, match="rim_margin: -1 pixels is negative"):
+        FisheyeDepthModule(rim_margin=-1)
 
 
 def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after_fitting(kitti_data):
