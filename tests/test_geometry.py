@@ -13,7 +13,6 @@ from fisheyedepth.geometry import (
     ALIGN_CORNERS,
     axis_angle_to_matrix,
     distance_to_depth,
-    erode_field_of_view,
     grid_to_pixels,
     invert_pose,
     make_pose,
@@ -275,35 +274,6 @@ def test_validity_rules():
     half_down = make_pose(torch.eye(3, dtype=D64), torch.tensor([0.0, 0.05, 0.0], dtype=D64))[None]
     sub = warp_to_source(rays, valid, dist, half_down, cam, source_mask=mask)  # v moves ~0.2 px down
     assert bool(sub.valid[0, 5:10, 5:25].all()) and not bool(sub.valid[0, 11, 5:25].any())  # 11.2 touches 12
-
-
-def test_the_rim_erosion_drops_exactly_the_pixels_next_to_the_field_of_view_edge():
-    """``erode_field_of_view`` keeps a pixel only if every pixel within ``margin`` (a square window) has a
-    ray: on kitti03's image circle at 64 px it equals that rule written as a loop; the rectangle's border
-    is not an edge of the field of view; margin 0 changes nothing and a negative margin is refused."""
-    _, valid = RayCache().get(kitti03().resize(64, 64), dtype=D64)
-    valid = valid[None]
-    assert 0.5 < valid.float().mean() < 0.95  # a circle inside the square: corners without rays
-    for margin in (1, 2):
-        eroded = erode_field_of_view(valid, margin)
-        expected = torch.zeros_like(valid)
-        for v in range(64):
-            for u in range(64):
-                window = valid[0, max(v - margin, 0) : v + margin + 1, max(u - margin, 0) : u + margin + 1]
-                expected[0, v, u] = bool(window.all())
-        assert torch.equal(eroded, expected), margin
-        ring = valid & ~eroded
-        # the ring is the circle's rim: about its perimeter (2 pi r with r ~ 32 px) per pixel of margin
-        assert 0.7 * 2 * math.pi * 32 * margin < ring.sum() < 1.6 * 2 * math.pi * 32 * margin, int(ring.sum())
-    full = torch.ones(2, 5, 7, dtype=torch.bool)
-    assert torch.equal(erode_field_of_view(full, 2), full)
-    hole = full.clone()
-    hole[1, 2, 3] = False
-    eroded = erode_field_of_view(hole, 1)
-    assert eroded[0].all() and int((~eroded[1]).sum()) == 9 and not eroded[1, 1:4, 2:5].any()
-    assert erode_field_of_view(hole, 0) is hole
-    with pytest.raises(ValueError, match="rim margin: -1 pixels is negative"):
-        erode_field_of_view(hole, -1)
 
 
 def test_mixed_source_cameras_in_one_batch():

@@ -13,9 +13,8 @@ import torch
 from torch.nn import functional as F
 from torch.utils.data import DataLoader
 
-from fisheyedepth.cameras import MeiCamera, PinholeCamera, pinhole_like
+from fisheyedepth.cameras import MeiCamera, PinholeCamera, erode_field_of_view, pinhole_like
 from fisheyedepth.data.batch import collate
-from fisheyedepth.geometry import erode_field_of_view
 from fisheyedepth.models import MultiChannelHead, PoseNet, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
-from fisheyedepth.cameras import RayCache, compute_rays, pixel_grid
+from fisheyedepth.cameras import RayCache, compute_rays, erode_field_of_view, pixel_grid
 
 from conftest import kitti02, kitti03
 
@@ -73,3 +75,48 @@ def test_cache_lives_on_the_device():
     assert cache.get(cam, device=torch.device("cuda", torch.cuda.current_device())).rays is entry.rays
     cpu = compute_rays(cam)
     assert torch.allclose(entry.rays.cpu(), cpu.rays)
+
+
+def test_the_rim_erosion_drops_exactly_the_pixels_next_to_the_field_of_view_edge():
+    """``erode_field_of_view`` keeps a pixel only if every pixel within ``margin`` (a square window) has a
+    ray: on kitti03's image circle at 64 px it equals that rule written as a loop; the rectangle's border
+    is not an edge of the field of view; margin 0 changes nothing and a negative margin is refused."""
+    _, valid = RayCache().get(kitti03().resize(64, 64), dtype=torch.float64)
+    valid = valid[None]
+    assert 0.5 < valid.float().mean() < 0.95  # a circle inside the square: corners without rays
+    for margin in (1, 2):
+        eroded = erode_field_of_view(valid, margin)
+        expected = torch.zeros_like(valid)
+        for v in range(64):
+            for u in range(64):
+                window = valid[0, max(v - margin, 0) : v + margin + 1, max(u - margin, 0) : u + margin + 1]
+                expected[0, v, u] = bool(window.all())
+        assert torch.equal(eroded, expected), margin
+        ring = valid & ~eroded
+        # the ring is the circle's rim: about its perimeter (2 pi r with r ~ 32 px) per pixel of margin
+        assert 0.7 * 2 * math.pi * 32 * margin < ring.sum() < 1.6 * 2 * math.pi * 32 * margin, int(ring.sum())
+    full = torch.ones(2, 5, 7, dtype=torch.bool)
+    assert torch.equal(erode_field_of_view(full, 2), full)
+    hole = full.clone()
+    hole[1, 2, 3] = False
+    eroded = erode_field_of_view(hole, 1)
+    assert eroded[0].all() and int((~eroded[1]).sum()) == 9 and not eroded[1, 1:4, 2:5].any()
+    assert erode_field_of_view(hole, 0) is hole
+    with pytest.raises(ValueError, match="rim margin: -1 pixels is negative"):
+        erode_field_of_view(hole, -1)
+
+
+def test_the_cache_erodes_each_camera_once_per_margin():
+    """``RayCache.inside``: one eroded field of view per (camera, margin), stacked per sample, the same
+    numbers as eroding the cached validity; a resized camera is its own entry."""
+    cache = RayCache()
+    cams = [kitti03().resize(64, 64), kitti02().resize(64, 64), kitti03().resize(64, 64)]
+    inside = cache.inside(cams, 1)
+    expected = torch.stack([erode_field_of_view(cache.get(c).valid[None], 1)[0] for c in cams])
+    assert torch.equal(inside, expected) and not torch.equal(inside[0], inside[1])
+    assert len(cache._inside) == 2 and cache.misses == 2  # kitti03 once, kitti02 once
+    assert torch.equal(cache.inside(cams[::-1], 1), inside.flip(0))  # the same entries, reused
+    assert len(cache._inside) == 2 and cache.misses == 2
+    cache.inside([kitti03().resize(32, 32)], 1)
+    cache.inside(cams[:1], 2)
+    assert len(cache._inside) == 4

@@ -28,7 +28,6 @@ from .cameras.pinhole import PINHOLE_FOCALS
 from .checkpoints import CheckpointError, module_arguments, read_checkpoint
 from .data.batch import Batch, SkippedBatch
 from .geometry import (
-    erode_field_of_view,
     invert_pose,
     rotation_error_deg,
     sample,
@@ -278,12 +277,12 @@ class FisheyeDepthModule(L.LightningModule):
         """``body`` ``[B, H, W]`` and ``source_mask`` ``[B, S, 1, H, W]`` without the pixels within
         ``rim_margin`` of the edge of their camera's field of view (the real cameras', not the warp's)."""
 
-        def inside(cameras: list[CameraModel]) -> Tensor:
-            valid = self.rays.batch(cameras, body.device, batch.image.dtype).valid
-            return erode_field_of_view(valid, self.rim_margin)
-
-        body = body & inside(list(batch.camera))
-        sources = [inside([cams[j] for cams in batch.source_camera]) for j in range(source_mask.shape[1])]
+        margin, device = self.rim_margin, body.device
+        body = body & self.rays.inside(batch.camera, margin, device)
+        sources = [
+            self.rays.inside([cams[j] for cams in batch.source_camera], margin, device)
+            for j in range(source_mask.shape[1])
+        ]
         source_mask = source_mask * torch.stack(sources, 1)[:, :, None].to(source_mask.dtype)
         return body, source_mask
 

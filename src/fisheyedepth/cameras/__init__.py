@@ -10,7 +10,7 @@ from .io import CalibrationError, camera_from_mapping, load_camera, load_yaml, o
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
 from .pinhole import PinholeCamera, pinhole_like
-from .rays import RayCache, Rays, compute_rays, pixel_grid
+from .rays import RayCache, Rays, compute_rays, erode_field_of_view, pixel_grid
 
 __all__ = [
     "CAMERA_MODELS",
@@ -26,6 +26,7 @@ __all__ = [
     "Rays",
     "camera_from_mapping",
     "compute_rays",
+    "erode_field_of_view",
     "load_camera",
     "opencv_yaml",
     "load_yaml",

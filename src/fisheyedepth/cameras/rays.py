@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from .base import CameraModel
@@ -44,6 +45,18 @@ def compute_rays(camera: CameraModel, device=None, dtype=torch.float32) -> Rays:
     return Rays(rays.to(device=device, dtype=dtype).contiguous(), valid.to(device).contiguous())
 
 
+def erode_field_of_view(valid: Tensor, margin: int) -> Tensor:
+    """``valid`` ``[B, H, W]`` (pixels with a ray: the image circle) without the pixels within ``margin``
+    pixels of one that has none: the rim, where a pixel's footprint mixes in the black outside the circle.
+    The image's rectangular border does not count as outside (the warp checks it)."""
+    if margin < 0:
+        raise ValueError(f"rim margin: {margin} pixels is negative")
+    if margin == 0:
+        return valid
+    inside = valid.to(torch.float32)[:, None]
+    return (-F.max_pool2d(-inside, 2 * margin + 1, stride=1, padding=margin))[:, 0] > 0.5
+
+
 def _device_key(device) -> torch.device:
     device = torch.device("cpu") if device is None else torch.device(device)
     if device.type == "cuda" and device.index is None:
@@ -62,6 +75,7 @@ class RayCache:
             raise ValueError(f"max_entries must be >= 1, got {max_entries}")
         self.max_entries = max_entries
         self._entries: OrderedDict[tuple, Rays] = OrderedDict()
+        self._inside: OrderedDict[tuple, Tensor] = OrderedDict()  # eroded validity, by camera and margin
         self.misses = 0
 
     def __len__(self) -> int:
@@ -69,6 +83,7 @@ class RayCache:
 
     def clear(self) -> None:
         self._entries.clear()
+        self._inside.clear()
 
     def get(self, camera: CameraModel, device=None, dtype=torch.float32) -> Rays:
         key = (camera, _device_key(device), dtype)
@@ -93,3 +108,21 @@ class RayCache:
             n = len(entries)
             return Rays(entries[0].rays.expand(n, -1, -1, -1), entries[0].valid.expand(n, -1, -1))
         return Rays(torch.stack([e.rays for e in entries]), torch.stack([e.valid for e in entries]))
+
+    def inside(self, cameras: Sequence[CameraModel], margin: int, device=None) -> Tensor:
+        """``[B, H, W]`` bool: each sample's pixels with a ray, less the rim of ``margin`` pixels
+        (:func:`erode_field_of_view`), eroded once per camera and margin and kept like the rays."""
+        masks = []
+        for cam in cameras:
+            key = (cam, _device_key(device), margin)
+            mask = self._inside.get(key)
+            if mask is None:
+                valid = self.get(cam, device).valid
+                mask = erode_field_of_view(valid[None], margin)[0]
+                self._inside[key] = mask
+                if len(self._inside) > self.max_entries:
+                    self._inside.popitem(last=False)
+            else:
+                self._inside.move_to_end(key)
+            masks.append(mask)
+        return torch.stack(masks)

@@ -131,18 +131,6 @@ def warp_to_source(
     return Warp(grid, valid, uv)
 
 
-def erode_field_of_view(valid: Tensor, margin: int) -> Tensor:
-    """``valid`` ``[B, H, W]`` (pixels with a ray: the image circle) without the pixels within ``margin``
-    pixels of one that has none: the rim, where a pixel's footprint mixes in the black outside the circle.
-    The image's rectangular border does not count as outside (the warp checks it)."""
-    if margin < 0:
-        raise ValueError(f"rim margin: {margin} pixels is negative")
-    if margin == 0:
-        return valid
-    inside = valid.to(torch.float32)[:, None]
-    return (-F.max_pool2d(-inside, 2 * margin + 1, stride=1, padding=margin))[:, 0] > 0.5
-
-
 def sample(image: Tensor, grid: Tensor, padding_mode: str = "border") -> Tensor:
     """Bilinear sample of ``image [B, C, Hs, Ws]`` at ``grid [B, H, W, 2]`` (the module's convention)."""
     return F.grid_sample(
