@@ -276,7 +276,6 @@ class FisheyeDepthModule(L.LightningModule):
     def _without_rim(self, batch: Batch, body: Tensor, source_mask: Tensor) -> tuple[Tensor, Tensor]:
         """``body`` ``[B, H, W]`` and ``source_mask`` ``[B, S, 1, H, W]`` without the pixels within
         ``rim_margin`` of the edge of their camera's field of view (the real cameras', not the warp's)."""
-
         margin, device = self.rim_margin, body.device
         body = body & self.rays.inside(batch.camera, margin, device)
         sources = [

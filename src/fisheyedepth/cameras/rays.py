@@ -87,15 +87,19 @@ class RayCache:
 
     def get(self, camera: CameraModel, device=None, dtype=torch.float32) -> Rays:
         key = (camera, _device_key(device), dtype)
-        entry = self._entries.get(key)
-        if entry is not None:
-            self._entries.move_to_end(key)
-            return entry
-        self.misses += 1
-        entry = compute_rays(camera, key[1], dtype)
-        self._entries[key] = entry
-        if len(self._entries) > self.max_entries:
-            self._entries.popitem(last=False)
+        if key not in self._entries:
+            self.misses += 1
+        return self._lookup(self._entries, key, lambda: compute_rays(camera, key[1], dtype))
+
+    def _lookup(self, store: OrderedDict, key: tuple, compute):
+        """``store[key]``, computed on a miss; the least recently used entry leaves past ``max_entries``."""
+        entry = store.get(key)
+        if entry is None:
+            entry = store[key] = compute()
+            if len(store) > self.max_entries:
+                store.popitem(last=False)
+        else:
+            store.move_to_end(key)
         return entry
 
     def batch(self, cameras: Sequence[CameraModel], device=None, dtype=torch.float32) -> Rays:
@@ -112,17 +116,14 @@ class RayCache:
     def inside(self, cameras: Sequence[CameraModel], margin: int, device=None) -> Tensor:
         """``[B, H, W]`` bool: each sample's pixels with a ray, less the rim of ``margin`` pixels
         (:func:`erode_field_of_view`), eroded once per camera and margin and kept like the rays."""
-        masks = []
-        for cam in cameras:
-            key = (cam, _device_key(device), margin)
-            mask = self._inside.get(key)
-            if mask is None:
-                valid = self.get(cam, device).valid
-                mask = erode_field_of_view(valid[None], margin)[0]
-                self._inside[key] = mask
-                if len(self._inside) > self.max_entries:
-                    self._inside.popitem(last=False)
-            else:
-                self._inside.move_to_end(key)
-            masks.append(mask)
-        return torch.stack(masks)
+        device = _device_key(device)
+        return torch.stack(
+            [
+                self._lookup(
+                    self._inside,
+                    (cam, device, margin),
+                    lambda cam=cam: erode_field_of_view(self.get(cam, device).valid[None], margin)[0],
+                )
+                for cam in cameras
+            ]
+        )
