@@ -1,6 +1,7 @@
 """Self-supervised losses: photometric error (SSIM + L1), minimum reprojection with auto-masking, and
-edge-aware smoothness."""
+edge-aware smoothness; distance hints from a plane sweep."""
 
+from .hints import candidate_distances, hint_loss, plane_sweep
 from .photometric import box_mean3, photometric_error, ssim
 from .selfsup import (
     INVALID_WARP_ERROR,
@@ -15,6 +16,9 @@ __all__ = [
     "ReprojectionLoss",
     "automasked_error",
     "box_mean3",
+    "candidate_distances",
+    "hint_loss",
+    "plane_sweep",
     "edge_aware_smoothness",
     "min_reprojection",
     "photometric_error",
