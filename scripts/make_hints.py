@@ -44,7 +44,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--offsets", type=int, nargs="+", default=[-2, 2])
     p.add_argument("--source-baseline", type=float, default=None)
     p.add_argument("--out", default=None)
-    p.add_argument("--candidates", type=int, default=96)
+    p.add_argument("--candidates", type=int, default=48)
     p.add_argument("--min-distance", type=float, default=0.5)
     p.add_argument("--max-distance", type=float, default=80.0)
     p.add_argument("--window", type=int, default=7)
