@@ -193,10 +193,12 @@ def test_weight_shapes_that_do_not_fit_are_named(checkpoint, tmp_path):
 
 def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
     """grad_clip left the model on 2026-11-23 (the trainer's gradient_clip_val is the only one), the
-    training-only distance search (bin_search) on 2026-11-24, the hint search on 2026-11-25."""
+    training-only distance search (bin_search) on 2026-11-24, the hint search and the plane-sweep
+    hints (hint_weight) on 2026-11-25."""
     ckpt = torch.load(checkpoint, weights_only=True)
     ckpt["hyper_parameters"].update(grad_clip=1.0, bin_search=0.25, bin_search_scale=2)
     ckpt["hyper_parameters"].update(hints=1.0, hint_candidates=2, hint_spread=4.0, hint_margin=0.02)
+    ckpt["hyper_parameters"].update(hint_weight=1.0)
     cap = ckpt["hyper_parameters"].pop("eval_cap")  # before 2026-11-23: eval_min and eval_max
     ckpt["hyper_parameters"].update(eval_min=0.5, eval_max=40.0)
     torch.save(ckpt, tmp_path / "old.ckpt")

@@ -51,10 +51,11 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
 
 # 2026-11-23: clipping is the trainer's gradient_clip_val only; 2026-11-24: the distance search (a
 # training-only loss, commit a350cf1) was measured and removed (BENCHMARKS.md, "Time to accuracy");
-# 2026-11-25: the same for the hint search (commit c54b83b, another training-only loss)
+# 2026-11-25: the same for the hint search (commit c54b83b, another training-only loss), and for the
+# plane-sweep hints (commit cca14f3, hint_weight)
 RETIRED_HPARAMS = (
     *("grad_clip", "bin_search", "bin_search_scale"),
-    *("hints", "hint_candidates", "hint_spread", "hint_margin"),
+    *("hints", "hint_candidates", "hint_spread", "hint_margin", "hint_weight"),
 )
 # 2026-11-23: one name for the evaluation cap, as in the protocols and DepthMetrics
 RENAMED_HPARAMS = {("eval_min", "eval_max"): "eval_cap"}

@@ -34,7 +34,7 @@ from .geometry import (
     translation_direction_error_deg,
     warp_to_source,
 )
-from .losses import ReprojectionLoss, edge_aware_smoothness, hint_loss, min_reprojection
+from .losses import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
@@ -80,7 +80,6 @@ class FisheyeDepthModule(L.LightningModule):
         upsample: str = "distance",
         decoder_width: float = 1.0,
         rim_margin: int | None = None,
-        hint_weight: float | None = None,
     ):
         """``smoothness``: weight of the smoothness term at scale 0 (divided by 2^s at scale s), one value
         for both heads (it acts on the same [0, 1] disparity), so that the ``multi_channel`` switch changes
@@ -105,11 +104,6 @@ class FisheyeDepthModule(L.LightningModule):
         pixels within that margin (at the input size) of the image circle's edge (the camera's field of
         view) join the body masks: not scored in the target, not sampled in a source; at a coarser loss
         scale a pixel whose footprint touches them is dropped too, as at the body's edge (0: that alone).
-        ``hint_weight``: None (the paper's) or the weight of Depth Hints' term (a switch beyond the
-        paper): each training batch carries distance hints (``data.datamodule.hints``, from
-        ``scripts/make_hints.py``'s plane sweep) and at scale 0 the prediction is pulled towards a hint
-        by ``|log L - log h|`` wherever the hint warps the sources better than the prediction
-        (:mod:`fisheyedepth.losses.hints`).
         ``lr_schedule``: "step" (Monodepth2: x ``lr_gamma`` after ``lr_step`` epochs) or "cosine"
         (cosine annealing to ``lr * lr_gamma`` over the run's ``max_epochs``).
         ``rig_offsets``: the rig's other cameras are sources too, at these time offsets (cross-camera
@@ -137,12 +131,9 @@ class FisheyeDepthModule(L.LightningModule):
             )
         if rim_margin is not None and rim_margin < 0:
             raise ValueError(f"rim_margin: {rim_margin} pixels is negative (null switches the rim mask off)")
-        if hint_weight is not None and not hint_weight > 0:
-            raise ValueError(f"hint_weight: {hint_weight!r}, expected a weight > 0 (null switches hints off)")
         self.save_hyperparameters()
         self.scales = tuple(scales)
         self.rim_margin = rim_margin
-        self.hint_weight = hint_weight
         self.source_offsets = tuple(source_offsets)
         self.depth_net = DepthNet(
             resnet,
@@ -324,27 +315,6 @@ class FisheyeDepthModule(L.LightningModule):
         error, used = min_reprojection(errors, valid, level.identity, self.reprojection.automask, noise=0.0)
         return error, used & level.mask, level.mask
 
-    def _hint_term(
-        self, batch: Batch, level: _Level, distance: Tensor, poses: Tensor, errors: Tensor, valid: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """Depth Hints' term at the input size: where the batch's hint warps the sources better than
-        ``distance`` (the lower minimum over the sources' photometric errors), ``|log L - log h|``."""
-        if batch.hint is None:
-            raise ValueError("hint_weight is set but the batch has no hints: set data.datamodule.hints")
-        if distance.shape[-2:] != batch.hint.shape[-2:]:
-            raise ValueError(
-                f"hints are {tuple(batch.hint.shape[-2:])}, scale 0 is {tuple(distance.shape[-2:])}"
-            )
-        hint = batch.hint[:, 0].to(distance.dtype)
-        with torch.no_grad():
-            warped_h, valid_h = self._warp_sources(level, hint, poses)
-            errors_h = self.reprojection.photometric(warped_h, level.target)
-            inf = torch.full_like(errors, float("inf"))
-            mine = torch.where(valid, errors.detach(), inf).min(1).values
-            theirs = torch.where(valid_h, errors_h, inf).min(1).values
-            use = (hint > 0) & level.mask & torch.isfinite(theirs) & (theirs < mine)
-        return hint_loss(distance, hint, use)
-
     def _losses(
         self, batch: Batch, outputs: dict[str, dict[int, Tensor]], poses: Tensor
     ) -> tuple[Tensor, dict[str, Tensor]]:
@@ -365,14 +335,9 @@ class FisheyeDepthModule(L.LightningModule):
                 else:
                     distance = F.interpolate(distance, size=(H, W), mode="bilinear", align_corners=False)
             warped, valid = self._warp_sources(level, distance, poses)
-            errors = self.reprojection.photometric(warped, level.target)
             photo, used, measured = self.reprojection(
-                level.target, warped, valid, level.identity, level.mask, not self.training, errors
+                level.target, warped, valid, level.identity, level.mask, not self.training
             )
-            if s == 0 and self.hint_weight is not None and self.training:
-                hint, share = self._hint_term(batch, level, distance, poses, errors, valid)
-                total = total + self.hint_weight * len(self.scales) * hint  # not averaged over scales
-                logs["hint"], logs["hint_pixels"] = hint, share
             disp = outputs["disp"][s]
             image_s = level.target  # native resolution: already the target at this scale
             if image_s.shape[-2:] != disp.shape[-2:]:

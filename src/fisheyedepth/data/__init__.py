@@ -3,7 +3,7 @@
 from .augment import Augment, PoseNoise, colour_jitter, flip_sample
 from .batch import Batch, SkippedBatch, collate
 from .datamodule import FisheyeDataModule
-from .dataset import FisheyeDataset, ImageCache, hint_path
+from .dataset import FisheyeDataset, ImageCache
 from .kitti360 import Kitti360Layout
 from .layouts import CameraSpec, RigLayout
 
@@ -21,5 +21,4 @@ __all__ = [
     "colour_jitter",
     "collate",
     "flip_sample",
-    "hint_path",
 ]

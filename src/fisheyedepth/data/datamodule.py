@@ -46,8 +46,6 @@ class FisheyeDataModule(L.LightningDataModule):
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
         source_baseline: metres: each offset's source is the frame on its side nearest to this distance
             (scaled by ``|offset| / max|offsets|``) instead of a fixed frame offset; None: off.
-        hints: a folder of distance hints for the training split (``scripts/make_hints.py``; the
-            module's ``hint_weight`` uses them); None: none.
     """
 
     def __init__(
@@ -74,10 +72,8 @@ class FisheyeDataModule(L.LightningDataModule):
         lidar_occlusion: float | None = OCCLUSION,
         rig_offsets: tuple[int, ...] = (),
         source_baseline: float | None = None,
-        hints: str | os.PathLike | None = None,
     ):
         super().__init__()
-        self.hints = hints
         self.rig_offsets, self.source_baseline = tuple(rig_offsets), source_baseline
         if layout not in LAYOUTS:
             raise ValueError(f"unknown layout {layout!r}; one of {sorted(LAYOUTS)}")
@@ -128,7 +124,6 @@ class FisheyeDataModule(L.LightningDataModule):
                 pose_noise=self.pose_noise,
                 rig_offsets=self.rig_offsets,
                 source_baseline=self.source_baseline,
-                hints=self.hints if split == "train" else None,
             )
         return self.datasets[split]
 

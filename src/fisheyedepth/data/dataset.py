@@ -76,12 +76,6 @@ def report_aspect(root, name: str, native: tuple[int, int], size: tuple[int, int
     )
 
 
-def hint_path(folder: str | Path, sequence: str, camera: str, key: int) -> Path:
-    """Where ``scripts/make_hints.py`` writes, and the dataset reads, one target frame's hint map:
-    ``folder/<sequence>/<camera>/<key>.npy``, float16 metres at the training size, 0 = no hint."""
-    return Path(folder) / sequence / camera / f"{key}.npy"
-
-
 def default_cache_dir() -> Path:
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "fisheyedepth"
@@ -210,7 +204,6 @@ class FisheyeDataset(Dataset):
         pose_noise: PoseNoise | None = None,
         rig_offsets: tuple[int, ...] = (),
         source_baseline: float | None = None,
-        hints: str | os.PathLike | None = None,
     ):
         """``ground_truth``: "distance" (rendered maps), "lidar" (projected scans, KITTI-360 layout),
         "auto" (whichever exists), or "none"; LiDAR is projected lazily, per frame, when a sample is
@@ -225,19 +218,12 @@ class FisheyeDataset(Dataset):
         offset only gives a direction and a share of the baseline: its source is the frame on that side
         whose distance from the target is nearest to ``source_baseline * |offset| / max|offsets|``
         (see :func:`baseline_rows`), so a fast stretch of a drive gets nearer frames and a slow one
-        farther ones, and every target sees about the same parallax. ``hints``: a folder of distance
-        hints (``scripts/make_hints.py``, :func:`hint_path`); each sample then
-        has ``hint [1, H, W]`` (0 = none), and a target frame without its file is an error."""
+        farther ones, and every target sees about the same parallax."""
         if source_baseline is not None and not (source_baseline > 0 and math.isfinite(source_baseline)):
             raise ValueError(f"source_baseline: {source_baseline!r}, expected metres > 0 or None")
         if source_baseline is not None and 0 in offsets:
             raise ValueError(f"source_baseline needs offsets with a direction; got offsets {list(offsets)}")
         self.source_baseline = source_baseline
-        self.hints = None if hints is None else Path(hints)
-        if self.hints is not None and not self.hints.is_dir():
-            raise FileNotFoundError(
-                f"hints: {self.hints} is not a folder (write it with scripts/make_hints.py)"
-            )
         self.pose_noise = pose_noise or PoseNoise()
         self.layout, self.size, self.offsets = layout, size, tuple(offsets)
         self.rig_offsets = tuple(rig_offsets)
@@ -435,8 +421,6 @@ class FisheyeDataset(Dataset):
             sample["sources"] = sample["image"].new_zeros(0, *sample["image"].shape)
             sample["poses"] = torch.zeros(0, 4, 4)
         sample["cam_to_body"] = E.float()  # lets a PoseNet predict the body's motion, like odometry
-        if self.hints is not None:
-            sample["hint"] = self._hint(item, camera, target)
         gt = self._ground_truth(item, camera, target)
         if gt is not None:
             sample["distance"], sample["distance_source"] = gt
@@ -457,21 +441,6 @@ class FisheyeDataset(Dataset):
                 mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
             self._masks[key] = torch.from_numpy((mask > 127).astype(np.float32))[None]
         return self._masks[key].clone()
-
-    def _hint(self, item: Item, camera, frame: Frame) -> torch.Tensor:
-        """``[1, H, W]`` float32 distance hint of the target frame (0 = none), checked."""
-        path = hint_path(self.hints, item.sequence, item.camera, frame.key)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no distance hint for {item.sequence}/{item.camera}/{frame.key}")
-        h = np.load(path, allow_pickle=False)
-        if h.shape != (camera.height, camera.width):
-            raise ValueError(
-                f"{path}: hint is {h.shape[1]}x{h.shape[0]}, the samples are {camera.width}x{camera.height}"
-            )
-        h = h.astype(np.float32)
-        if not np.isfinite(h).all() or (h < 0).any():
-            raise ValueError(f"{path}: hint has negative or non-finite distances")
-        return torch.from_numpy(h)[None]
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
         """``(distance [1, H, W], source)``: a ``distance_source`` of :mod:`.batch`."""

@@ -1,7 +1,6 @@
 """Self-supervised losses: photometric error (SSIM + L1), minimum reprojection with auto-masking, and
-edge-aware smoothness; distance hints from a plane sweep."""
+edge-aware smoothness."""
 
-from .hints import candidate_distances, hint_loss, plane_sweep
 from .photometric import box_mean3, photometric_error, ssim
 from .selfsup import (
     INVALID_WARP_ERROR,
@@ -16,9 +15,6 @@ __all__ = [
     "ReprojectionLoss",
     "automasked_error",
     "box_mean3",
-    "candidate_distances",
-    "hint_loss",
-    "plane_sweep",
     "edge_aware_smoothness",
     "min_reprojection",
     "photometric_error",

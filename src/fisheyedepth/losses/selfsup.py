@@ -97,7 +97,6 @@ class ReprojectionLoss:
         identity: Tensor | None,
         mask: Tensor,
         measure: bool = True,
-        errors: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor | None]:
         """
         Args:
@@ -107,7 +106,6 @@ class ReprojectionLoss:
             identity: ``[B, S, H, W]`` from :meth:`identity` (or None: unreachable pixels cost
                 :data:`INVALID_WARP_ERROR`).
             mask: ``[B, H, W]`` target pixels that may contribute (body mask and pixels with a ray).
-            errors: ``[B, S, H, W]`` :meth:`photometric` of ``warped``, when the caller has it already.
         Returns ``(loss, used fraction, automasked error)``: the loss is the mean of
         :func:`min_reprojection` over the usable pixels (``mask``): a pixel the warps do not win costs
         its unwarped error and still counts, as in Monodepth2's mean
@@ -115,7 +113,7 @@ class ReprojectionLoss:
         the automasked error (:func:`automasked_error`, no gradient) is what validation compares
         across epochs; None without ``measure`` (the training step does not need it).
         """
-        errors = self.photometric(warped, target) if errors is None else errors
+        errors = self.photometric(warped, target)
         valid = valid & mask[:, None]
         best, used = min_reprojection(errors, valid, identity, self.automask)
         used = used & mask
