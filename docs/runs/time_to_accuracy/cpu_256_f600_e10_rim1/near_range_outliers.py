@@ -3,7 +3,8 @@ kitti360 protocol's range) inside the body mask, split into depth edges (the gro
 more than 1.5x within a 5x5 window) and interiors; for each, the share of the camera's pixels, abs_rel,
 its part of the camera's abs_rel, and the share and part of the pixels predicted more than 1.5x too far.
 
-    python near_range_outliers.py CHECKPOINT DATASET   (test split, the checkpoint's input size)
+    python near_range_outliers.py CHECKPOINT DATASET [SPLIT]   (the checkpoint's input size; SPLIT
+    defaults to splits/test.txt; session 18 added it to count world 0's training frames)
 """
 
 import sys
@@ -18,7 +19,7 @@ from fisheyedepth.module import FisheyeDepthModule
 module = FisheyeDepthModule.from_checkpoint(sys.argv[1]).eval()
 dataset = FisheyeDataset(
     Kitti360Layout(sys.argv[2]),
-    "splits/test.txt",
+    sys.argv[3] if len(sys.argv) > 3 else "splits/test.txt",
     size=tuple(module.hparams.input_size),
     offsets=(-2, 2),
     ground_truth="distance",
