@@ -54,8 +54,16 @@ with torch.no_grad():
         acts = near & valid & (err_h < err_p)
         a = acc.setdefault(b.camera_name[0], [0] * 8)
         for k, v in enumerate(
-            (scored, scored & valid, scored & right_h, near, missed, missed & right_h,
-             acts & right_h & ~right_p, acts & ~right_h & right_p)
+            (
+                scored,
+                scored & valid,
+                scored & right_h,
+                near,
+                missed,
+                missed & right_h,
+                acts & right_h & ~right_p,
+                acts & ~right_h & right_p,
+            )
         ):
             a[k] += int(v.sum())
 print(

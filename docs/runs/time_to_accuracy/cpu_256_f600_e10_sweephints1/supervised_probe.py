@@ -4,19 +4,34 @@ distance (scale 0 only; no photometric term), N steps, then save a checkpoint.
 
     python supervised_probe.py REFERENCE_CKPT (for its hyper-parameters) WORLD0_ROOT STEPS OUT_CKPT
 """
-import sys, tempfile, time, torch
+
+import sys
+import tempfile
+import time
+
+import torch
+
+from fisheyedepth.checkpoints import module_arguments
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.checkpoints import module_arguments
+
 torch.manual_seed(0)
 torch.set_num_threads(2)
 ref = torch.load(sys.argv[1], weights_only=True, map_location="cpu")
 hp = module_arguments(sys.argv[1], ref)
 module = FisheyeDepthModule(**hp).train()
 steps = int(sys.argv[3])
-ds = FisheyeDataset(Kitti360Layout(sys.argv[2]), "splits/train.txt", size=(256, 256), offsets=(-2, 2),
-                    ground_truth="distance", cache_dir=tempfile.mkdtemp())
-loader = torch.utils.data.DataLoader(ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True)
+ds = FisheyeDataset(
+    Kitti360Layout(sys.argv[2]),
+    "splits/train.txt",
+    size=(256, 256),
+    offsets=(-2, 2),
+    ground_truth="distance",
+    cache_dir=tempfile.mkdtemp(),
+)
+loader = torch.utils.data.DataLoader(
+    ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True
+)
 opt = torch.optim.Adam(module.depth_net.parameters(), 3e-4)
 t0, step = time.time(), 0
 while step < steps:
@@ -27,9 +42,12 @@ while step < steps:
         gt = b.distance
         ok = (gt > 0) & (b.mask > 0.5)
         loss = (d.clamp_min(1e-3).log() - gt.clamp_min(1e-3).log()).abs()[ok].mean()
-        opt.zero_grad(); loss.backward(); opt.step(); step += 1
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        step += 1
         if step % 50 == 0:
-            print(step, f"{loss.item():.4f}", f"{time.time()-t0:.0f}s", flush=True)
+            print(step, f"{loss.item():.4f}", f"{time.time() - t0:.0f}s", flush=True)
         if step >= steps:
             break
 torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, sys.argv[4])
