@@ -1,8 +1,12 @@
 """Diagnostic: can the network fit the kerb side's trunks when told the truth? Train cpu_30min's
 network from scratch on world 0's training frames with |log L - log L*| against the rendered
-distance (scale 0 only; no photometric term), N steps, then save a checkpoint.
+distance (scale 0 only; no photometric term), N steps, then save a checkpoint. With DECAY_STEP the
+learning rate drops tenfold at that step, as cpu_30min's does after its 8th of 10 epochs; with
+"augment" after it, the training's augmentation (flip and colour jitter, Monodepth2's ranges) too.
+Session 19 added both options.
 
-    python supervised_probe.py REFERENCE_CKPT (for its hyper-parameters) WORLD0_ROOT STEPS OUT_CKPT
+    python supervised_probe.py REFERENCE_CKPT (for its hyper-parameters) WORLD0_ROOT STEPS OUT_CKPT \
+        [DECAY_STEP [augment]]
 """
 
 import sys
@@ -12,7 +16,7 @@ import time
 import torch
 
 from fisheyedepth.checkpoints import module_arguments
-from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+from fisheyedepth.data import Augment, FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.module import FisheyeDepthModule
 
 torch.manual_seed(0)
@@ -28,16 +32,18 @@ ds = FisheyeDataset(
     offsets=(-2, 2),
     ground_truth="distance",
     cache_dir=tempfile.mkdtemp(),
+    augment=Augment() if sys.argv[6:7] == ["augment"] else None,
 )
 loader = torch.utils.data.DataLoader(
     ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True
 )
 opt = torch.optim.Adam(module.depth_net.parameters(), 3e-4)
+decay_step = int(sys.argv[5]) if len(sys.argv) > 5 else None
 t0, step = time.time(), 0
 while step < steps:
     for b in loader:
         with torch.autocast("cpu", dtype=torch.bfloat16):
-            out = module(b.image, b.camera)
+            out = module(b.image_aug, b.camera)
         d = out["distance"][0].float()
         gt = b.distance
         ok = (gt > 0) & (b.mask > 0.5)
@@ -46,6 +52,9 @@ while step < steps:
         loss.backward()
         opt.step()
         step += 1
+        if step == decay_step:
+            for group in opt.param_groups:
+                group["lr"] *= 0.1
         if step % 50 == 0:
             print(step, f"{loss.item():.4f}", f"{time.time() - t0:.0f}s", flush=True)
         if step >= steps:
