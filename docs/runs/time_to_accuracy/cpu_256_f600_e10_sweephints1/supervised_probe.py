@@ -1,15 +1,16 @@
 """Diagnostic: can the network fit the kerb side's trunks when told the truth? Train cpu_30min's
 network from scratch on world 0's training frames with |log L - log L*| against the rendered
-distance (scale 0 only; no photometric term), N steps, then save a checkpoint. With DECAY_STEP the
-learning rate drops tenfold at that step, as cpu_30min's does after its 8th of 10 epochs; with
-"augment" after it, the training's augmentation (flip and colour jitter, Monodepth2's ranges) too.
-Session 19 added both options.
+distance (scale 0 only; no photometric term), N steps, then save a checkpoint.
 
-    python supervised_probe.py REFERENCE_CKPT (for its hyper-parameters) WORLD0_ROOT STEPS OUT_CKPT \
-        [DECAY_STEP [augment]]
+    python supervised_probe.py REFERENCE_CKPT (for its hyper-parameters) WORLD0_ROOT STEPS OUT_CKPT
+        [--decay-step K] [--augment] [--split splits/train.txt]
+
+Session 19 added the options: ``--decay-step`` drops the learning rate tenfold at step K (as
+cpu_30min's does after its 8th of 10 epochs), ``--augment`` applies the training's augmentation (flip
+and colour jitter, Monodepth2's ranges), ``--split`` trains on another list of frames.
 """
 
-import sys
+import argparse
 import tempfile
 import time
 
@@ -19,26 +20,35 @@ from fisheyedepth.checkpoints import module_arguments
 from fisheyedepth.data import Augment, FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.module import FisheyeDepthModule
 
+parser = argparse.ArgumentParser()
+parser.add_argument("reference")
+parser.add_argument("root")
+parser.add_argument("steps", type=int)
+parser.add_argument("out")
+parser.add_argument("--decay-step", type=int)
+parser.add_argument("--augment", action="store_true")
+parser.add_argument("--split", default="splits/train.txt")
+args = parser.parse_args()
+
 torch.manual_seed(0)
 torch.set_num_threads(2)
-ref = torch.load(sys.argv[1], weights_only=True, map_location="cpu")
-hp = module_arguments(sys.argv[1], ref)
+ref = torch.load(args.reference, weights_only=True, map_location="cpu")
+hp = module_arguments(args.reference, ref)
 module = FisheyeDepthModule(**hp).train()
-steps = int(sys.argv[3])
+steps = args.steps
 ds = FisheyeDataset(
-    Kitti360Layout(sys.argv[2]),
-    "splits/train.txt",
+    Kitti360Layout(args.root),
+    args.split,
     size=(256, 256),
     offsets=(-2, 2),
     ground_truth="distance",
     cache_dir=tempfile.mkdtemp(),
-    augment=Augment() if sys.argv[6:7] == ["augment"] else None,
+    augment=Augment() if args.augment else None,
 )
 loader = torch.utils.data.DataLoader(
     ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True
 )
 opt = torch.optim.Adam(module.depth_net.parameters(), 3e-4)
-decay_step = int(sys.argv[5]) if len(sys.argv) > 5 else None
 t0, step = time.time(), 0
 while step < steps:
     for b in loader:
@@ -52,11 +62,11 @@ while step < steps:
         loss.backward()
         opt.step()
         step += 1
-        if step == decay_step:
+        if step == args.decay_step:
             for group in opt.param_groups:
                 group["lr"] *= 0.1
         if step % 50 == 0:
             print(step, f"{loss.item():.4f}", f"{time.time() - t0:.0f}s", flush=True)
         if step >= steps:
             break
-torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, sys.argv[4])
+torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, args.out)
