@@ -46,7 +46,7 @@ ds = FisheyeDataset(
     augment=Augment() if args.augment else None,
 )
 loader = torch.utils.data.DataLoader(
-    ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True
+    ds, batch_size=4, shuffle=True, collate_fn=collate, num_workers=1, drop_last=True, persistent_workers=True
 )
 opt = torch.optim.Adam(module.depth_net.parameters(), 3e-4)
 t0, step = time.time(), 0
