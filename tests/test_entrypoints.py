@@ -17,6 +17,7 @@ import torch
 import yaml
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.checkpoints import read_checkpoint
@@ -50,6 +51,7 @@ def test_every_experiment_composes(experiment):
         "table1_fsnet": (False, False, True),
         "table1_fsnet_rs": (False, True, True),
         "cpu_30min": (True, True, True),  # the full model, at a larger size for longer
+        "gpu_10min": (True, True, True),  # cpu_30min on a GPU for longer
     }[experiment]
     assert (m.fisheye_projection, m.real_scale, m.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
@@ -60,6 +62,39 @@ def test_every_experiment_composes(experiment):
         default = compose_train([])
         assert list(cfg.data.datamodule.size) == [256, 256] != list(default.data.datamodule.size)
         assert cfg.model.lr_step < cfg.trainer.max_epochs and cfg.model.loss_resolution == "native"
+
+
+def flat(tree, prefix=""):
+    """``{"a.b": leaf}`` for a nested dict."""
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    out = {}
+    for key, sub in tree.items():
+        out.update(flat(sub, f"{prefix}.{key}" if prefix else key))
+    return out
+
+
+def test_gpu_recipe_is_cpu_30min_longer_on_a_gpu():
+    """gpu_10min is the run of BENCHMARKS.md row 48: cpu_30min with more epochs, the decay after the
+    same 80 % of them, on a GPU; everything else (model, data, loss, optimiser) is cpu_30min's."""
+    cpu = flat(OmegaConf.to_container(compose_train(["+experiment=cpu_30min"])))
+    gpu = flat(OmegaConf.to_container(compose_train(["+experiment=gpu_10min"])))
+    keys = {k for k in cpu.keys() | gpu.keys() if not k.startswith("hydra.")}
+    changed = {k: (cpu.get(k), gpu.get(k)) for k in keys if cpu.get(k) != gpu.get(k)}
+    assert changed == {
+        "experiment_name": ("cpu_30min", "gpu_10min"),
+        "trainer.accelerator": ("cpu", "gpu"),
+        "trainer.log_every_n_steps": (10, 50),
+        "trainer.deterministic": (False, None),
+        "trainer.max_epochs": (10, 17),
+        "model.lr_step": (8, 14),
+        "model.compile_kernels": (True, False),
+        "data.datamodule.num_workers": (1, 12),
+        "data.generate.workers": (2, 16),
+    }
+    assert gpu["model.lr_step"] / gpu["trainer.max_epochs"] == pytest.approx(
+        cpu["model.lr_step"] / cpu["trainer.max_epochs"], abs=0.03
+    )
 
 
 @pytest.mark.parametrize(
