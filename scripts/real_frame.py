@@ -68,7 +68,7 @@ def load_frame(folder: Path, camera: str = "image_02") -> RealFrame:
     for key, array in (("rgb", bgr), ("body_mask", mask), ("lidar_distance", lidar)):
         if array.shape[1::-1] != size:
             raise ValueError(
-                f"{paths[key]}: {array.shape[1]}x{array.shape[0]}, but {camera}.yaml says {size}"
+                f"{paths[key]}: {array.shape[1]}x{array.shape[0]}, but {camera}.yaml says {size[0]}x{size[1]}"
             )
     image = torch.from_numpy(np.ascontiguousarray(bgr[..., ::-1])).permute(2, 0, 1).float()[None] / 255.0
     return RealFrame(image, cam, torch.from_numpy(mask), torch.from_numpy(lidar))
