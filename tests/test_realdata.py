@@ -299,11 +299,16 @@ def test_real_frame_runs_a_checkpoint_and_keeps_its_picture(realdata, checkpoint
         )
 
 
-def test_real_frame_names_a_lidar_file_that_is_not_16_bit(realdata, tmp_path):
+def test_real_frame_names_the_file_that_does_not_fit(realdata, tmp_path):
     script = load_script("real_frame")
     for path in (realdata / "kitti360_frame").iterdir():
         (tmp_path / path.name).symlink_to(path)
     (tmp_path / "image_02_lidar_distance.png").unlink()
     cv2.imwrite(str(tmp_path / "image_02_lidar_distance.png"), np.zeros((1400, 1400), np.uint8))
     with pytest.raises(ValueError, match=r"image_02_lidar_distance.png: expected a one-channel uint16"):
+        script.load_frame(tmp_path)
+    cv2.imwrite(str(tmp_path / "image_02_lidar_distance.png"), np.zeros((1400, 1400), np.uint16))
+    (tmp_path / "image_02_body_mask.png").unlink()
+    cv2.imwrite(str(tmp_path / "image_02_body_mask.png"), np.full((700, 700), 255, np.uint8))
+    with pytest.raises(ValueError, match=r"body_mask.png: 700x700, but image_02.yaml says 1400x1400"):
         script.load_frame(tmp_path)
