@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -470,3 +471,21 @@ def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summar
     )  # fmt: skip
     assert summary["interrupted"] is True and summary["frames"] == 1 and len(calls) == 2
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["frames"] == 1
+
+
+def test_bench_gpu_step_times_its_variants_side_by_side():
+    """scripts/bench_gpu_step.py (BENCHMARKS.md, session 20), tiny and on the CPU: every variant asked
+    for gets a row with a positive step time; the first is the reference of the ratios."""
+    proc = subprocess.run(
+        [sys.executable, "bench_gpu_step.py", "--device", "cpu", "--size", "64", "--batch", "1",
+         "--steps", "1", "--rounds", "2", "--warmup", "1",
+         "--variants", "float32", "bf16 autocast (gpu_10min)"],
+        capture_output=True, text=True, timeout=600, cwd=ROOT / "scripts",
+        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    rows = [line.strip("|").split(" | ") for line in proc.stdout.splitlines() if line.startswith("| ")]
+    assert [r[0].strip() for r in rows[1:]] == ["float32", "bf16 autocast (gpu_10min)"]
+    for name, warmup, ms, _ in rows[1:]:
+        assert float(warmup) > 0 and float(ms) > 0, name
+    assert rows[1][3].strip() == "1.00x"
