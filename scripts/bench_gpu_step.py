@@ -3,7 +3,8 @@
 network in float32 against bf16 autocast (``trainer.precision`` auto on a GPU), and ``gpu_10min``'s
 step (bf16, compiled kernels off) against the same with ``model.compile_kernels`` on. The variants take
 turns within every round, on one batch of a small rendered world (batch 4 at 256x256, two sources,
-4 scales, channels_last, loss at native resolution: ``cpu_30min``'s model).
+4 scales, channels_last, loss at native resolution: ``cpu_30min``'s model; Adam as
+``bench_training.py`` makes it, not the fused one that training uses on a GPU).
 
     python scripts/bench_gpu_step.py [--device cuda] [--rounds 5] [--steps 20] [--variants NAME ...]
 
