@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from bench_training import make_batch, make_module
+from bench_training import make_batch, make_module, step
 from fisheyedepth.data.synthetic import generate
 
 VARIANTS = {  # name: (bf16 autocast, compiled kernels)
@@ -36,14 +36,6 @@ VARIANTS = {  # name: (bf16 autocast, compiled kernels)
 def synchronize(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
-
-
-def train_step(module, optimizer, batch, bf16: bool) -> None:
-    with torch.autocast(batch.image.device.type, dtype=torch.bfloat16, enabled=bf16):
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))  # geometry and loss in float32
-    optimizer.zero_grad()
-    loss.backward()
-    optimizer.step()
 
 
 def main(argv=None) -> None:
@@ -72,7 +64,7 @@ def main(argv=None) -> None:
         synchronize(device)
         t0 = time.perf_counter()
         for _ in range(args.warmup):
-            train_step(module, optimizer, batch, bf16)
+            step(module, optimizer, batch, bf16)
         synchronize(device)
         warmup[name] = time.perf_counter() - t0
         runs[name] = (module, optimizer, bf16)
@@ -84,7 +76,7 @@ def main(argv=None) -> None:
             synchronize(device)
             t0 = time.perf_counter()
             for _ in range(args.steps):
-                train_step(module, optimizer, batch, bf16)
+                step(module, optimizer, batch, bf16)
             synchronize(device)
             times[name].append((time.perf_counter() - t0) / args.steps)
     where = (

@@ -112,7 +112,8 @@ def make_module(
 
 
 def step(module, optimizer, batch, bf16: bool = False) -> None:
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):  # as trainer.precision=bf16-mixed
+    # as trainer.precision=bf16-mixed, on the batch's device (bench_gpu_step.py runs it on a GPU)
+    with torch.autocast(batch.image.device.type, dtype=torch.bfloat16, enabled=bf16):
         loss, _ = module.losses(batch, module(batch.image, batch.camera))  # geometry and loss in float32
     optimizer.zero_grad()
     loss.backward()

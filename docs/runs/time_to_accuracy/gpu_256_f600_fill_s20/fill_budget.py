@@ -48,7 +48,7 @@ class FillBudget(Callback):
             epochs = max(epochs, 3)
             step = max(2, round(self.decay_fraction * epochs))
             scheduler = trainer.lr_scheduler_configs[0].scheduler
-            if scheduler.last_epoch >= min(scheduler.step_size, step) or not hasattr(scheduler, "step_size"):
+            if not hasattr(scheduler, "step_size") or scheduler.last_epoch >= min(scheduler.step_size, step):
                 raise RuntimeError(f"the schedule has already moved: {scheduler.state_dict()}")
             scheduler.step_size = step
             pl_module.hparams["lr_step"] = step
