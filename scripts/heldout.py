@@ -3,14 +3,16 @@
 "Time to accuracy").
 
     python scripts/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
-                              [--post-process flip] [--set KEY=VALUE ...]
+                              [--post-process flip] [--lane left] [--set KEY=VALUE ...]
 
 RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
 split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
 scored by ``eval.py`` on the test split of the world rendered with each held-out seed (200 frames,
 rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json`` (``..._flip`` with
 ``--post-process flip``, Monodepth2's post-processing); an existing one is reused.
-``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
+``--lane left`` scores the same worlds with the car in the left lane (rendered into
+``synthetic_<rig>_<size>_seed<S>_f200_laneleft``, scored into ``..._laneleft``): the side cameras trade
+the near kerb for the far side of the street. ``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
 full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the
 held-out seeds before training, and never train or tune on them: the seed of the world the run
 trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its rig.
@@ -48,12 +50,20 @@ def trained_world(run: Path) -> tuple[str, int] | None:
 
 
 def score_heldout(
-    run: Path, seed: int, rig: str, upsample: str | None, extra: list[str], post_process: str = "none"
+    run: Path,
+    seed: int,
+    rig: str,
+    upsample: str | None,
+    extra: list[str],
+    post_process: str = "none",
+    lane: str = "right",
 ) -> Path:
     """Evaluate the run's last checkpoint on world ``seed``; returns its results.json."""
     if trained_world(run) == (rig, seed):  # the 200-frame world is the start of a longer one's drive
+        # (in either lane: the other lane drives the same streets)
         raise ValueError(f"{run}: world {seed} ({rig}) is the world it trained on, not a held-out one")
     suffix = (f"_{upsample}" if upsample else "") + (f"_{post_process}" if post_process != "none" else "")
+    suffix += "_laneleft" if lane == "left" else ""
     out = run / f"heldout_{rig}_seed{seed}{suffix}"
     if (out / "results.json").is_file():
         return out / "results.json"
@@ -75,6 +85,12 @@ def score_heldout(
         command.append(f"upsample={upsample}")
     if post_process != "none":
         command.append(f"post_process={post_process}")
+    if lane == "left":  # its own folder: the generator refuses to reuse the right lane's
+        command += [
+            "+data.generate.lane=left",
+            "data.datamodule.root=${paths.data_dir}/synthetic_${data.generate.rig}_${data.generate.size}"
+            "_seed${data.generate.seed}_f${data.generate.frames}_laneleft",
+        ]
     command += extra
     subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     return out / "results.json"
@@ -89,9 +105,11 @@ def main(argv=None) -> int:
     parser.add_argument("--rig", default="kitti360")
     parser.add_argument("--upsample", choices=("distance", "logits"))
     parser.add_argument("--post-process", choices=POST_PROCESSING, default="none")
+    parser.add_argument("--lane", choices=("right", "left"), default="right", help="the car's lane")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
     args = parser.parse_args(argv)
-    header = ["run", "own test", *(f"world {s} (held out)" for s in args.seeds)]
+    lane = ", left lane" if args.lane == "left" else ""
+    header = ["run", "own test", *(f"world {s} (held out{lane})" for s in args.seeds)]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for run in args.runs:
@@ -99,7 +117,11 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             try:
                 cells.append(
-                    scores(score_heldout(run, seed, args.rig, args.upsample, args.set, args.post_process))
+                    scores(
+                        score_heldout(
+                            run, seed, args.rig, args.upsample, args.set, args.post_process, args.lane
+                        )
+                    )
                 )
             except FileNotFoundError as err:  # a kept record without its checkpoint, not yet scored here
                 cells.append(f"({err})")

@@ -179,6 +179,14 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     assert "post_process=flip" in commands[2]
     assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001_flip'}" in commands[2]
     assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001'}" in commands[0]
+    # the car in the left lane: its own world folder (the generator refuses to reuse the right lane's)
+    # and its own results
+    heldout.score_heldout(tmp_path, 2001, "surround4", None, [], lane="left")
+    assert f"hydra.run.dir={tmp_path / 'heldout_surround4_seed2001_laneleft'}" in commands[3]
+    assert "+data.generate.lane=left" in commands[3]
+    roots = [o for o in commands[3] if o.startswith("data.datamodule.root=")]
+    assert len(roots) == 1 and roots[0].endswith("_f${data.generate.frames}_laneleft")
+    assert not any("lane" in o for c in commands[:3] for o in c)
 
 
 def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):
