@@ -2,7 +2,9 @@
 scripts/heldout.py, and the spread (the worst camera's full-range abs_rel over the best's, issue #13's
 item 3 asks for at most 1.25x).
 
-    python per_camera.py RIG RUN [RUN ...] [--seeds S ...]
+    python per_camera.py RIG RUN [RUN ...] [--seeds S ...] [--lane left]
+
+``--lane left``: the scores of ``scripts/heldout.py --lane left`` (the car in the left lane).
 """
 
 import argparse
@@ -13,12 +15,14 @@ parser = argparse.ArgumentParser()
 parser.add_argument("rig", choices=["kitti360", "surround4"])
 parser.add_argument("runs", nargs="+")
 parser.add_argument("--seeds", nargs="+", type=int, default=[1001, 1002, 2001, 2002])
+parser.add_argument("--lane", choices=("right", "left"), default="right")
 args = parser.parse_args()
 
 for run in args.runs:
     print(f"== {run}")
     for seed in args.seeds:
-        path = Path(run) / f"heldout_{args.rig}_seed{seed}" / "results.json"
+        lane = "_laneleft" if args.lane == "left" else ""
+        path = Path(run) / f"heldout_{args.rig}_seed{seed}{lane}" / "results.json"
         results = json.loads(path.read_text())["results"]
         full, k360 = results["full"], results["kitti360"]
         cameras = sorted(full["none_by_camera"])
