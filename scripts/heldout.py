@@ -12,10 +12,11 @@ rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json`` (``..._f
 ``--post-process flip``, Monodepth2's post-processing); an existing one is reused.
 ``--lane left`` scores the same worlds with the car in the left lane (rendered into
 ``synthetic_<rig>_<size>_seed<S>_f200_laneleft``, scored into ``..._laneleft``): the side cameras trade
-the near kerb for the far side of the street. ``--set`` passes more Hydra overrides to ``eval.py`` (e.g. ``paths.data_dir=...``). Numbers:
-full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale). Choose the
-held-out seeds before training, and never train or tune on them: the seed of the world the run
-trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its rig.
+the near kerb for the far side of the street. ``--set`` passes more Hydra overrides to ``eval.py``
+(e.g. ``paths.data_dir=...``). Numbers: full-range abs_rel and a1, then kitti360-protocol abs_rel, all
+unscaled (real scale). Choose the held-out seeds before training, and never train or tune on them: the
+seed of the world the run trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its
+rig, in either lane.
 """
 
 from __future__ import annotations

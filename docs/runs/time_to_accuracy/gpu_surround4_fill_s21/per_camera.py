@@ -28,7 +28,8 @@ for run in args.runs:
         cameras = sorted(full["none_by_camera"])
         values = [full["none_by_camera"][c]["abs_rel"] for c in cameras]
         cells = " ".join(
-            f"{c} {v:.3f} / {k360['none_by_camera'][c]['abs_rel']:.3f}" for c, v in zip(cameras, values)
+            f"{c} {v:.3f} / {k360['none_by_camera'][c]['abs_rel']:.3f}"
+            for c, v in zip(cameras, values, strict=True)
         )
         print(
             f"{seed}: {full['none']['abs_rel']:.3f}, {full['none']['a1']:.3f} | {cells}"
