@@ -27,6 +27,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import yaml
+
 from fisheyedepth.runtimes import POST_PROCESSING
 from fisheyedepth.utils import run_config
 
@@ -48,6 +50,11 @@ def trained_world(run: Path) -> tuple[str, int] | None:
     """The rig and seed of the synthetic world ``run`` trained on (None: no synthetic world recorded)."""
     gen = (run_config(run).get("data") or {}).get("generate") or {}
     return (str(gen.get("rig", "kitti360")), int(gen["seed"])) if "seed" in gen else None
+
+
+def synthetic_root() -> str:
+    """The synthetic world's folder as ``conf/data/synthetic.yaml`` names it (Hydra interpolations kept)."""
+    return str(yaml.safe_load((ROOT / "conf" / "data" / "synthetic.yaml").read_text())["datamodule"]["root"])
 
 
 def score_heldout(
@@ -86,12 +93,8 @@ def score_heldout(
         command.append(f"upsample={upsample}")
     if post_process != "none":
         command.append(f"post_process={post_process}")
-    if lane == "left":  # its own folder: the generator refuses to reuse the right lane's
-        command += [
-            "+data.generate.lane=left",
-            "data.datamodule.root=${paths.data_dir}/synthetic_${data.generate.rig}_${data.generate.size}"
-            "_seed${data.generate.seed}_f${data.generate.frames}_laneleft",
-        ]
+    if lane == "left":  # its own world folder: the right lane's must never be read for it
+        command += ["++data.generate.lane=left", f"data.datamodule.root={synthetic_root()}_laneleft"]
     command += extra
     subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
     return out / "results.json"

@@ -179,14 +179,22 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     assert "post_process=flip" in commands[2]
     assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001_flip'}" in commands[2]
     assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2001'}" in commands[0]
-    # the car in the left lane: its own world folder (the generator refuses to reuse the right lane's)
-    # and its own results
+    # the car in the left lane: its own world folder and its own results, even beside the right lane's
+    (tmp_path / "heldout_surround4_seed2001").mkdir()
+    (tmp_path / "heldout_surround4_seed2001" / "results.json").write_text("{}")
     heldout.score_heldout(tmp_path, 2001, "surround4", None, [], lane="left")
     assert f"hydra.run.dir={tmp_path / 'heldout_surround4_seed2001_laneleft'}" in commands[3]
-    assert "+data.generate.lane=left" in commands[3]
+    assert "++data.generate.lane=left" in commands[3]
     roots = [o for o in commands[3] if o.startswith("data.datamodule.root=")]
-    assert len(roots) == 1 and roots[0].endswith("_f${data.generate.frames}_laneleft")
+    template = yaml.safe_load((ROOT / "conf" / "data" / "synthetic.yaml").read_text())["datamodule"]["root"]
+    assert roots == [f"data.datamodule.root={template}_laneleft"]
     assert not any("lane" in o for c in commands[:3] for o in c)
+    heldout.score_heldout(tmp_path, 2001, "surround4", None, [])  # the right lane's is reused
+    assert len(commands) == 4
+    # from the command line
+    monkeypatch.setattr(heldout, "scores", lambda path: "-")
+    assert heldout.main([str(tmp_path), "--rig", "surround4", "--lane", "left", "--seeds", "2002"]) == 0
+    assert "++data.generate.lane=left" in commands[4] and "data.generate.seed=2002" in commands[4]
 
 
 def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):
@@ -201,6 +209,8 @@ def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):
     assert heldout.trained_world(tmp_path) == ("kitti360", 2001)
     with pytest.raises(ValueError, match=r"world 2001 \(kitti360\) is the world it trained on"):
         heldout.score_heldout(tmp_path, 2001, "kitti360", None, [])
+    with pytest.raises(ValueError, match="is the world it trained on"):  # the same streets
+        heldout.score_heldout(tmp_path, 2001, "kitti360", None, [], lane="left")
     heldout.score_heldout(tmp_path, 2001, "surround4", None, [])  # another rig: another world
     heldout.score_heldout(tmp_path, 2002, "kitti360", None, [])
     assert len(commands) == 2 and "data.generate.seed=2002" in commands[1]
