@@ -53,7 +53,9 @@ def main(argv=None) -> int:
         )[args.protocol]
         scaling = "none" if module.hparams["real_scale"] else "median"
         labels.append(f"{Path(ckpt).parent.parent.name} ({scaling})")
-        scores.append([res[f"{scaling}_by_angle"][f"{lo}-{hi}"]["abs_rel"] for lo, hi in ANGLE_BINS])
+        bands = res[f"{scaling}_by_angle"]  # a band without pixels has no number (None): no bar
+        values = [bands[f"{lo}-{hi}"]["abs_rel"] for lo, hi in ANGLE_BINS]
+        scores.append([float("nan") if v is None else v for v in values])
     fig, ax = plt.subplots(figsize=(7, 4))
     width = 0.8 / len(scores)
     for k, (label, vals) in enumerate(zip(labels, scores, strict=True)):

@@ -24,7 +24,7 @@ from torch.nn import functional as F
 from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
 from .data.kitti360 import OCCLUSION, occlusion_filter
-from .metrics import DepthMetrics
+from .metrics import NAMES, DepthMetrics
 from .runtimes import as_runtime
 from .viz import panel
 
@@ -52,6 +52,15 @@ class Protocol:
     max_range: float | None = None
     cap: tuple[float, float] = (1e-3, 80.0)
     occlusion: float | None = None
+
+    def describe(self) -> str:
+        """The range of ground truth it scores, for messages: "distance 0.001-80 m", ..."""
+        parts = [f"{self.quantity} {self.cap[0]:g}-{self.cap[1]:g} m"]
+        if self.z_range is not None and (self.quantity, self.z_range) != ("z", self.cap):
+            parts.append(f"z {self.z_range[0]:g}-{self.z_range[1]:g} m")
+        if self.max_range is not None:
+            parts.append(f"distance below {self.max_range:g} m")
+        return ", ".join(parts)
 
 
 PROTOCOLS = {
@@ -83,7 +92,10 @@ def dnet_scale(distance: Tensor, rays: Tensor, camera_height: float, up=(0.0, -1
 
 
 class Evaluator:
-    """Accumulates metrics over a split; ``scalings`` among "none", "median", "dnet"."""
+    """Accumulates metrics over a split; ``scalings`` among "none", "median", "dnet".
+
+    An image with no pixel in the protocol's range is counted (``unscored_images``) and named in a
+    warning; a split with no scored pixel at all is an error, never a perfect score of zero images."""
 
     def __init__(
         self,
@@ -100,6 +112,9 @@ class Evaluator:
         self.by_camera: dict[tuple[str, str], DepthMetrics] = {}  # (scaling, camera name), when named
         self.ratios: dict[str, list[float]] = {s: [] for s in self.scalings}
         self.rays = rays if rays is not None else RayCache()
+        # images fed, and the smallest positive and the largest ground truth on their usable pixels
+        self.seen, self.smallest, self.largest = 0, math.inf, -math.inf
+        self.unscored: list[str] = []  # images with no pixel in the protocol's range, with their largest
 
     def update(
         self,
@@ -109,11 +124,13 @@ class Evaluator:
         camera: CameraModel,
         name: str | None = None,
         source: str | None = None,
+        frame: str | None = None,
     ) -> None:
         """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels;
         ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs); ``source``:
         "lidar" for a projected scan (the protocol's occlusion filter applies), "lidar_filtered" for
-        one filtered already (refused by a protocol without the filter), else a dense map."""
+        one filtered already (refused by a protocol without the filter), else a dense map; ``frame``:
+        the image's name in reports."""
         rays, valid = self.rays.get(camera, pred.device, pred.dtype)
         self._follow(pred.device)
         p = self.protocol
@@ -131,11 +148,21 @@ class Evaluator:
         if p.max_range is not None:
             keep &= gt < p.max_range
         angle = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
+        usable = gt[mask.bool() & valid & torch.isfinite(gt)]
+        largest = float(usable.max()) if usable.numel() else 0.0
+        self.seen, self.largest = self.seen + 1, max(self.largest, largest)
+        if bool((usable > 0).any()):
+            self.smallest = min(self.smallest, float(usable[usable > 0].min()))
+        q0, g = (pred * rays[..., 2], gt_z) if p.quantity == "z" else (pred, gt)
+        scored = keep & (g > p.cap[0]) & (g < p.cap[1])
+        any_scored = bool(scored.any())
+        if not any_scored:
+            why = f"largest {largest:g} m" if largest > 0 else "no positive ground truth"
+            self.unscored.append(f"{frame or f'image {self.seen}'} ({why})")
         for scaling in self.scalings:
-            q, g = (pred * rays[..., 2], gt_z) if p.quantity == "z" else (pred, gt)
-            scored = keep & (g > p.cap[0]) & (g < p.cap[1])
-            if not bool(scored.any()):
-                ratio = 1.0
+            q = q0
+            if not any_scored:
+                ratio = None
             elif scaling == "median":
                 ratio = float(g[scored].median() / q[scored].median().clamp_min(1e-12))
             elif scaling == "dnet":
@@ -144,8 +171,9 @@ class Evaluator:
                 ratio = dnet_scale(pred, rays, self.camera_height)
             else:
                 ratio = 1.0
-            q = q * ratio
-            self.ratios[scaling].append(ratio)
+            if ratio is not None:  # an image without a scored pixel has no ratio to average
+                q = q * ratio
+                self.ratios[scaling].append(ratio)
             self.metrics[scaling].update(q[None], g[None], keep[None])
             if name is not None:
                 if (scaling, name) not in self.by_camera:  # built once, on the images' device
@@ -162,8 +190,31 @@ class Evaluator:
             if metric.device != device:
                 metric.to(device)
 
-    def compute(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"protocol": dataclasses.asdict(self.protocol)}
+    def compute(self, where: str = "the scored images") -> dict[str, Any]:
+        """The results; a ``ValueError`` naming ``where`` (the split) when no pixel of it was scored."""
+        p, n = self.protocol, self.seen
+        if n == len(self.unscored):
+            if n == 0:
+                raise ValueError(f"{where}: no image to score")
+            hint = ": millimetres?" if self.smallest >= p.cap[1] else ""  # every distance out of reach
+            if self.largest <= 0:
+                hint = ": no positive distance; 0 marks a pixel without ground truth"
+            raise ValueError(
+                f"{where}: no pixel of the {n} images' ground truth lies in the {p.name} protocol's range "
+                f"({p.describe()}) (largest ground truth value {self.largest:g}{hint})"
+            )
+        if self.unscored:
+            log.warning(
+                "%s: %d of %d images have no ground truth in the %s protocol's range (%s) and are not "
+                "scored (unscored_images): %s",
+                where,
+                len(self.unscored),
+                n,
+                p.name,
+                p.describe(),
+                ", ".join(self.unscored[:3]) + (", ..." if len(self.unscored) > 3 else ""),
+            )
+        out: dict[str, Any] = {"protocol": dataclasses.asdict(p), "unscored_images": len(self.unscored)}
         for scaling in self.scalings:
             out[scaling] = _summary(self.metrics[scaling])
             if scaling != "none" and self.ratios[scaling]:
@@ -177,8 +228,11 @@ class Evaluator:
         return out
 
 
-def _summary(metrics: DepthMetrics) -> dict[str, float | int]:
-    """One group's metrics as plain numbers, with the number of images that had pixels in it."""
+def _summary(metrics: DepthMetrics) -> dict[str, float | int | None]:
+    """One group's metrics as plain numbers, with the number of images that had pixels in it; a group
+    without any (an angle band that no scored pixel falls in) has None for each metric, never 0."""
+    if int(metrics.images) == 0:
+        return dict.fromkeys(NAMES) | {"images": 0}
     return {k: float(v) for k, v in metrics.compute().items()} | {"images": int(metrics.images)}
 
 
@@ -192,10 +246,12 @@ def evaluate(
     camera_height: float | None = None,
     pictures: Path | None = None,
     n_pictures: int = 4,
+    where: str = "the scored split",
 ) -> dict[str, Any]:
     """Run ``model`` over a loader of native-resolution samples with ground truth ``distance``. ``model``:
     a trained module (run in float32 at ``train_size``) or a runtime of :mod:`fisheyedepth.runtimes`
-    (an exported file, bf16), which brings its own input size."""
+    (an exported file, bf16), which brings its own input size. ``where`` names the split in messages; a
+    split of which no pixel could be scored is a ``ValueError``, never a perfect score."""
     model = as_runtime(model, train_size)
     rays = RayCache()  # one per run, shared by the protocols
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
@@ -210,9 +266,10 @@ def evaluate(
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
         names = batch.camera_name or [None] * len(batch)
         sources = batch.distance_source or [None] * len(batch)
+        frames = batch.frame or [None] * len(batch)
         for i, cam in enumerate(batch.camera):
             for ev in evaluators.values():
-                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i])
+                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i], frames[i])
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body
@@ -223,4 +280,6 @@ def evaluate(
         log.warning(
             "%d frame(s) of the split could not be read and are not scored: %s", len(skipped), skipped[:3]
         )
-    return {name: ev.compute() | {"skipped_frames": len(skipped)} for name, ev in evaluators.items()}
+        if not any(ev.seen for ev in evaluators.values()):
+            raise ValueError(f"{where}: none of its {len(skipped)} frame(s) could be read: {skipped[0]}")
+    return {name: ev.compute(where) | {"skipped_frames": len(skipped)} for name, ev in evaluators.items()}

@@ -31,7 +31,8 @@ class DepthMetrics(Metric):
     A pixel counts when its ground truth lies in the open interval ``cap`` (metres) and the optional mask
     is set; predictions are clamped to ``cap`` after optional per-image median scaling
     (``median_scaling=True``: prediction * median(gt) / median(pred), for scale-less methods).
-    Images without a valid pixel are skipped and counted in ``skipped``.
+    Images without a valid pixel are skipped and counted in ``skipped``. Over zero images the metrics
+    are undefined: ``compute`` raises rather than report a perfect 0.
     """
 
     full_state_update = False
@@ -64,7 +65,12 @@ class DepthMetrics(Metric):
             self.images += 1
 
     def compute(self) -> dict[str, Tensor]:
-        n = self.images.clamp_min(1).double()
+        if int(self.images) == 0:
+            raise ValueError(
+                f"no image had a pixel to score (ground truth in {self.cap[0]:g}-{self.cap[1]:g} m, "
+                f"{int(self.skipped)} image(s) without one): the metrics of zero pixels are undefined"
+            )
+        n = self.images.double()
         out = {name: self.sums[i] / n for i, name in enumerate(NAMES)}
         if self.median_scaling:
             out["scale_ratio"] = self.ratio_sum / n

@@ -34,7 +34,8 @@ def _git_commit() -> str | None:
 
 
 def print_table(results: dict[str, Any], title: str) -> None:
-    """The headline rows, then one row per camera when the split has more than one (mixed rigs)."""
+    """The headline rows, then one row per camera when the split has more than one (mixed rigs); a line
+    below for each protocol that left images unscored (no ground truth in its range)."""
     keys = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
     table = Table(title=title)
     for col in ("protocol", "scaling", "camera", *keys, "images"):
@@ -46,8 +47,15 @@ def print_table(results: dict[str, Any], title: str) -> None:
             if len(per_camera) > 1:
                 rows |= per_camera
             for camera, m in rows.items():
-                table.add_row(name, scaling, camera, *(f"{m[k]:.3f}" for k in keys), str(m["images"]))
-    Console(width=140).print(table)
+                cells = ("-" if m[k] is None else f"{m[k]:.3f}" for k in keys)
+                table.add_row(name, scaling, camera, *cells, str(m["images"]))
+    console = Console(width=140)
+    console.print(table)
+    for name, res in results.items():
+        if res.get("unscored_images"):
+            console.print(
+                f"{name}: {res['unscored_images']} image(s) with no ground truth in range, not scored"
+            )
 
 
 def run_evaluation(
@@ -78,6 +86,7 @@ def run_evaluation(
         cfg.eval.get("camera_height"),
         out_dir / "predictions",
         int(cfg.eval.pictures),
+        f"{cfg.data.datamodule.root} ({split} split)",
     )
     record = {
         "experiment": cfg.get("experiment_name"),

@@ -17,6 +17,7 @@ A sample (what ``FisheyeDataset`` returns) is a dict:
 | ``camera`` | a ``CameraModel`` | the target camera |
 | ``source_camera`` | list of ``S`` cameras | optional: sources' cameras (default: ``camera``) |
 | ``camera_name`` | ``str`` | optional: the rig's name for the target camera (e.g. ``image_02``) |
+| ``frame`` | ``str`` | optional: ``<sequence>/<camera>/<frame key>``, to name the frame in reports |
 
 ``distance_source``: a dense rendered map, a projected LiDAR scan (every point, or occlusion-filtered),
 or "none" (a frame without ground truth in a split that has it: all 0, no pixel scored).
@@ -46,6 +47,7 @@ OPTIONAL = (
     "distance_source",
     "source_camera",
     "camera_name",
+    "frame",
 )
 
 
@@ -67,6 +69,7 @@ class Batch:
     skipped_frames: list[str] = dataclasses.field(default_factory=list)  # reasons, skip_bad_frames
     camera_name: list[str] | None = None  # B rig names of the target cameras, when the dataset gives them
     distance_source: list[str] | None = None  # B "rendered", "lidar", "lidar_filtered" or "none"
+    frame: list[str] | None = None  # B "<sequence>/<camera>/<frame key>", when the dataset gives them
 
     def __len__(self) -> int:
         return len(self.camera)
@@ -144,4 +147,5 @@ def collate(samples: list[dict[str, Any]]) -> Batch | SkippedBatch:
         skipped_frames=skipped,
         camera_name=[str(s["camera_name"]) for s in samples] if "camera_name" in keys else None,
         distance_source=[str(s["distance_source"]) for s in samples] if "distance_source" in keys else None,
+        frame=[str(s["frame"]) for s in samples] if "frame" in keys else None,
     )

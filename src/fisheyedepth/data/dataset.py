@@ -93,6 +93,43 @@ def read_checked(path: Path, expect: tuple[int, int]) -> np.ndarray:
     return image.bgr
 
 
+def read_distance(path: Path, native) -> np.ndarray:
+    """A ground-truth distance map as float32 metres: an ``H x W`` float ``.npy`` at the size of its
+    image (``native``, the camera at its calibrated size), finite, 0 where there is no ground truth and
+    never negative. Anything else is refused naming the file, so that no map is stretched, misread or
+    scored in the wrong unit without a word."""
+    try:
+        d = np.load(path, allow_pickle=False)  # never unpickle: a data file must not run code
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{path}: not a NumPy .npy array: {exc}") from None
+    if not isinstance(d, np.ndarray):  # an .npz archive
+        raise ValueError(f"{path}: not a NumPy .npy array: a {type(d).__name__}")
+    want = (native.height, native.width)
+    if d.ndim != 2 or not np.issubdtype(d.dtype, np.floating):
+        raise ValueError(
+            f"{path}: ground-truth distance of shape {d.shape} and dtype {d.dtype}; "
+            f"expected an H x W float array in metres, {want} for its {native.width}x{native.height} image"
+        )
+    if d.shape != want:
+        raise ValueError(
+            f"{path}: ground-truth distance of shape {d.shape}, but its image is {native.width}x"
+            f"{native.height}: expected shape {want} (the image's own size, never stretched)"
+        )
+    bad = int((~np.isfinite(d)).sum())
+    if bad:
+        raise ValueError(
+            f"{path}: {bad} non-finite value(s) (NaN or inf) in the ground-truth distance; "
+            "write 0 where a pixel has no ground truth"
+        )
+    negative = d < 0
+    if negative.any():
+        raise ValueError(
+            f"{path}: {int(negative.sum())} negative value(s) (smallest {float(d.min()):g}) in the "
+            "ground-truth distance; write 0 where a pixel has no ground truth"
+        )
+    return d.astype(np.float32)
+
+
 class ImageCache:
     """Resized copies of images, keyed by source path, size and modification time; written atomically,
     so concurrent DataLoader workers never read half a file."""
@@ -391,7 +428,7 @@ class FisheyeDataset(Dataset):
         E = torch.from_numpy(spec.cam_to_body)
         path = self.layout.image(item.sequence, item.camera, target)
         sample: dict[str, Any] = {"camera": camera, "image": self._image(path, camera, native)}
-        sample["camera_name"] = item.camera
+        sample["camera_name"], sample["frame"] = item.camera, f"{item.sequence}/{item.camera}/{target.key}"
         sources, poses = [], []
         for offset, source in zip(self.offsets, item.sources, strict=True):
             other = frames[source]
@@ -447,10 +484,10 @@ class FisheyeDataset(Dataset):
         if self.ground_truth in ("distance", "auto"):
             path = self.layout.distance(item.sequence, item.camera, frame)
             if path is not None:
-                d = np.load(path)
-                if d.shape[1::-1] != (camera.width, camera.height):
+                d = read_distance(path, self.layout.cameras[item.camera].camera)
+                if d.shape[1::-1] != (camera.width, camera.height):  # the training size
                     d = cv2.resize(d, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-                return torch.from_numpy(d.astype(np.float32))[None], "rendered"
+                return torch.from_numpy(d)[None], "rendered"
             if self.ground_truth == "distance":
                 raise FileNotFoundError(
                     f"no ground-truth distance map for {item.sequence}/{item.camera}/{frame.key}"
