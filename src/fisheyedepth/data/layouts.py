@@ -43,7 +43,9 @@ class RigLayout:
     ``root/rig.yaml`` lists the cameras; ``root/<sequence>/images/<camera>/<timestamp_ns>.png`` hold the
     images and ``root/<sequence>/poses.txt`` the body poses as ``timestamp_ns tx ty tz qx qy qz qw``.
     Poses are interpolated to each image's timestamp (linear translation, slerp rotation); images outside
-    the pose time range are reported and left out, never extrapolated.
+    the pose time range are reported and left out, never extrapolated, and so are images in a gap of the
+    poses longer than ``max_pose_gap`` seconds (default: ``rig.yaml``'s ``max_pose_gap``, else
+    ``GAP_FACTOR`` times the sequence's median pose interval), never interpolated across it.
     """
 
     name = "rig"
@@ -54,10 +56,12 @@ class RigLayout:
         cameras: list[str] | None = None,
         masks: dict[str, str | os.PathLike] | None = None,
         expect_masks: bool = True,
+        max_pose_gap: float | None = None,
     ):
         """``expect_masks``: a mask that ``rig.yaml`` (or ``masks``) names must exist; off for the
         command that is about to write it. ``mask_paths``: each camera's named mask, existing or not
-        (None: the camera has none)."""
+        (None: the camera has none). ``max_pose_gap``: seconds (class docstring); the images it leaves out
+        are listed in ``in_gaps``, as those outside the poses are in ``outside``."""
         self.root = Path(root)
         rig_file = existing(self.root / "rig.yaml", "rig description")
         try:
@@ -66,6 +70,11 @@ class RigLayout:
             raise CalibrationError(rig_file, None, "not a text file (not UTF-8)") from None
         rig = load_yaml(text, rig_file)  # safe, and reads 1e-3 as a number like OpenCV does
         entries = rig.get("cameras") if isinstance(rig, dict) else None
+        if max_pose_gap is None and isinstance(rig, dict):
+            max_pose_gap = rig.get("max_pose_gap")
+        if max_pose_gap is not None and not _positive_seconds(max_pose_gap):
+            raise CalibrationError(rig_file, "max_pose_gap", f"expected seconds > 0, got {max_pose_gap!r}")
+        self.max_pose_gap = max_pose_gap
         if not isinstance(entries, list) or not entries:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
         self.cameras = {}
@@ -99,6 +108,8 @@ class RigLayout:
             )
         self._frames: dict[tuple[str, str], list[Frame]] = {}
         self.outside: dict[tuple[str, str], list[int]] = {}
+        self.in_gaps: dict[tuple[str, str], list[int]] = {}
+        self._order_checked: set[Path] = set()
 
     def sequences(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir() if (p / "poses.txt").is_file())
@@ -131,6 +142,11 @@ class RigLayout:
         order = np.argsort(np.array(stamps, dtype=np.int64), kind="stable")
         times, a = np.array(stamps, dtype=np.int64)[order], np.array(rows)[order]
         q = a[:, 3:7] / np.linalg.norm(a[:, 3:7], axis=1, keepdims=True)
+        if path not in self._order_checked:  # once per file, not once per camera
+            self._order_checked.add(path)
+            hint = quaternion_order_hint(a[:, :3], q)
+            if hint:
+                log.warning("%s: %s: quaternions in w,x,y,z order? The file's order is x,y,z,w", path, hint)
         return times, a[:, :3], q
 
     def frames(self, sequence: str, camera: str) -> list[Frame]:
@@ -150,6 +166,20 @@ class RigLayout:
                     len(self.outside[key]),
                     camera,
                 )
+            bound = max_gap_ns(times, self.max_pose_gap)
+            gapped = in_pose_gap(times, inside, bound)
+            self.in_gaps[key] = [t for t, g in zip(inside, gapped, strict=True) if g]
+            if self.in_gaps[key]:
+                log.warning(
+                    "%s: %d images of %s lie in gaps of the poses longer than %.3f s (max_pose_gap) and are "
+                    "left out; the longest gap is %.3f s",
+                    self.root / sequence,
+                    len(self.in_gaps[key]),
+                    camera,
+                    bound * 1e-9,
+                    np.diff(times).max() * 1e-9,
+                )
+                inside = [t for t, g in zip(inside, gapped, strict=True) if not g]
             self._frames[key] = [Frame(t, interpolate_pose(times, trans, quats, t)) for t in inside]
         return self._frames[key]
 
@@ -176,6 +206,58 @@ def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) to a rotation matrix: ``geometry.quaternion_to_matrix`` for numpy."""
     return quaternion_to_matrix(torch.from_numpy(np.asarray(q, dtype=np.float64))).numpy()
+
+
+GAP_FACTOR = 5  # default bound on a gap of the poses: this many median pose intervals
+
+
+def max_gap_ns(times: np.ndarray, max_gap: float | None = None) -> int:
+    """The longest gap of the poses (ns) that images are interpolated across: ``max_gap`` seconds, or by
+    default ``GAP_FACTOR`` times the median interval of ``times`` (sorted pose stamps, ns)."""
+    if max_gap is not None:
+        return round(max_gap * 1e9)
+    return int(GAP_FACTOR * np.median(np.diff(times)))
+
+
+def in_pose_gap(times: np.ndarray, stamps, max_gap: int) -> np.ndarray:
+    """Which ``stamps`` (inside ``times``' range) fall between two poses more than ``max_gap`` ns apart;
+    a stamp on a pose is never in a gap."""
+    stamps = np.asarray(stamps, dtype=np.int64).reshape(-1)
+    i = np.clip(np.searchsorted(times, stamps, side="right") - 1, 0, len(times) - 2)
+    on_pose = (stamps == times[i]) | (stamps == times[i + 1])
+    return (times[i + 1] - times[i] > max_gap) & ~on_pose
+
+
+def quaternion_order_hint(trans: np.ndarray, quats: np.ndarray) -> str | None:
+    """Why the unit quaternions ``quats`` (read as x, y, z, w) look like w, x, y, z ones, or None.
+
+    Two tells: every quaternion is (+-1, 0, 0, 0), which read as x, y, z, w is a 180-degree roll about x
+    and written as w, x, y, z is the identity; or the direction of motion in the body frame is
+    scattered as the file reads, and nearly constant (a vehicle moving along one of its axes) when read
+    as w, x, y, z. The relative angle between two rotations is the same in either order, so only the
+    rotations against the translations can tell them apart."""
+    if np.abs(quats[:, 1:]).max() < 1e-6:
+        return "every rotation is a 180-degree roll about x (quaternion 1 0 0 0), an identity in w,x,y,z"
+    stride = max(1, len(trans) // 100)  # high-rate odometry: steps long enough to show a direction
+    steps = trans[stride:] - trans[:-stride]
+    length = np.linalg.norm(steps, axis=1)
+    moving = length > 0.5 * np.median(length)
+    if moving.sum() < 5:
+        return None
+
+    def axis_consistency(q: np.ndarray) -> float:  # 1: the body moves along one of its own axes
+        d = np.einsum(
+            "nji,nj->ni", quaternion_matrix(q[:-stride][moving]), steps[moving] / length[moving, None]
+        )
+        return float(np.linalg.eigvalsh(d.T @ d / len(d))[-1])
+
+    as_read, as_wxyz = axis_consistency(quats), axis_consistency(quats[:, [1, 2, 3, 0]])
+    if as_wxyz > 0.9 and as_wxyz - as_read > 0.2:
+        return (
+            f"the body's direction of motion is scattered over its axes (consistency {as_read:.2f}), "
+            f"but nearly constant when the quaternions are read as w,x,y,z ({as_wxyz:.2f})"
+        )
+    return None
 
 
 def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t: int) -> np.ndarray:
@@ -210,6 +292,10 @@ def _transform(value, path: Path, key: str) -> np.ndarray:
     if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
         raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
     return T
+
+
+def _positive_seconds(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and value > 0
 
 
 def _timestamp(field: str) -> int:

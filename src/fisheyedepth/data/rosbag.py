@@ -4,7 +4,8 @@
 folder with ``metadata.yaml`` and sqlite3 ``.db3`` or ``.mcap`` files) and writes:
 
 - ``<sequence>/images/<camera>/<stamp_ns>.png`` from ``sensor_msgs/Image`` (mono8, mono16, rgb8,
-  bgr8, rgba8, bgra8) or ``sensor_msgs/CompressedImage``, stamped by their headers;
+  bgr8, rgba8, bgra8) or ``sensor_msgs/CompressedImage``, stamped by their headers; 16-bit images are
+  scaled from their bit depth (detected over the whole topic, or given) to the full 16-bit range;
 - ``calibration/<camera>.yaml`` from the camera's ``sensor_msgs/CameraInfo`` (``equidistant`` ->
   Kannala-Brandt; ``plumb_bob``/``rational_polynomial`` without distortion -> pinhole; any other
   model is refused, naming the topic and the model) or from a calibration file the user gives;
@@ -12,14 +13,20 @@ folder with ``metadata.yaml`` and sqlite3 ``.db3`` or ``.mcap`` files) and write
   to the camera's ``frame_id``) or given;
 - ``<sequence>/poses.txt`` from ``nav_msgs/Odometry`` (``--odometry``) or from ``/tf``
   (``--tf-poses WORLD BODY``, a direct edge). The rig layout interpolates them to each image's stamp;
-  images outside the poses' time range are dropped here and counted.
+  images outside the poses' time range, or in a gap of the poses longer than ``max_pose_gap``, are
+  dropped here and counted, as the rig layout would drop them.
 
-Nothing is overwritten without ``overwrite``; every file is written atomically.
+The import is written into a hidden folder beside ``out``, opened with ``RigLayout`` (what training
+will read) and only then moved into place: a failed import leaves nothing at ``out``. A corrupt image
+message is skipped and counted (refused with ``strict``). Nothing is overwritten without ``overwrite``.
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import shutil
+import tempfile
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -31,16 +38,28 @@ from tqdm import tqdm
 
 from ..cameras import CameraModel, KannalaBrandtCamera, PinholeCamera, load_camera, save_camera
 from ..geometry import make_pose
-from ..utils import atomic_write_bytes, atomic_write_text
+from ..images import read_image
+from ..utils import current_umask
+from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix
 from .layouts import _transform as read_transform
-from .layouts import quaternion_matrix
+
+log = logging.getLogger(__name__)
 
 ENCODINGS = {"mono8": (np.uint8, 1), "mono16": (np.uint16, 1), "rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3),
              "rgba8": (np.uint8, 4), "bgra8": (np.uint8, 4)}  # fmt: skip
+PNG = b"\x89PNG\r\n\x1a\n"
 
 
 class RosbagError(ValueError):
     """Something in the bag cannot be imported: names the bag, the topic and what."""
+
+
+class CorruptMessage(RosbagError):
+    """One image message whose pixels cannot be read: skipped and counted, or refused with ``strict``."""
+
+    def __init__(self, topic: str, why: str):
+        super().__init__(f"{topic}: {why}")
+        self.why = why
 
 
 def _stamp(header) -> int:
@@ -59,7 +78,7 @@ def decode_image(msg, topic: str) -> np.ndarray:
     if hasattr(msg, "format"):  # CompressedImage
         image = cv2.imdecode(np.frombuffer(bytes(msg.data), np.uint8), cv2.IMREAD_UNCHANGED)
         if image is None:
-            raise RosbagError(f"{topic}: a CompressedImage ({msg.format}) could not be decoded")
+            raise CorruptMessage(topic, f"a CompressedImage ({msg.format}) could not be decoded")
         return image
     encoding = str(msg.encoding).lower()
     if encoding not in ENCODINGS:
@@ -68,9 +87,10 @@ def decode_image(msg, topic: str) -> np.ndarray:
     dt = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
     data = np.frombuffer(bytes(msg.data), np.uint8)
     if msg.step < msg.width * channels * dt.itemsize or data.size != msg.height * msg.step:
-        raise RosbagError(
-            f"{topic}: image data of {data.size} bytes does not fit height {msg.height} x step {msg.step} "
-            f"for {msg.width} px of {encoding}"
+        raise CorruptMessage(
+            topic,
+            f"image data of {data.size} bytes does not fit height {msg.height} x step {msg.step} "
+            f"for {msg.width} px of {encoding}",
         )
     rows = data.reshape(msg.height, msg.step)
     pixels = rows[:, : msg.width * channels * dt.itemsize].copy().view(dt)
@@ -80,19 +100,45 @@ def decode_image(msg, topic: str) -> np.ndarray:
     return image[..., 0] if channels == 1 else image
 
 
+def is_16_bit(msg) -> bool:
+    """Whether an image message holds 16-bit pixels (``mono16``, or a 16-bit PNG), without decoding it."""
+    if hasattr(msg, "format"):
+        head = bytes(msg.data[:25])
+        return head[:8] == PNG and len(head) == 25 and head[24] == 16  # IHDR bit depth
+    return ENCODINGS.get(str(msg.encoding).lower(), (np.uint8,))[0] == np.uint16
+
+
+def scale_bit_depth(image: np.ndarray, bits: int) -> np.ndarray:
+    """16-bit pixels holding ``bits`` bits of data, stretched to the full 16-bit range (a 12-bit camera's
+    4095 becomes 65535): read as 16 bits they would train as near-black (4095 / 65535 = 6 %)."""
+    if image.dtype != np.uint16 or bits >= 16:
+        return image
+    return np.minimum(np.rint(image * (65535 / (2**bits - 1))), 65535).astype(np.uint16)
+
+
 def camera_from_info(msg, topic: str) -> CameraModel:
     """The camera model of a ``sensor_msgs/CameraInfo``."""
     K = [float(v) for v in _field(msg, "k", "K")]
     D = [float(v) for v in _field(msg, "d", "D")]
     model = str(msg.distortion_model)
     size = {"width": int(msg.width), "height": int(msg.height)}
+    if not any(K):
+        raise RosbagError(
+            f"{topic}: the CameraInfo's K is all zeros (an uncalibrated camera); give the camera's "
+            "calibration file instead (--calibration NAME=FILE)"
+        )
     intrinsics = {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5]}
-    if model == "equidistant":
-        if len(D) != 4:
-            raise RosbagError(f"{topic}: 'equidistant' needs 4 coefficients, got {len(D)}")
-        return KannalaBrandtCamera(**size, **intrinsics, k1=D[0], k2=D[1], k3=D[2], k4=D[3])
-    if model in ("plumb_bob", "rational_polynomial", "") and not any(D):
-        return PinholeCamera(**size, **intrinsics)
+    try:
+        if model == "equidistant":
+            if len(D) != 4:
+                raise RosbagError(f"{topic}: 'equidistant' needs 4 coefficients, got {len(D)}")
+            return KannalaBrandtCamera(**size, **intrinsics, k1=D[0], k2=D[1], k3=D[2], k4=D[3])
+        if model in ("plumb_bob", "rational_polynomial", "") and not any(D):
+            return PinholeCamera(**size, **intrinsics)
+    except RosbagError:
+        raise
+    except ValueError as err:  # an impossible parameter: a zero size, a negative focal length
+        raise RosbagError(f"{topic}: CameraInfo {size['width']}x{size['height']}, K {K}: {err}") from None
     raise RosbagError(
         f"{topic}: distortion model {model!r} with coefficients {D} is not supported (equidistant, or "
         "none); give the camera's calibration file instead (--calibration NAME=FILE)"
@@ -135,6 +181,11 @@ def _open(bag: Path):
     return reader
 
 
+def _listed(stamps: list[int], at_most: int = 10) -> str:
+    more = f" and {len(stamps) - at_most} more" if len(stamps) > at_most else ""
+    return ", ".join(map(str, stamps[:at_most])) + more
+
+
 def import_rosbag(
     bag: str | os.PathLike,
     out: str | os.PathLike,
@@ -147,6 +198,9 @@ def import_rosbag(
     body_frame: str | None = None,
     sequence: str = "seq0",
     overwrite: bool = False,
+    max_pose_gap: float | None = None,
+    bit_depth: int | None = None,
+    strict: bool = False,
 ) -> dict[str, Any]:
     """Import ``bag`` into the rig layout at ``out`` (module docstring); returns a summary.
 
@@ -154,20 +208,64 @@ def import_rosbag(
     topic's namespace + ``/camera_info``). ``calibrations``/``extrinsics``: given per camera instead of
     the bag's (``extrinsics`` values: 4x4 camera -> body). Poses from ``odometry`` (a topic) or
     ``tf_poses`` (world frame, body frame); ``body_frame`` defaults to the odometry's child frame.
+    ``max_pose_gap``: seconds; images in a longer gap of the poses are dropped (default: ``GAP_FACTOR``
+    median pose intervals; a given value is written to ``rig.yaml`` so that training drops the same).
+    ``bit_depth``: the bits of data in 16-bit images (default: the highest set bit over each topic).
+    ``strict``: a corrupt image message stops the import instead of being skipped and counted.
 
-    Two passes over the bag: the first reads poses, calibrations, frames and extrinsics and checks every
-    camera, so a problem stops the import before anything is written; the second streams the images to
-    disk one at a time (memory does not grow with the bag)."""
+    Two passes over the bag: the first reads poses, calibrations, stamps, extrinsics and 16-bit peaks and
+    checks every camera, so most problems stop the import before an image is decoded; the second streams
+    the images to disk one at a time (memory does not grow with the bag). ``overwrite`` replaces
+    ``rig.yaml``, the cameras' calibration files and the sequence's folder; other files of ``out`` stay."""
     bag, out = Path(bag), Path(out)
     if (odometry is None) == (tf_poses is None):
         raise ValueError("poses: give exactly one of odometry=TOPIC or tf_poses=(WORLD, BODY)")
-    if (out / "rig.yaml").exists() and not overwrite:
-        raise FileExistsError(f"{out / 'rig.yaml'} exists; pass overwrite=True (--overwrite) to replace it")
+    if bit_depth is not None and not 8 <= bit_depth <= 16:
+        raise ValueError(f"bit_depth: expected 8 to 16 bits, got {bit_depth}")
+    if max_pose_gap is not None and not max_pose_gap > 0:
+        raise ValueError(f"max_pose_gap: expected seconds > 0, got {max_pose_gap}")
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder")
+    parts = [Path(sequence), *(Path("calibration") / f"{name}.yaml" for name in cameras), Path("rig.yaml")]
+    for part in reversed(parts):  # rig.yaml first: the clash that says "this is a rig already"
+        if (out / part).exists() and not overwrite:
+            raise FileExistsError(f"{out / part} exists; pass overwrite=True (--overwrite) to replace it")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=out.parent))
+    try:
+        summary = _import(bag, staging, cameras, info_topics, calibrations, extrinsics, odometry, tf_poses,
+                          body_frame, sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
+        _move_into_place(staging, out, parts)
+    except RosbagError as err:  # named by the bag, and by the path the file would have had
+        message = str(err).replace(str(staging), str(out))
+        raise RosbagError(message if str(bag) in message else f"{bag}: {message}") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    summary["out"] = str(out)
+    return summary
+
+
+def _move_into_place(staging: Path, out: Path, parts: list[Path]) -> None:
+    """The finished import at ``staging`` becomes ``out`` (one rename), or, where ``out`` holds other
+    files already, its ``parts`` replace theirs: the sequence folder whole (no stale image of an earlier
+    import stays), ``rig.yaml`` last, since a rig is complete when it has one."""
+    os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's 0700 would make the rig private
+    if not out.exists() or not any(out.iterdir()):
+        os.replace(staging, out)
+        return
+    for part in parts:
+        (out / part).parent.mkdir(parents=True, exist_ok=True)
+        if (out / part).is_dir():  # a folder cannot replace a non-empty one: set the old one aside
+            (out / part).rename(staging / ".replaced")
+        os.replace(staging / part, out / part)
+
+
+def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics, odometry, tf_poses,
+            body_frame, sequence, max_pose_gap, bit_depth, strict) -> dict[str, Any]:  # fmt: skip
+    """``import_rosbag`` into the empty folder ``out``, checked by opening it with ``RigLayout``."""
     info_topics = dict(info_topics or {})
-    for (
-        name,
-        topic,
-    ) in cameras.items():  # image_transport: <ns>/image_raw[/compressed] beside <ns>/camera_info
+    # image_transport: <ns>/image_raw[/compressed] beside <ns>/camera_info
+    for name, topic in cameras.items():
         base = topic.removesuffix("/compressed")
         info_topics.setdefault(name, base.rsplit("/", 1)[0] + "/camera_info")
     calibrations, extrinsics = dict(calibrations or {}), dict(extrinsics or {})
@@ -176,10 +274,19 @@ def import_rosbag(
     infos: dict[str, Any] = {}
     frame_ids: dict[str, str] = {}
     stamps: dict[str, list[int]] = defaultdict(list)
+    sizes: dict[str, set[tuple[int, int]]] = defaultdict(set)  # of the raw Images
+    peaks: dict[str, int] = {}  # of the 16-bit images
+    corrupt: dict[str, dict[int, str]] = defaultdict(dict)  # stamp (or bag time) -> why
     static: dict[tuple[str, str], np.ndarray] = {}
     poses: list[tuple[int, np.ndarray]] = []
 
-    # ---- pass 1: everything but the pixels
+    def skip(name: str, topic: str, stamp: int, why: str) -> None:
+        if strict:
+            raise CorruptMessage(f"{bag}: {topic}", f"the image at {stamp} ns is corrupt ({why}); "
+                                 "without --strict it would be skipped and counted")  # fmt: skip
+        corrupt[name][stamp] = why
+
+    # ---- pass 1: everything but the pixels (and the 16-bit images' peaks)
     reader = _open(bag)
     try:
         topics = {c.topic for c in reader.connections}
@@ -188,16 +295,33 @@ def import_rosbag(
                 raise RosbagError(f"{bag}: topic {topic} is not in the bag (it has {sorted(topics)})")
         wanted = set(by_image) | set(by_info) | {odometry, "/tf_static", "/tf"}
         connections = [c for c in reader.connections if c.topic in wanted]
-        for connection, _, raw in tqdm(
+        for connection, bag_time, raw in tqdm(
             reader.messages(connections=connections), total=sum(c.msgcount for c in connections),
             desc=f"indexing {bag.name}", unit="msg",
         ):  # fmt: skip
             topic = connection.topic
-            msg = reader.deserialize(raw, connection.msgtype)
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+            except Exception as err:  # a truncated or garbled message
+                if topic not in by_image:
+                    raise RosbagError(
+                        f"{bag}: {topic}: a message at {bag_time} ns cannot be read ({err})"
+                    ) from None
+                skip(by_image[topic], topic, bag_time, f"cannot be deserialized: {err}")
+                continue
             if topic in by_image:
-                name = by_image[topic]
-                stamps[name].append(_stamp(msg.header))
+                name, stamp = by_image[topic], _stamp(msg.header)
+                stamps[name].append(stamp)
                 frame_ids.setdefault(name, msg.header.frame_id)
+                if not hasattr(msg, "format"):
+                    sizes[name].add((int(msg.width), int(msg.height)))
+                if is_16_bit(msg):
+                    peaks.setdefault(name, 0)
+                    try:
+                        if bit_depth is None:  # over the whole topic: one dark frame does not decide
+                            peaks[name] = max(peaks[name], int(decode_image(msg, topic).max()))
+                    except CorruptMessage as err:
+                        skip(name, topic, stamp, err.why)
             elif topic in by_info and by_info[topic] not in infos:
                 infos[by_info[topic]] = msg
                 frame_ids[by_info[topic]] = msg.header.frame_id
@@ -218,32 +342,52 @@ def import_rosbag(
         reader.close()
     if tf_poses:
         body_frame = body_frame or tf_poses[1]
-    if len(poses) < 2:
-        source = odometry or f"/tf {tf_poses[0]} -> {tf_poses[1]}"
-        raise RosbagError(f"{bag}: {source}: fewer than two poses")
+    source = odometry or f"/tf {tf_poses[0]} -> {tf_poses[1]}"
     poses.sort(key=lambda p: p[0])
-    first, last = poses[0][0], poses[-1][0]
+    repeats = [i for i in range(1, len(poses)) if poses[i][0] == poses[i - 1][0]]
+    clashes = [i for i in repeats if not np.array_equal(poses[i][1], poses[i - 1][1])]
+    if clashes:
+        raise RosbagError(
+            f"{bag}: {source}: {len(clashes)} stamps carry two different poses (the first at "
+            f"{poses[clashes[0]][0]} ns); a pose file holds one pose per stamp"
+        )
+    poses = [p for i, p in enumerate(poses) if i == 0 or p[0] != poses[i - 1][0]]  # exact repeats: one
+    if len(poses) < 2:
+        raise RosbagError(f"{bag}: {source}: fewer than two poses")
+    times = np.array([p[0] for p in poses], np.int64)
+    first, last, gap = times[0], times[-1], max_gap_ns(times, max_pose_gap)
 
-    # ---- every camera checked before anything is written
-    models, rig_cameras, keep = {}, [], {}
-    summary = {
+    # ---- every camera checked before an image is decoded
+    models, rig_cameras, keep, bits = {}, [], {}, {}
+    summary: dict[str, Any] = {
         "images": {},
         "outside_poses": {},
+        "pose_gaps": {},
         "duplicate_stamps": {},
+        "corrupt": {},
         "poses": len(poses),
-        "out": str(out),
+        "repeated_poses": len(repeats),
+        "max_pose_gap": gap * 1e-9,
+        "bit_depth": {},
     }
     for name, topic in cameras.items():
         if not stamps[name]:
             raise RosbagError(f"{bag}: topic {topic} has no images")
         if name in calibrations:
-            models[name] = load_camera(calibrations[name])
+            camera, origin = load_camera(calibrations[name]), str(calibrations[name])
         elif name in infos:
-            models[name] = camera_from_info(infos[name], info_topics[name])
+            camera, origin = camera_from_info(infos[name], f"{bag}: {info_topics[name]}"), info_topics[name]
         else:
             raise RosbagError(
                 f"{bag}: no CameraInfo on {info_topics[name]} for camera {name}; "
                 f"give --calibration {name}=FILE"
+            )
+        models[name] = camera
+        wrong = sorted(sizes[name] - {(camera.width, camera.height)})
+        if wrong:  # the dataset refuses an image of another size than its calibration
+            raise RosbagError(
+                f"{bag}: {topic}: images are {wrong[0][0]}x{wrong[0][1]}, but the calibration ({origin}) "
+                f"is {camera.width}x{camera.height}"
             )
         if name in extrinsics:
             cam_to_body = np.asarray(extrinsics[name], float)
@@ -254,27 +398,33 @@ def import_rosbag(
                     f"{bag}: /tf_static has no chain from the body frame {body_frame!r} to camera {name}'s "
                     f"frame {frame_ids.get(name)!r}; give its extrinsic (--extrinsics)"
                 )
-        inside = sorted(s for s in stamps[name] if first <= s <= last)
-        keep[name] = set(inside)
-        summary["images"][name] = len(keep[name])
-        summary["outside_poses"][name] = len(stamps[name]) - len(inside)
-        summary["duplicate_stamps"][name] = len(inside) - len(keep[name])
+        inside = sorted(s for s in stamps[name] if first <= s <= last and s not in corrupt[name])
+        gapped = in_pose_gap(times, inside, gap)
+        keep[name] = {s for s, g in zip(inside, gapped, strict=True) if not g}
+        summary["outside_poses"][name] = sum(not first <= s <= last for s in stamps[name])
+        summary["pose_gaps"][name] = len({s for s, g in zip(inside, gapped, strict=True) if g})
+        summary["duplicate_stamps"][name] = len(inside) - len(set(inside))
+        if summary["pose_gaps"][name]:
+            log.warning(
+                "%s: %s: %d images lie in gaps of %s longer than %.3f s (max_pose_gap; the longest gap is "
+                "%.3f s) and are dropped",
+                bag, topic, summary["pose_gaps"][name], source, gap * 1e-9, np.diff(times).max() * 1e-9,
+            )  # fmt: skip
         if not keep[name]:
             raise RosbagError(
                 f"{bag}: {topic}: none of its {len(stamps[name])} images lies within the poses' time range "
-                f"[{first}, {last}] ns (header stamps in another clock?)"
+                f"[{first}, {last}] ns outside a gap longer than {gap * 1e-9:.3f} s (header stamps in "
+                "another clock?)"
             )
-        rig_cameras.append(
-            {"name": name, "calibration": f"calibration/{name}.yaml", "cam_to_body": cam_to_body.tolist()}
-        )
-    if not overwrite:
-        for name in cameras:
-            for stamp in keep[name]:
-                if (out / sequence / "images" / name / f"{stamp}.png").exists():
-                    raise FileExistsError(f"{out / sequence / 'images' / name / f'{stamp}.png'} exists; "
-                                          "pass overwrite=True (--overwrite)")  # fmt: skip
+        if name in peaks:
+            bits[name] = bit_depth or max(8, peaks[name].bit_length())
+            summary["bit_depth"][name] = bits[name]
+            log.info("%s: %s: 16-bit images with %d bits of data (highest value %d), scaled to 16 bits",
+                     bag, topic, bits[name], peaks[name])  # fmt: skip
+        entry = {"name": name, "calibration": f"calibration/{name}.yaml", "cam_to_body": cam_to_body.tolist()}
+        rig_cameras.append(entry)
 
-    # ---- pass 2: the images, one at a time (a stamp seen twice keeps its first image)
+    # ---- pass 2: the images, one at a time (a stamp seen twice keeps its first readable image)
     reader = _open(bag)
     try:
         connections = [c for c in reader.connections if c.topic in by_image]
@@ -283,32 +433,72 @@ def import_rosbag(
             desc="writing images", unit="image",
         ):  # fmt: skip
             name, topic = by_image[connection.topic], connection.topic
-            msg = reader.deserialize(raw, connection.msgtype)
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+            except Exception:  # counted in pass 1
+                continue
             stamp = _stamp(msg.header)
             if stamp not in keep[name]:
                 continue
+            try:
+                image = decode_image(msg, topic)
+            except CorruptMessage as err:
+                skip(name, topic, stamp, err.why)
+                continue
             keep[name].discard(stamp)
-            image = decode_image(msg, topic)
             camera = models[name]
-            if image.shape[1] * camera.height != image.shape[0] * camera.width:
+            if (image.shape[1], image.shape[0]) != (camera.width, camera.height):
                 raise RosbagError(
-                    f"{topic}: image {image.shape[1]}x{image.shape[0]} at {stamp} ns, but the calibration is "
-                    f"{camera.width}x{camera.height} (another aspect ratio)"
+                    f"{bag}: {topic}: the image at {stamp} ns is {image.shape[1]}x{image.shape[0]}, but the "
+                    f"calibration is {camera.width}x{camera.height}"
                 )
-            ok, png = cv2.imencode(".png", image)
+            ok, png = cv2.imencode(".png", scale_bit_depth(image, bits.get(name, 16)))
             if not ok:
-                raise RosbagError(f"{topic}: the image at {stamp} ns could not be encoded as PNG")
-            atomic_write_bytes(out / sequence / "images" / name / f"{stamp}.png", png.tobytes())
+                raise RosbagError(f"{bag}: {topic}: the image at {stamp} ns could not be encoded as PNG")
+            folder = out / sequence / "images" / name
+            folder.mkdir(parents=True, exist_ok=True)
+            (folder / f"{stamp}.png").write_bytes(png.tobytes())
+            summary["images"][name] = summary["images"].get(name, 0) + 1
     finally:
         reader.close()
+    for name, topic in cameras.items():
+        summary["corrupt"][name] = len(corrupt[name])
+        if corrupt[name]:
+            why = next(iter(corrupt[name].values()))
+            log.warning("%s: %s: %d corrupt image messages skipped, at %s ns (%s)", bag, topic,
+                        len(corrupt[name]), _listed(sorted(corrupt[name])), why)  # fmt: skip
+        if not summary["images"].get(name):
+            raise RosbagError(f"{bag}: {topic}: no readable image within the poses")
     for name, camera in models.items():
-        save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)
+        save_camera(camera, out / "calibration" / f"{name}.yaml")
     lines = [f"{s} " + " ".join(repr(float(v)) for v in values) for s, values in poses]
     header = f"# timestamp_ns tx ty tz qx qy qz qw ({body_frame} -> world), from {odometry or '/tf'}\n"
-    atomic_write_text(out / sequence / "poses.txt", header + "\n".join(lines) + "\n")
+    (out / sequence).mkdir(parents=True, exist_ok=True)
+    (out / sequence / "poses.txt").write_text(header + "\n".join(lines) + "\n")
     rig = {"cameras": rig_cameras, "source": f"ROS bag {bag} (fisheyedepth.data.rosbag)"}
-    atomic_write_bytes(out / "rig.yaml", yaml.safe_dump(rig, sort_keys=False, width=120).encode())
+    if max_pose_gap is not None:
+        rig["max_pose_gap"] = float(max_pose_gap)
+    (out / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
+    _check_loads(bag, out, sequence, summary["images"])
     return summary
+
+
+def _check_loads(bag: Path, out: Path, sequence: str, counts: dict[str, int]) -> None:
+    """Open the finished import as training will (``RigLayout``, the calibrations, an image per camera):
+    whatever the loader would refuse stops the import before it is moved into place."""
+    try:
+        layout = RigLayout(out)
+        for name, count in counts.items():
+            frames = layout.frames(sequence, name)
+            if len(frames) != count:
+                raise ValueError(f"the rig layout keeps {len(frames)} of the {count} images of {name}")
+            camera = layout.cameras[name].camera
+            image = read_image(layout.image(sequence, name, frames[0])).bgr
+            if image.shape[1::-1] != (camera.width, camera.height):
+                raise ValueError(f"{name}: image {image.shape[1]}x{image.shape[0]}, calibration "
+                                 f"{camera.width}x{camera.height}")  # fmt: skip
+    except (ValueError, FileNotFoundError) as err:
+        raise RosbagError(f"{bag}: the import would not load for training: {err}") from None
 
 
 def _pairs(values: list[str], what: str) -> dict[str, str]:
@@ -347,7 +537,17 @@ def main(argv=None) -> int:
     parser.add_argument("--body-frame", help="default: the odometry's child_frame_id (or BODY)")
     parser.add_argument("--sequence", default="seq0")
     parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument(
+        "--max-pose-gap", type=float, metavar="SECONDS",
+        help="drop images in a longer gap of the poses (default: 5 median pose intervals)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--bit-depth", type=int, metavar="BITS",
+        help="bits of data in 16-bit images, scaled to the full range (default: detected per topic)",
+    )  # fmt: skip
+    parser.add_argument("--strict", action="store_true", help="refuse a corrupt image instead of skipping it")
     args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     try:
         extrinsics = {}
         if args.extrinsics:
@@ -359,6 +559,7 @@ def main(argv=None) -> int:
             args.bag, args.out, _pairs(args.camera, "--camera"), _pairs(args.camera_info, "--camera-info"),
             _pairs(args.calibration, "--calibration"), extrinsics, args.odometry,
             tuple(args.tf_poses) if args.tf_poses else None, args.body_frame, args.sequence, args.overwrite,
+            args.max_pose_gap, args.bit_depth, args.strict,
         )  # fmt: skip
     except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
         print(f"error: {err}")
