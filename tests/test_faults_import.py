@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import yaml
 
+from fisheyedepth.data import FisheyeDataModule
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 
@@ -178,6 +179,10 @@ def test_frames_in_a_gap_of_the_pose_file_are_left_out_by_the_rig_layout(tmp_pat
     assert layout.in_gaps[("drive", "cam")][0] == t0 + 1050 * MS
     assert f"{path.parent}: 15 images of cam lie in gaps of the poses longer than 0.500 s" in caplog.text
     assert len(RigLayout(tmp_path, max_pose_gap=2.0).frames("drive", "cam")) == 30
+    data = FisheyeDataModule(tmp_path, layout="rig", max_pose_gap=2.0)  # data.datamodule.max_pose_gap
+    assert len(data.layout.frames("drive", "cam")) == 30
+    with pytest.raises(ValueError, match="max_pose_gap: only the rig layout"):
+        FisheyeDataModule(tmp_path, layout="kitti360", max_pose_gap=2.0)
     rig = yaml.safe_load((tmp_path / "rig.yaml").read_text())
     (tmp_path / "rig.yaml").write_text(yaml.safe_dump({**rig, "max_pose_gap": 2.0}))
     assert len(RigLayout(tmp_path).frames("drive", "cam")) == 30

@@ -44,6 +44,8 @@ class FisheyeDataModule(L.LightningDataModule):
         rig_offsets: the rig's other cameras as sources too, at these time offsets (cross-camera
             consistency; empty: none; see ``FisheyeDataset``).
         pose_noise: ``{rotation_deg, translation, seed}`` seeded odometry error on the relative poses.
+        max_pose_gap: seconds (rig layout): images in a longer gap of the poses are left out, never
+            interpolated across it; None: ``rig.yaml``'s ``max_pose_gap``, else 5 median pose intervals.
         source_baseline: metres: each offset's source is the frame on its side nearest to this distance
             (scaled by ``|offset| / max|offsets|``) instead of a fixed frame offset; None: off.
     """
@@ -72,8 +74,12 @@ class FisheyeDataModule(L.LightningDataModule):
         lidar_occlusion: float | None = OCCLUSION,
         rig_offsets: tuple[int, ...] = (),
         source_baseline: float | None = None,
+        max_pose_gap: float | None = None,
     ):
         super().__init__()
+        if max_pose_gap is not None and layout != "rig":
+            raise ValueError(f"max_pose_gap: only the rig layout interpolates poses, not {layout!r}")
+        self.max_pose_gap = max_pose_gap
         self.rig_offsets, self.source_baseline = tuple(rig_offsets), source_baseline
         if layout not in LAYOUTS:
             raise ValueError(f"unknown layout {layout!r}; one of {sorted(LAYOUTS)}")
@@ -101,7 +107,8 @@ class FisheyeDataModule(L.LightningDataModule):
     @property
     def layout(self):
         if self._layout is None:
-            self._layout = LAYOUTS[self.layout_name](self.root, self.cameras, self.masks)
+            gap = {} if self.max_pose_gap is None else {"max_pose_gap": self.max_pose_gap}
+            self._layout = LAYOUTS[self.layout_name](self.root, self.cameras, self.masks, **gap)
         return self._layout
 
     def dataset(self, split: str) -> FisheyeDataset:
