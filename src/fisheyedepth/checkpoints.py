@@ -1,20 +1,28 @@
-"""Reading checkpoints safely, with one clear line naming the file when one cannot be used.
+"""Reading and writing checkpoints safely, with one clear line naming the file when one cannot be used.
 
 Checkpoints are read with ``torch.load(weights_only=True)``: a malicious pickle executes nothing. A file
 that is empty, truncated, random bytes, another project's checkpoint, or a FisheyeDepth checkpoint of
 incompatible shape raises :class:`CheckpointError` with the path and what is wrong with it, instead of
 ``PytorchStreamReader failed``, ``EOFError`` or a ``KeyError`` deep inside Lightning.
+
+Checkpoints are written by :func:`write_checkpoint` (in training through :class:`AtomicCheckpointIO`):
+beside their target under a hidden name with the writer's pid, flushed to disk, then renamed over the
+target, so a kill at any moment leaves the previous file whole; :func:`remove_stale_temporaries` removes
+what killed writers left.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import pickle
+import re
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
@@ -76,12 +84,130 @@ def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str,
     return hparams
 
 
-def check_resumable(path: str | os.PathLike) -> dict[str, Any]:
-    """Refuse, before training starts, a checkpoint Lightning cannot resume from; returns it."""
+def check_resumable(path: str | os.PathLike, model: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Refuse, before training starts, a checkpoint Lightning cannot resume from; returns it. ``model``:
+    the configured constructor arguments, whose network must be the checkpoint's."""
     ckpt = read_checkpoint(path)
     missing = [k for k in RESUME_KEYS if k not in ckpt]
     if missing:
         raise CheckpointError(
             path, f"cannot resume from it: no {', '.join(missing)} (not a Lightning training checkpoint)"
         )
+    differing = network_differences(ckpt.get("hyper_parameters") or {}, model or {})
+    if differing:
+        raise CheckpointError(path, f"cannot resume it with another network: {'; '.join(differing)}")
     return ckpt
+
+
+# The constructor arguments that shape the weights; n_bins and attention only for the binned head
+NETWORK = ("resnet", "decoder_width", "scales", "multi_channel", "real_scale")
+BINNED_HEAD = ("n_bins", "attention")
+
+
+def _plain(value: Any) -> Any:
+    return tuple(_plain(v) for v in value) if isinstance(value, (list, tuple)) else value
+
+
+def network_differences(stored: dict[str, Any], configured: dict[str, Any]) -> list[str]:
+    """``model.KEY is A here, B in the checkpoint`` for each argument of :data:`NETWORK` that differs."""
+    keys = NETWORK + (BINNED_HEAD if stored.get("multi_channel", True) else ())
+    return [
+        f"model.{k} is {configured[k]} here, {stored[k]} in the checkpoint"
+        for k in keys
+        if k in stored and k in configured and _plain(stored[k]) != _plain(configured[k])
+    ]
+
+
+def _listed(keys: list[str], show=str, first: int = 2) -> str:
+    more = f", and {len(keys) - first} more" if len(keys) > first else ""
+    return ", ".join(show(k) for k in keys[:first]) + more
+
+
+def weights_mismatch(model: dict[str, Any], found: dict[str, Any]) -> str:
+    """'' when the state dict ``found`` fits ``model``'s; else which keys do not, briefly."""
+
+    def shape(state: dict[str, Any], key: str) -> list[int]:
+        return list(getattr(state[key], "shape", ()))
+
+    def both(key: str) -> str:
+        return f"{key} {shape(found, key)} in the file, {shape(model, key)} in the model"
+
+    reshaped = [k for k in model if k in found and shape(found, k) != shape(model, k)]
+    missing = [k for k in model if k not in found]
+    unexpected = [k for k in found if k not in model]
+    parts = []
+    if reshaped:
+        parts.append(f"{len(reshaped)} of another shape ({_listed(reshaped, both)})")
+    if missing:
+        parts.append(f"{len(missing)} missing ({_listed(missing)})")
+    if unexpected:
+        parts.append(f"{len(unexpected)} unexpected ({_listed(unexpected)})")
+    return "; ".join(parts)
+
+
+# ------------------------------------------------------------------ writing
+STALE = re.compile(r"\.(?P<name>.+\.ckpt)\.(?P<pid>\d+)\.tmp")  # write_checkpoint's temporaries
+
+
+def temporary_path(path: Path) -> Path:
+    """Where :func:`write_checkpoint` writes ``path`` first: beside it, hidden, with this process's pid."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
+    """``torch.save`` into a temporary file beside ``path``, ``fsync``, then ``os.replace`` over it: the
+    previous file stays whole until the new one is. Never through the system temp folder, which may be
+    another filesystem (where a move becomes a copy that truncates the target first)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_path(path)
+    try:
+        with open(tmp, "wb") as handle:
+            torch.save(checkpoint, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    with contextlib.suppress(OSError):  # the rename itself, on filesystems that sync folders
+        folder = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(folder)
+        finally:
+            os.close(folder)
+    return path
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries :func:`write_checkpoint` left in ``folder`` when its process was killed
+    (their pid no longer runs); a live writer's are kept. Returns the removed files."""
+    folder = Path(folder)
+    stale = [
+        p
+        for p in (sorted(folder.iterdir()) if folder.is_dir() else [])
+        if (m := STALE.fullmatch(p.name)) and not pid_alive(int(m["pid"]))
+    ]
+    for path in stale:
+        path.unlink(missing_ok=True)
+    return stale
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer through :func:`write_checkpoint`. Lightning's own saves through an
+    fsspec transaction: a temporary file in the system temp folder, moved over the target at the end."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+        write_checkpoint(checkpoint, path)

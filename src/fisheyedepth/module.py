@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import numbers
 import os
 import warnings
 from pathlib import Path
@@ -25,7 +26,7 @@ from torch.nn import functional as F
 
 from .cameras import CameraModel, RayCache, pinhole_like
 from .cameras.pinhole import PINHOLE_FOCALS
-from .checkpoints import CheckpointError, module_arguments, read_checkpoint
+from .checkpoints import CheckpointError, module_arguments, read_checkpoint, weights_mismatch
 from .data.batch import Batch, SkippedBatch
 from .geometry import (
     invert_pose,
@@ -42,6 +43,13 @@ from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .viz import panel
 
 LOSS_RESOLUTIONS = ("full", "native")
+# Numeric hyper-parameters: a string (``model.lr=abc``) is refused by name, not deep in the optimiser
+REALS = (
+    *("lr", "weight_decay", "lr_gamma", "smoothness", "min_distance", "max_distance", "decoder_width"),
+    "pose_translation_scale",
+)
+INTEGERS = ("resnet", "n_bins", "lr_step", "log_images_every", "rim_margin")
+OPTIONAL = ("pose_translation_scale", "rim_margin")  # None: the default
 LR_SCHEDULES = ("step", "cosine")
 
 
@@ -116,6 +124,7 @@ class FisheyeDepthModule(L.LightningModule):
         binned one at 0.5-150 m). Monodepth2's fixed 0.01 leaves the first warps 5x to 130x too short
         here, and the PoseNet rows learn only once the PoseNet has grown its output that much."""
         super().__init__()
+        check_numbers(locals())
         if loss_resolution not in LOSS_RESOLUTIONS:
             raise ValueError(
                 f"loss_resolution: {loss_resolution!r} is not one of {', '.join(LOSS_RESOLUTIONS)}"
@@ -176,8 +185,16 @@ class FisheyeDepthModule(L.LightningModule):
             raise CheckpointError(
                 path, f"hyper_parameters do not fit {cls.__name__} ({exc}); another project's checkpoint?"
             ) from None
+        state = ckpt["state_dict"]
+        if not isinstance(state, dict):
+            raise CheckpointError(path, f"its state_dict is a {type(state).__name__}, not a dictionary")
+        mismatch = weights_mismatch(module.state_dict(), state)
+        if mismatch:
+            raise CheckpointError(
+                path, f"weights do not fit the model its hyper_parameters describe: {mismatch}"
+            )
         try:
-            module.load_state_dict(ckpt["state_dict"])
+            module.load_state_dict(state)
         except (RuntimeError, TypeError, AttributeError) as exc:
             lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
             detail = "; ".join(lines[1:3] or lines[:1])
@@ -601,6 +618,19 @@ class _Level:
     rays_valid: Tensor
     mask: Tensor
     identity: Tensor
+
+
+def check_numbers(values: dict[str, Any]) -> None:
+    """A ValueError naming the first of :data:`REALS` and :data:`INTEGERS` in ``values`` that is not a
+    number (a whole one), None allowed for :data:`OPTIONAL`."""
+    for name in (*REALS, *INTEGERS):
+        value, kind = values[name], numbers.Integral if name in INTEGERS else numbers.Real
+        if value is None and name in OPTIONAL:
+            continue
+        if isinstance(value, bool) or not isinstance(value, kind):
+            raise ValueError(
+                f"{name}: {value!r} is not a {'whole number' if kind is numbers.Integral else 'number'}"
+            )
 
 
 def count_parameters(module: torch.nn.Module | None) -> int:

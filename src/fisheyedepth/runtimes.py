@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .images import IMAGE_SUFFIXES, read_image
 from .models import depth_scale, distance_at_size
+from .models.depth_net import check_input_size
 
 PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
@@ -159,7 +160,7 @@ class TorchRuntime:
         if not net.channels_last:
             net.to(memory_format=torch.channels_last)
             net.channels_last = True
-        size = input_size or module.hparams.get("input_size")
+        size = check_input_size(input_size, "size") if input_size else module.hparams.get("input_size")
         self.input_size = None if size is None else (int(size[0]), int(size[1]))
 
     def describe(self) -> dict[str, Any]:
@@ -200,20 +201,42 @@ class OnnxRuntime:
                 f"{self.path}: not a readable ONNX model ({str(err).splitlines()[0][:200]})"
             ) from None
         meta = self.session.get_modelmeta().custom_metadata_map
-        self.input_size = tuple(int(v) for v in self._field(meta, "input_size").split(","))
-        self.file_scale = float(self._field(meta, "depth_scale"))
-        focal = self._field(meta, "base_focal")
-        self.base_focal = None if focal == "none" else float(focal)
+        self.input_size = self._field(meta, "input_size", _size)
+        self.file_scale = self._field(meta, "depth_scale", float)
+        self.base_focal = self._field(meta, "base_focal", lambda v: None if v == "none" else float(v))
         self.quantize = meta.get(META + "quantize", "none")
         self.input_name = self.session.get_inputs()[0].name
+        self._check_graph()
 
-    def _field(self, meta: dict[str, str], key: str) -> str:
+    def _field(self, meta: dict[str, str], key: str, parse):
         if META + key not in meta:
             raise ValueError(
                 f"{self.path}: metadata field '{META + key}' is missing; export the file with export.py "
                 "(it records the input size and the depth scale)"
             )
-        return meta[META + key]
+        try:
+            return parse(meta[META + key])
+        except ValueError:
+            raise ValueError(f"{self.path}: metadata field '{META + key}' is {meta[META + key]!r}") from None
+
+    def _check_graph(self) -> None:
+        """The graph must be what the metadata says: ``[B, 3, H, W]`` images at ``input_size`` in,
+        ``[B, 1, H, W]`` distance out (a symbolic dimension is not compared)."""
+        w, h = self.input_size
+        tensors = (self.session.get_inputs()[0], "input", 3), (self.session.get_outputs()[0], "output", 1)
+        for tensor, role, channels in tensors:
+            name = f"the graph's {role} '{tensor.name}'"
+            shape = [d if isinstance(d, int) else "?" for d in tensor.shape]  # "?": symbolic
+            if len(shape) != 4:
+                raise ValueError(f"{self.path}: {name} is {shape}, not [B, C, H, W]")
+            if shape[1] not in ("?", channels):
+                what = "RGB" if role == "input" else "one distance per pixel"
+                raise ValueError(f"{self.path}: {name} has {shape[1]} channels, not {channels} ({what})")
+            if shape[3] not in ("?", w) or shape[2] not in ("?", h):
+                raise ValueError(
+                    f"{self.path}: metadata field '{META}input_size' says {w}x{h}, but {name} is "
+                    f"{shape[3]}x{shape[2]}"
+                )
 
     def describe(self) -> dict[str, Any]:
         """What results.json records: the file; its distance is resized in inverse distance."""
@@ -239,6 +262,12 @@ class OnnxRuntime:
             return distance_at_size(run, batch, batch_cameras, self.input_size)
 
         return post_processed(at_size, images.cpu(), cameras, self.post_process)
+
+
+def _size(text: str) -> tuple[int, int]:
+    """``"W,H"`` (the input size in an exported file's metadata) as (W, H)."""
+    w, h = (int(v) for v in text.split(","))
+    return w, h
 
 
 def calibration_images(folder: str | Path, size: tuple[int, int], count: int) -> list[np.ndarray]:

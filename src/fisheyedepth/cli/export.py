@@ -18,6 +18,7 @@ from rich.console import Console
 
 from ..cameras import PinholeCamera, load_camera
 from ..inference import DistancePredictor
+from ..models.depth_net import check_input_size
 from ..module import FisheyeDepthModule
 from ..runtimes import calibration_images, onnx_export, onnx_session
 from ..utils import atomic_write_bytes, atomic_write_text
@@ -44,6 +45,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         raise ValueError(
             "export needs a fixed input size: size=[W,H] (or a checkpoint that stores input_size)"
         )
+    size = check_input_size(size, "size" if cfg.get("size") else f"{cfg.ckpt_path}: input_size")
     if cfg.get("camera"):
         camera = load_camera(cfg.camera)
     else:  # no camera: depth_scale 1, i.e. a camera with the base focal (the training cameras' mean)

@@ -4,20 +4,25 @@ self-supervised validation loss (``select=best``). Neither uses ground truth."""
 
 from __future__ import annotations
 
+import inspect
 import logging
+import re
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
-from hydra.utils import instantiate
+from hydra.errors import InstantiationException
+from hydra.utils import get_class, instantiate
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from ..checkpoints import check_resumable
+from ..callbacks import run_folder
+from ..checkpoints import AtomicCheckpointIO, CheckpointError, check_resumable, weights_mismatch
+from ..models.depth_net import check_input_size
 from ..module import FisheyeDepthModule
-from . import EXIT_SIGTERM, prepare_data, prepare_process
+from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
 from .evaluate import run_evaluation
 
 log = logging.getLogger("fisheyedepth")
@@ -89,10 +94,48 @@ def source_offsets(cfg: DictConfig) -> list[int]:
     return offsets
 
 
+def check_sizes(cfg: DictConfig) -> None:
+    """The training size (and the model's input size, when set apart from it) the network can run at:
+    refused now, not as a tensor mismatch deep in the decoder."""
+    check_input_size(cfg.data.datamodule.size, "data.datamodule.size")
+    if cfg.model.get("input_size") is not None:
+        check_input_size(cfg.model.input_size, "model.input_size")
+
+
+def configured_model(cfg: DictConfig) -> dict[str, Any]:
+    """The model's constructor arguments as configured (the constructor's defaults where it is silent)."""
+    params = inspect.signature(get_class(cfg.model._target_).__init__).parameters.values()
+    defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+    given = OmegaConf.to_container(cfg.model, resolve=True)
+    return defaults | {k: v for k, v in given.items() if not k.startswith("_")}
+
+
+def build_model(cfg: DictConfig, **resolved):
+    """The configured module; an option it refuses is named ``model.<option>`` (Hydra wraps the error)."""
+    try:
+        return instantiate(cfg.model, **resolved, _convert_="all")
+    except InstantiationException as exc:
+        cause = exc.__cause__
+        if not isinstance(cause, INPUT_ERRORS):
+            raise
+        message = str(cause.args[0] if cause.args else cause)
+        name = re.match(r"(\w+)[:=]", message)
+        if isinstance(cause, ValueError) and name and name[1] in configured_model(cfg):
+            raise ValueError(f"model.{message}") from None
+        raise cause from None
+
+
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
+    check_sizes(cfg)
+    ckpt_path = cfg.get("ckpt_path")
+    resumed = check_resumable(ckpt_path, configured_model(cfg)) if ckpt_path else None
+    with run_folder(out_dir, ckpt_path):  # one run per folder; before any checkpoint is touched
+        return fit_and_test(cfg, out_dir, resumed)
+
+
+def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None) -> dict[str, Any] | None:
     select = cfg.get("select", "last")
-    resumed = check_resumable(cfg.ckpt_path) if cfg.get("ckpt_path") else None
     prepare_process(cfg)
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
@@ -101,14 +144,21 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     resolved = {}
     if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
         resolved["base_focal"] = resolve_base_focal(datamodule, resumed)
-    module = instantiate(cfg.model, **resolved, _convert_="all")
+    module = build_model(cfg, **resolved)
+    if resumed is not None and (mismatch := weights_mismatch(module.state_dict(), resumed["state_dict"])):
+        raise CheckpointError(cfg.ckpt_path, f"cannot resume it with this model: weights {mismatch}")
     logger = instantiate(cfg.logger) if cfg.get("logger") else False
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
     checkpointers = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
     selected_checkpoint(checkpointers, select)  # a bad choice fails now, not after hours of training
     precision = resolve_precision(cfg.trainer.get("precision"), cfg.trainer.get("accelerator"))
     trainer: L.Trainer = instantiate(
-        cfg.trainer, logger=logger, callbacks=callbacks, default_root_dir=str(out_dir), precision=precision
+        cfg.trainer,
+        logger=logger,
+        callbacks=callbacks,
+        default_root_dir=str(out_dir),
+        precision=precision,
+        plugins=[AtomicCheckpointIO()],  # a kill while saving leaves the previous checkpoint whole
     )
     try:
         try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import operator
 import os
 
 import torch
@@ -21,6 +22,27 @@ from .heads import (
 from .resnet import ResNetEncoder
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)  # Monodepth2's, full to 1/16 resolution
+SIZE_MULTIPLE = 32  # the encoder halves the image 5 times and the decoder's skips need every level whole
+
+
+def check_input_size(size, option: str) -> tuple[int, int]:
+    """``size`` [W, H] as a tuple if the network can run at it; else a ValueError naming ``option``, the
+    value and the nearest sizes it can run at (each side a multiple of :data:`SIZE_MULTIPLE`)."""
+    try:
+        w, h = (operator.index(v) for v in size)  # whole numbers only
+    except (TypeError, ValueError):
+        w = h = 0
+    if min(w, h) <= 0:
+        raise ValueError(f"{option}: {size!r} is not a size [W, H] in pixels")
+    if w % SIZE_MULTIPLE == 0 and h % SIZE_MULTIPLE == 0:
+        return w, h
+    m = SIZE_MULTIPLE
+    below = [max(m, v // m * m) for v in (w, h)]
+    above = [-(-v // m) * m for v in (w, h)]
+    raise ValueError(
+        f"{option}: {[w, h]} cannot be the network's input: each side must be a multiple of {m} (the "
+        f"encoder halves it 5 times); the nearest that can: {below} or {above}"
+    )
 
 
 def decoder_channels(width: float = 1.0) -> tuple[int, ...]:
