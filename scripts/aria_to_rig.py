@@ -5,6 +5,10 @@ camera) into the robot-rig layout that ``train.py data=rig`` reads.
     python scripts/aria_to_rig.py --src ../shared/realdata/aria_gen2_rig --out data/aria_gen2_rig
         [--overwrite]
     RIG_ROOT=data/aria_gen2_rig python train.py data=rig ...
+
+An export the rig layout would refuse once converted (a camera whose model gives no pixel a ray, a size
+that is not whole pixels, two images with one capture time, ...) is refused with one line naming the file,
+and nothing is written.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
-    except (FileNotFoundError, FileExistsError, ValueError) as err:  # CalibrationError is a ValueError
+    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
         print(f"error: {err}")
         return 2
     print(json.dumps(summary, indent=2))

@@ -3,20 +3,28 @@
 ``cv2.imread`` fills the missing part of a truncated JPEG with grey and turns a grayscale image into
 three grey channels without a word. ``read_image`` decodes from the file's bytes, checks that the file
 ends where its format says it ends, and returns what the file really held alongside the BGR image, so
-the caller can warn (training) or count and name the file (prediction).
+the caller can warn (training) or count and name the file (prediction). It reads the image's size from
+its header first and refuses an image of more pixels than ``FISHEYEDEPTH_MAX_IMAGE_PIXELS`` (default
+64 megapixels) before decoding it: a 140 KB PNG can hold 12000 x 12000 pixels (a decompression bomb).
 """
 
 from __future__ import annotations
 
+import errno
+import io
 import os
 import stat
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image as PILImage
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+MAX_PIXELS_VARIABLE = "FISHEYEDEPTH_MAX_IMAGE_PIXELS"
+MAX_PIXELS = 64_000_000  # default for the variable: 8000 x 8000, 32x a KITTI-360 frame
 
 
 class ImageError(ValueError):
@@ -45,20 +53,70 @@ def truncation(data: bytes) -> str | None:
     return None
 
 
-def read_image(path: str | os.PathLike) -> Image:
+def max_image_pixels() -> int:
+    """The largest image :func:`read_image` decodes: ``$FISHEYEDEPTH_MAX_IMAGE_PIXELS``, or MAX_PIXELS."""
+    text = os.environ.get(MAX_PIXELS_VARIABLE, "").strip()
+    if not text:
+        return MAX_PIXELS
+    try:
+        value = int(float(text))
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise ValueError(f"{MAX_PIXELS_VARIABLE}={text!r}: expected a number of pixels >= 1")
+    return value
+
+
+def header_size(data: bytes) -> tuple[str, int] | None:
+    """The size of the encoded image ``data`` from its header alone (nothing is decoded), as words
+    (``"12000x12000"``) and pixels, or None when Pillow does not know the format (the decoder then says
+    what it is)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PILImage.DecompressionBombWarning)  # the caller sets the limit
+        try:
+            with PILImage.open(io.BytesIO(data)) as image:
+                return f"{image.width}x{image.height}", image.width * image.height
+        except PILImage.DecompressionBombError:  # Pillow refuses to open more than twice its limit
+            pixels = 2 * (PILImage.MAX_IMAGE_PIXELS or 0)
+            return f"more than {pixels:,}", pixels + 1
+        except Exception:  # not a format Pillow reads: the decoder reports the file
+            return None
+
+
+def missing(path: Path) -> FileNotFoundError:
+    """The error for an image that is not a file: absent, or a broken or looping symbolic link."""
+    if path.is_symlink():
+        try:
+            os.stat(path)
+            why = "does not lead to a file"
+        except OSError as exc:
+            why = "loops back on itself" if exc.errno == errno.ELOOP else "leads nowhere (its target is gone)"
+        return FileNotFoundError(f"{path}: a symbolic link to {os.readlink(path)} that {why}")
+    return FileNotFoundError(f"{path}: image not found")
+
+
+def read_image(path: str | os.PathLike, max_pixels: int | None = None) -> Image:
     """Decode ``path`` as 8-bit BGR. Raises :class:`ImageError` naming the file when it is empty,
-    truncated or not an image, and ``FileNotFoundError`` when it is missing. 16-bit images are scaled
-    to 8 bits; an alpha channel is dropped; a grayscale image is replicated to three channels and
-    reported through ``Image.channels``."""
+    truncated, not an image or larger than ``max_pixels`` (default: :func:`max_image_pixels`; checked
+    on the header, before decoding), and ``FileNotFoundError`` when it is missing or a broken symbolic
+    link. 16-bit images are scaled to 8 bits; an alpha channel is dropped; a grayscale image is
+    replicated to three channels and reported through ``Image.channels``."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: image not found")
+        raise missing(path)
     data = path.read_bytes()
     if not data:
         raise ImageError(f"{path}: empty file, not an image")
     why = truncation(data)
     if why:
         raise ImageError(f"{path}: {why}")
+    limit = max_image_pixels() if max_pixels is None else int(max_pixels)
+    size = header_size(data)
+    if size is not None and size[1] > limit:
+        raise ImageError(
+            f"{path}: an image of {size[0]} pixels, over the limit of {limit:,} (a decompression bomb?); "
+            f"set {MAX_PIXELS_VARIABLE} to read larger images"
+        )
     raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ImageError(f"{path}: not a readable image (corrupt or not an image)")
@@ -91,10 +149,16 @@ class Frame:
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
-    """The images of ``folder`` in name order. An empty folder and two files with one stem (``a.png``
-    and ``a.jpg`` would write the same outputs) are errors naming the folder or the files."""
+    """The images of ``folder`` in name order, broken and looping symbolic links named like an image
+    included (reading them fails, so they are counted and named as skipped, not silently missing). An
+    empty folder and two files with one stem (``a.png`` and ``a.jpg`` would write the same outputs) are
+    errors naming the folder or the files."""
     folder = Path(folder)
-    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_SUFFIXES and (p.is_file() or (p.is_symlink() and not p.exists()))
+    )
     if not files:
         raise FileNotFoundError(f"{folder}: no images ({' '.join(IMAGE_SUFFIXES)}) in this folder")
     seen: dict[str, Path] = {}

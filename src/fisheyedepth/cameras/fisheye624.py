@@ -133,7 +133,8 @@ class Fisheye624Camera(CameraModel):
         """From Aria's ``params`` ``[f, cx, cy, k0..k5, p0, p1, s0..s3]`` and ``size`` ``[W, H]``."""
         values = dict(zip(ARIA_PARAMS, (float(p) for p in params), strict=True))
         f = values.pop("f")
-        return cls(width=int(size[0]), height=int(size[1]), fx=f, fy=f, **values)
+        # no int(): a size of 512.7 is refused by the model's checks, not truncated to 512
+        return cls(width=float(size[0]), height=float(size[1]), fx=f, fy=f, **values)
 
     @classmethod
     def from_aria(cls, path: str | os.PathLike, camera_name: str) -> Fisheye624Camera:
@@ -170,6 +171,16 @@ class Fisheye624Camera(CameraModel):
             )
         if not isinstance(size, list) or len(size) != 2:
             raise CalibrationError(path, f"{camera_name}.size", f"expected [width, height], got {size!r}")
+        for axis, value in zip(("width", "height"), size, strict=True):
+            whole = (
+                isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer()
+            )
+            if not whole or value <= 0:
+                raise CalibrationError(
+                    path,
+                    f"{camera_name}.size",
+                    f"the {axis} must be a positive whole number of pixels, got {value!r}",
+                )
         try:
             return cls.from_aria_params(params, size)
         except (CameraParameterError, TypeError, ValueError) as err:

@@ -11,6 +11,12 @@ becomes ``rig.yaml`` (every camera of the calibration that has an image folder: 
 frame), ``<sequence>/poses.txt`` (the odometry poses, device -> odometry, at nanosecond stamps of the
 same clock) and
 ``<sequence>/images/<camera>/<capture_ns>.png``. The rig layout interpolates the poses to each image.
+
+Nothing reaches ``out`` unchecked: the export gets the checks the rig layout and the dataset make when
+they read the result back (each camera's model and extrinsic, the poses, one image per capture time, every
+image whole and of its camera's size), then the output is written into a hidden folder beside ``out`` and
+loaded back through :class:`~fisheyedepth.data.layouts.RigLayout` before it is moved into place. A
+refused export leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -19,14 +25,18 @@ import csv
 import json
 import os
 import re
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CalibrationError, Fisheye624Camera, save_camera
-from ..utils import atomic_write_bytes, atomic_write_text
+from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, save_camera
+from ..images import ImageError, read_image
+from ..utils import current_umask
+from .layouts import RigLayout, _transform
 
 CALIBRATION = "calib_slam_fisheye624.json"
 POSES = "vio_high_frequency_T_odometry_device.csv"
@@ -35,9 +45,10 @@ IMAGE_NAME = re.compile(r"^(?:\d+_)?(\d+)\.png$")  # NN_<capture_ns>.png or <cap
 
 
 def read_aria_poses(path: str | os.PathLike) -> list[tuple[int, list[float]]]:
-    """``(timestamp_ns, [tx, ty, tz, qx, qy, qz, qw])`` rows of Aria's VIO CSV (microseconds in the file)."""
+    """``(timestamp_ns, [tx, ty, tz, qx, qy, qz, qw])`` rows of Aria's VIO CSV (microseconds in the file).
+    Two rows with one timestamp are refused, as the rig layout refuses them."""
     path = Path(path)
-    rows = []
+    rows, lines = [], {}
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
         missing = [c for c in POSE_COLUMNS if c not in (reader.fieldnames or [])]
@@ -51,21 +62,84 @@ def read_aria_poses(path: str | os.PathLike) -> list[tuple[int, list[float]]]:
                 raise ValueError(f"{path}:{line}: expected an integer timestamp and 7 numbers") from None
             if not all(np.isfinite(values)) or not np.linalg.norm(values[3:]) > 0:
                 raise ValueError(f"{path}:{line}: a non-finite value or a zero quaternion")
+            if stamp in lines:
+                raise ValueError(
+                    f"{path}:{line}: timestamp {stamp // 1000} us already has a pose on line {lines[stamp]}"
+                )
+            lines[stamp] = line
             rows.append((stamp, values))
     if len(rows) < 2:
         raise ValueError(f"{path}: fewer than two poses")
     return rows
 
 
+def aria_camera(calib_path: Path, name: str, entry: dict) -> tuple[Fisheye624Camera, np.ndarray]:
+    """Camera ``name`` of the calibration and its ``T_device_camera``, refused (naming the file and the
+    camera) where the rig layout would refuse them: an image size that is not whole pixels, a model
+    that gives (almost) no pixel a ray, a transform that is not rigid."""
+    camera = Fisheye624Camera.from_aria(calib_path, name)
+    try:
+        camera_from_mapping(camera.to_dict(), calib_path)  # what load_camera checks on the written YAML
+    except CalibrationError as err:
+        raise CalibrationError(calib_path, name, err.reason) from None
+    T = entry.get("T_device_camera")
+    if T is None or np.asarray(T, dtype=object).shape != (4, 4):
+        raise CalibrationError(calib_path, f"{name}.T_device_camera", f"expected a 4x4 matrix, got {T!r}")
+    _transform(T, calib_path, f"{name}.T_device_camera")  # the rig layout's check: rigid, finite
+    return camera, np.asarray(T, dtype=float)
+
+
+def image_files(folder: Path) -> dict[int, Path]:
+    """The images of one camera by capture time (ns). Two files with one capture time would become one
+    ``<capture_ns>.png``: refused, naming both."""
+    files: dict[int, Path] = {}
+    for path in sorted(p for p in folder.iterdir() if IMAGE_NAME.match(p.name)):
+        stamp = int(IMAGE_NAME.match(path.name).group(1))
+        if stamp in files:
+            raise ValueError(
+                f"{folder}: {files[stamp].name} and {path.name} have one capture time, {stamp} ns: "
+                "one image would replace the other"
+            )
+        files[stamp] = path
+    if not files:
+        raise FileNotFoundError(f"{folder}: no images named NN_<capture_ns>.png")
+    return files
+
+
+def check_image(path: Path, camera: Fisheye624Camera, name: str) -> None:
+    """What the dataset checks when it reads the image: whole, decodable and of the camera's size."""
+    size = read_image(path).bgr.shape[1::-1]
+    if tuple(size) != (camera.width, camera.height):
+        raise ImageError(
+            f"{path}: image is {size[0]}x{size[1]}, camera {name} of {CALIBRATION} is "
+            f"{camera.width}x{camera.height}"
+        )
+
+
+def move_into(tmp: Path, out: Path) -> None:
+    """The finished ``tmp`` folder becomes ``out``; into an existing ``out``, file by file."""
+    if not out.exists():
+        tmp.rename(out)
+        return
+    for path in sorted(p for p in tmp.rglob("*") if not p.is_dir()):
+        target = out / path.relative_to(tmp)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(path, target)
+    shutil.rmtree(tmp)
+
+
 def aria_to_rig(
     src: str | os.PathLike, out: str | os.PathLike, sequence: str = "seq0", overwrite: bool = False
 ) -> dict:
     """Convert an Aria export ``src`` (module docstring) into the rig layout at ``out``; returns a summary
-    (cameras, images per camera, poses). Nothing is overwritten unless ``overwrite``."""
+    (cameras, images per camera, those outside the poses' time range, poses). Nothing is overwritten
+    unless ``overwrite``; nothing is written when the export is refused."""
     src, out = Path(src), Path(out)
     calib_path = src / CALIBRATION
     if not calib_path.is_file():
         raise FileNotFoundError(f"{calib_path}: Aria calibration not found")
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} is a file, not a folder for the rig layout")
     if (out / "rig.yaml").exists() and not overwrite:
         raise FileExistsError(f"{out / 'rig.yaml'} exists; pass overwrite=True (--overwrite) to replace it")
     try:
@@ -75,49 +149,61 @@ def aria_to_rig(
     names = sorted(n for n in calibration if (src / n).is_dir())
     if not names:
         raise FileNotFoundError(f"{src}: no image folder named like a camera of {calib_path.name}")
-    cameras, images, calibrations = [], {}, {}
-    for name in names:
-        camera = Fisheye624Camera.from_aria(calib_path, name)
-        T = calibration[name].get("T_device_camera")
-        if T is None or np.asarray(T, dtype=object).shape != (4, 4):
-            raise CalibrationError(calib_path, f"{name}.T_device_camera", f"expected a 4x4 matrix, got {T!r}")
-        files = sorted(p for p in (src / name).iterdir() if IMAGE_NAME.match(p.name))
-        if not files:
-            raise FileNotFoundError(f"{src / name}: no images named NN_<capture_ns>.png")
-        images[name] = files
-        calibrations[name] = camera
-        cameras.append(
-            {
-                "name": name,
-                "calibration": f"calibration/{name}.yaml",
-                "cam_to_body": np.asarray(T, float).tolist(),
-            }
-        )
+    cameras = {name: aria_camera(calib_path, name, calibration[name]) for name in names}
+    images = {name: image_files(src / name) for name in names}
     poses = read_aria_poses(src / POSES)
-    rig = {"cameras": cameras, "source": f"Aria export {src} (fisheyedepth.data.aria)"}
-    lines = [f"{stamp} " + " ".join(repr(v) for v in values) for stamp, values in poses]
-    total = sum(len(f) for f in images.values())
-    with tqdm(total=total, desc="aria -> rig", unit="image") as bar:
-        for name, files in images.items():
-            folder = out / sequence / "images" / name
-            folder.mkdir(parents=True, exist_ok=True)
-            for path in files:
-                stamp = IMAGE_NAME.match(path.name).group(1)
-                target = folder / f"{int(stamp)}.png"
-                if target.exists() and not overwrite:
-                    raise FileExistsError(f"{target} exists; pass overwrite=True (--overwrite)")
-                atomic_write_bytes(target, path.read_bytes())
-                bar.update()
-    for name, camera in calibrations.items():  # the project's YAML: predict.py camera=... reads it too
-        save_camera(camera, out / "calibration" / f"{name}.yaml", overwrite=overwrite)
-    atomic_write_text(
-        out / sequence / "poses.txt",
-        "# timestamp_ns tx ty tz qx qy qz qw (device -> odometry)\n" + "\n".join(lines) + "\n",
-    )
-    atomic_write_bytes(out / "rig.yaml", yaml.safe_dump(rig, sort_keys=False, width=120).encode())
+    targets = [Path("rig.yaml"), Path(sequence) / "poses.txt"]
+    targets += [Path("calibration") / f"{name}.yaml" for name in names]
+    targets += [Path(sequence) / "images" / n / f"{t}.png" for n, files in images.items() for t in files]
+    taken = next((out / t for t in targets if (out / t).exists()), None)
+    if taken is not None and not overwrite:
+        raise FileExistsError(f"{taken} exists; pass overwrite=True (--overwrite) to replace it")
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        tmp.chmod(0o777 & ~current_umask())  # mkdtemp's is private (0700); out gets a plain mkdir's
+        total = sum(len(f) for f in images.values())
+        with tqdm(total=total, desc="aria -> rig", unit="image") as bar:
+            for name, files in images.items():
+                folder = tmp / sequence / "images" / name
+                folder.mkdir(parents=True)
+                for stamp, path in files.items():
+                    check_image(path, cameras[name][0], name)
+                    shutil.copyfile(path, folder / f"{stamp}.png")
+                    bar.update()
+        for name, (camera, _) in cameras.items():  # the project's YAML: predict.py camera=... reads it too
+            save_camera(camera, tmp / "calibration" / f"{name}.yaml")
+        lines = [f"{stamp} " + " ".join(repr(v) for v in values) for stamp, values in poses]
+        header = "# timestamp_ns tx ty tz qx qy qz qw (device -> odometry)\n"
+        (tmp / sequence / "poses.txt").write_text(header + "\n".join(lines) + "\n")
+        rig = {
+            "cameras": [
+                {
+                    "name": n,
+                    "calibration": f"calibration/{n}.yaml",
+                    "cam_to_body": T.tolist(),
+                }
+                for n, (_, T) in cameras.items()
+            ],
+            "source": f"Aria export {src} (fisheyedepth.data.aria)",
+        }
+        (tmp / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
+        try:  # read back as training reads it: what it would refuse is never put in place
+            layout = RigLayout(tmp)
+            kept = {name: len(layout.frames(sequence, name)) for name in names}
+        except (FileNotFoundError, ValueError) as err:
+            raise ValueError(
+                f"{src}: the converted rig does not load: {str(err).replace(str(tmp), str(out))}"
+            ) from None
+        move_into(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return {
         "cameras": names,
         "images": {n: len(f) for n, f in images.items()},
+        "outside_poses": {n: len(images[n]) - kept[n] for n in names},
         "poses": len(poses),
         "out": str(out),
     }

@@ -42,6 +42,9 @@ MIN_FRAMES = 10  # fewer frames give no meaningful temporal statistics
 KITTI360_UP = (0.0, 0.0, -1.0)  # KITTI-360's pose frame is x forward, y right, z down
 WORLD_UP = np.array([0.0, 0.0, 1.0])  # odometry worlds are gravity-aligned, z up (ROS REP 105, Aria)
 LOG_FLOOR = 1e-4  # added to the std before the log (a perfectly still pixel has std 0)
+# Frames whose 90th percentile of temporal std (exposure-normalised) lies below this do not move: one grey
+# level of jitter at mid-grey. A moving recording's is well above (the synthetic worlds': 0.14 or more).
+STILL_STD = 0.01
 
 Layout = Kitti360Layout | RigLayout
 
@@ -131,6 +134,7 @@ def estimate_body_mask(
     threshold: float | None = None,
     sky_elevation: float = 5.0,
     min_area: float = 0.002,
+    source: str = "the images",
 ) -> BodyMask:
     """The ego body in ``camera``'s ``images`` (ideally many, spread over a recording), as seen from
     ``cam_to_body`` with the body frame's ``up`` direction.
@@ -139,9 +143,16 @@ def estimate_body_mask(
     (it can be body) and a temporal std (:func:`temporal_statistics`) below ``threshold`` (default: the
     minimum-error threshold of the log std over the pixels that can be body). Body components and holes
     in the body smaller than ``min_area`` (a fraction of the pixels with a ray) are then removed.
+    Frames that do not change over time (a parked camera, one frame repeated) are refused: every pixel
+    would look like body. ``source`` names them in that error.
     """
     elevation, has_ray = ray_elevation(camera, cam_to_body, up)
     std, count = temporal_statistics(images, has_ray)
+    if not np.percentile(std[has_ray], 90) >= STILL_STD:
+        raise ValueError(
+            f"the {count} frames of {source} do not change over time (9 pixels in 10 vary by less than "
+            f"{STILL_STD:.0%} of the mean brightness): a body mask needs a moving camera"
+        )
     can_be_body = has_ray & (elevation <= np.deg2rad(sky_elevation))
     if not can_be_body.any():
         raise ValueError(
@@ -218,7 +229,13 @@ def write_body_mask(
         raise ValueError(f"up: {up.tolist()}, expected a non-zero 3-vector (the body frame's up)")
     paths = [layout.image(sequence, camera, recording[i]) for i in sample_evenly(len(recording), frames)]
     mask = estimate_body_mask(
-        read_frames(paths, spec.camera, progress), spec.camera, spec.cam_to_body, up, threshold, sky_elevation
+        read_frames(paths, spec.camera, progress),
+        spec.camera,
+        spec.cam_to_body,
+        up,
+        threshold,
+        sky_elevation,
+        source=f"camera {camera!r} in {paths[0].parent}",
     )
     ok, png = cv2.imencode(".png", np.where(mask.usable, 255, 0).astype(np.uint8))
     if not ok:

@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
             not a.quiet,
             lane=a.lane,
         )
-    except (FileExistsError, ValueError) as exc:
+    except (OSError, ValueError) as exc:  # a full disk: writer.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except (Terminated, KeyboardInterrupt) as exc:

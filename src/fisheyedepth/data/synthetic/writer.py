@@ -8,11 +8,17 @@ and may be rendered again, anything else is somebody's data and is never replace
 SIGTERM while rendering (as SIGINT) stops the worker processes, removes the temporary folder and raises
 ``Terminated`` (``SystemExit(143)``); workers also die with the rendering process on Linux even if it is
 killed outright, and the next run removes the temporary folder such a run left behind.
+
+A full disk (or quota) stops the run the same way and raises :class:`NoSpaceLeft`, naming the dataset
+folder; every file is written through Python's file objects, whose failures carry ``ENOSPC``
+(``ndarray.tofile`` and ``cv2.imwrite`` report only a short write, or nothing).
 """
 
 from __future__ import annotations
 
 import ctypes
+import errno
+import io
 import json
 import os
 import shutil
@@ -63,6 +69,20 @@ class DatasetMismatch(ValueError):
     """A finished synthetic dataset rendered with other generation parameters than the ones asked for."""
 
 
+class NoSpaceLeft(OSError, ValueError):
+    """The disk (or the quota) filled up while rendering; the partial dataset was removed. A ValueError
+    too, so that the entry points report it in one line."""
+
+    def __init__(self, out: Path, file: str | None):
+        free = shutil.disk_usage(out.parent).free / 2**20 if out.parent.is_dir() else 0.0
+        at = f" (writing {Path(file).name})" if file else ""
+        super().__init__(
+            f"{out}: no space left on device while rendering the synthetic dataset{at}; the partial "
+            f"dataset was removed, {free:.0f} MB are free there: free some space or choose another folder"
+        )
+        self.errno = errno.ENOSPC
+
+
 class Terminated(SystemExit):
     """SIGTERM arrived while rendering; exits with status 143 (128 + SIGTERM) like an untrapped SIGTERM."""
 
@@ -91,6 +111,27 @@ def split_frames(frames: int) -> dict[str, tuple[int, int]]:
     return {s: (a, a + n) for s, a, n in zip(SPLITS, starts, (n_train, n_val, n_test), strict=True)}
 
 
+def _write(path: Path, data: bytes) -> None:
+    """``path.write_bytes(data)``; a failure names the file (a full disk's ENOSPC arrives without it)."""
+    try:
+        path.write_bytes(data)
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+
+
+def _png(image: np.ndarray) -> bytes:
+    ok, data = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"could not encode a {image.shape} {image.dtype} image as PNG")
+    return data.tobytes()
+
+
+def _npy(array: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
 class _Worker:
     """Renders and writes whole frames; built once per process."""
 
@@ -108,14 +149,13 @@ class _Worker:
         for name, renderer in self.cameras.items():
             frame = renderer.render(self.scene, self.world, job.pose)
             image = self.root / "data_2d_raw" / job.sequence / name / "data_rgb" / f"{stem}.png"
-            if not cv2.imwrite(str(image), frame.image[..., ::-1]):
-                raise OSError(f"could not write {image}")
-            np.save(self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy", frame.distance)
+            _write(image, _png(frame.image[..., ::-1]))
+            distance = self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy"
+            _write(distance, _npy(frame.distance))
         if self.lidar is not None:
             points = self.lidar.render(self.scene, self.world, job.pose)
-            points.tofile(
-                self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin"
-            )
+            scan = self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin"
+            _write(scan, np.ascontiguousarray(points).tobytes())
 
 
 _WORKER: _Worker | None = None
@@ -152,7 +192,7 @@ def _write_layout(
     calib.mkdir(parents=True)
     for name, cam in rig.written.items():
         (calib / f"{name}.yaml").write_text(opencv_yaml(cam, name))
-        cv2.imwrite(str(calib / f"body_mask_{name}.png"), np.where(body_masks[name], 255, 0).astype(np.uint8))
+        _write(calib / f"body_mask_{name}.png", _png(np.where(body_masks[name], 255, 0).astype(np.uint8)))
     (calib / "calib_cam_to_pose.txt").write_text(
         "".join(f"{k}: {_row(T)}\n" for k, T in rig.cam_to_pose.items())
     )
@@ -363,8 +403,10 @@ def generate(
             (tmp / OWNER).unlink()
             (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
             _move_into_place(tmp, out)
-        except BaseException:
+        except BaseException as exc:
             shutil.rmtree(tmp, ignore_errors=True)
+            if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise NoSpaceLeft(out, exc.filename) from exc
             raise
     return out
 
