@@ -23,6 +23,7 @@ from fisheyedepth.data.kitti360 import (
 from fisheyedepth.data.synthetic import generate, is_complete, make_trajectory, make_world
 from fisheyedepth.data.synthetic import writer as writer_module
 from fisheyedepth.data.synthetic.cli import main as cli_main
+from fisheyedepth.data.synthetic.raycast import first_per_ray
 from fisheyedepth.geometry import relative_pose, sample, warp_to_source
 
 SIZE = 256
@@ -291,3 +292,13 @@ def test_the_table2_world_turns_in_training_and_validation():
         turns[seed] = {split: _turn_deg(poses[a:b]) for split, (a, b) in ranges.items()}
     assert turns[0]["train"] < 5 and turns[0]["val"] > 30, turns[0]
     assert turns[34]["train"] > 150 and turns[34]["val"] > 30, turns[34]
+
+
+def test_a_ray_meeting_two_objects_at_one_distance_keeps_the_lower_id():
+    """Two boxes sharing a face give one ray two hits at the same distance: the lower object id wins,
+    whatever order the candidates come in (an indexed write with a repeated index picks any)."""
+    rays, objs = torch.tensor([7, 3, 7, 5, 3]), torch.tensor([4, 9, 2, 1, 0])
+    ray, obj = first_per_ray(rays, objs)
+    assert ray.tolist() == [3, 5, 7] and obj.tolist() == [0, 1, 2]
+    ray, obj = first_per_ray(rays.flip(0), objs.flip(0))
+    assert ray.tolist() == [3, 5, 7] and obj.tolist() == [0, 1, 2]

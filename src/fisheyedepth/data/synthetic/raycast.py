@@ -159,6 +159,20 @@ def _overlapping_pairs(origin, cone_dir, cone_cos_sin, tile_min_dz, bounds, max_
 _BANDS = (0.0, 6.0, 15.0, 30.0, 60.0, float("inf"))
 
 
+def first_per_ray(rays: Tensor, objs: Tensor) -> tuple[Tensor, Tensor]:
+    """One hit per ray: where a ray meets two objects at the same distance (a face they share), the
+    lower object id. Indexed writes with a repeated index leave the winner undefined, so two renders of
+    one seed could differ on those rays."""
+    if rays.numel() < 2:
+        return rays, objs
+    span = int(objs.max()) + 1
+    key = torch.sort(rays * span + objs).values
+    ray, obj = key // span, key % span
+    first = torch.ones_like(ray, dtype=torch.bool)
+    first[1:] = ray[1:] != ray[:-1]
+    return ray[first], obj[first]
+
+
 def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 120.0) -> Hit:
     """Nearest hit for tiled unit rays ``dirs [T, K, 3]`` from ``origin [3]`` (world frame)."""
     T, K, _ = dirs.shape
@@ -215,7 +229,7 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
         win = torch.isfinite(t) & (t == t_best[rays])
         if not bool(win.any()):
             continue
-        rays, obj = rays[win], objs[win]
+        rays, obj = first_per_ray(rays[win], objs[win])
         point = origin + flat[rays] * t_best[rays, None]
         if kind == "box":
             lo, hi = scene.box_lo[obj], scene.box_hi[obj]
