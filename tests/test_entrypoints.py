@@ -22,7 +22,8 @@ from omegaconf import OmegaConf
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.checkpoints import read_checkpoint
 from fisheyedepth.cli.evaluate import experiment_of
-from fisheyedepth.cli.train import resolve_base_focal, resolve_precision, selected_checkpoint
+from fisheyedepth.cli.train import selected_checkpoint
+from fisheyedepth.config import resolve_base_focal, resolve_precision
 
 from conftest import TINY, load_script
 
@@ -527,7 +528,7 @@ def test_precision_auto_is_bf16_only_where_bf16_is_native(monkeypatch):
 def test_the_data_module_loads_the_sources_the_model_warps(tmp_path):
     """``model.source_offsets`` reaches the data module (it once did not: ``[-2,2]`` trained on the +-1
     neighbours); a contradicting ``data.datamodule.offsets`` is refused, naming both."""
-    from fisheyedepth.cli.train import source_offsets
+    from fisheyedepth.config import source_offsets
 
     cfg = compose_train(["model.source_offsets=[-3,1]", f"paths.data_dir={tmp_path}"])
     assert source_offsets(cfg) == [-3, 1]

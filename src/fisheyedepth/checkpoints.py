@@ -24,6 +24,8 @@ from typing import Any
 import torch
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
+from .utils import pid_alive
+
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
 
@@ -177,16 +179,6 @@ def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Pat
         finally:
             os.close(folder)
     return path
-
-
-def pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:

@@ -58,6 +58,17 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (another user's counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
 def file_key(path: str | os.PathLike, *extra: str) -> str:
     """A cache key for a file's current content, cheap to compute: its resolved path, size and
     modification time (and ``extra``). A file replaced in place gets a new key, unless it keeps both its

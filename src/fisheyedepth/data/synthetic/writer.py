@@ -41,6 +41,7 @@ from tqdm import tqdm
 
 from ... import __version__
 from ...cameras import opencv_yaml
+from ...utils import pid_alive
 from .raycast import scene_tensors
 from .render import CameraRenderer, LidarRenderer
 from .rig import RIGS, Rig, make_rig
@@ -273,23 +274,13 @@ def _render(jobs: list[Job], worker: _Worker, workers: int, initargs: tuple, bar
     pool.shutdown()
 
 
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # somebody else's process
-        return True
-    return True
-
-
 def _left_by_dead_run(folder: Path, pid: int) -> bool:
     """A temporary folder whose rendering run (on this machine) is gone; another machine's is kept."""
     try:
         host = (folder / OWNER).read_text().split()[0]
     except (OSError, IndexError):
         host = None  # killed before the owner file was written, or just before the rename
-    return (host is None or host == socket.gethostname()) and not _alive(pid)
+    return (host is None or host == socket.gethostname()) and not pid_alive(pid)
 
 
 def _remove_stale(out: Path) -> None:
