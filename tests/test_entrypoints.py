@@ -247,7 +247,7 @@ def workdir(tmp_path_factory):
 @pytest.mark.parametrize("experiment", ["ablation_full", "ablation_baseline"])
 def test_fast_dev_run_through_train_py(workdir, experiment):
     out = workdir / f"fdr_{experiment}"
-    run(
+    proc = run(
         "train.py",
         f"+experiment={experiment}",
         "trainer.fast_dev_run=true",
@@ -259,6 +259,7 @@ def test_fast_dev_run_through_train_py(workdir, experiment):
         workdir / "data" / "synthetic_kitti360_64_seed0_f12" / "synthetic.json"
     ).is_file()  # generated once
     assert (out / ".hydra" / "config.yaml").is_file()
+    assert "Warning" not in proc.stderr and "deprecated" not in proc.stderr, proc.stderr[-2000:]
 
 
 def test_train_eval_resume_tables(workdir):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import warnings
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -32,9 +33,21 @@ def model_file_alias(argv: list[str]) -> list[str]:
     return ["model_file=" + a[len("model=") :] if a.startswith("model=") else a for a in argv]
 
 
+# Warnings Lightning prints on every training run that say nothing about the run: the module's own
+# ``transfer_batch_to_device`` (cameras are values on no device) is the one meant with a DataModule,
+# and Lightning 2.6's ``_pytree`` calls a torch API that torch 2.13 deprecates.
+QUIET_WARNINGS = (
+    r"You have overridden `transfer_batch_to_device` in `LightningModule` but have passed in a",
+    r"`isinstance\(treespec, LeafSpec\)` is deprecated",
+)
+
+
 def prepare_process(cfg: DictConfig) -> None:
-    """Process-wide settings, before any work: ``keep_freed_memory`` (glibc keeps the memory of freed
-    tensors for reuse instead of unmapping it; :func:`fisheyedepth.utils.keep_freed_memory`)."""
+    """Process-wide settings, before any work: :data:`QUIET_WARNINGS` silenced, ``keep_freed_memory``
+    (glibc keeps the memory of freed tensors for reuse instead of unmapping it;
+    :func:`fisheyedepth.utils.keep_freed_memory`)."""
+    for message in QUIET_WARNINGS:
+        warnings.filterwarnings("ignore", message=message)
     if cfg.get("keep_freed_memory"):
         log.info("keep_freed_memory: %s", "on" if keep_freed_memory() else "not glibc, nothing changed")
 
