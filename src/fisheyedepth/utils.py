@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -56,6 +58,35 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+@contextlib.contextmanager
+def staged_folder(out: str | os.PathLike, label: str):
+    """A hidden folder beside ``out`` (the same filesystem, so the final move is a rename) in which an
+    importer builds ``out``, with a plain folder's permissions (not ``mkdtemp``'s private 0700); removed
+    with whatever is left in it when the block ends, however it ends."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{label}-", dir=out.parent))
+    try:
+        staging.chmod(0o777 & ~current_umask())
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def move_into_place(staging: Path, out: Path, parts: list[Path]) -> None:
+    """The finished ``staging`` folder becomes ``out`` (one rename), or, where ``out`` holds other files
+    already, its ``parts`` (paths relative to both, in order) replace theirs: a folder part whole, so no
+    stale file of an earlier import stays; put last the file that marks ``out`` complete."""
+    if not out.exists() or not any(out.iterdir()):
+        os.replace(staging, out)
+        return
+    for part in parts:
+        (out / part).parent.mkdir(parents=True, exist_ok=True)
+        if (out / part).is_dir():  # a folder cannot replace a non-empty one: set the old one aside
+            (out / part).rename(staging / ".replaced")
+        os.replace(staging / part, out / part)
 
 
 def pid_alive(pid: int) -> bool:

@@ -26,7 +26,6 @@ import json
 import os
 import re
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +34,7 @@ from tqdm import tqdm
 
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, save_camera
 from ..images import ImageError, read_image
-from ..utils import current_umask
+from ..utils import move_into_place, staged_folder
 from .layouts import RigLayout, _transform
 
 CALIBRATION = "calib_slam_fisheye624.json"
@@ -116,18 +115,6 @@ def check_image(path: Path, camera: Fisheye624Camera, name: str) -> None:
         )
 
 
-def move_into(tmp: Path, out: Path) -> None:
-    """The finished ``tmp`` folder becomes ``out``; into an existing ``out``, file by file."""
-    if not out.exists():
-        tmp.rename(out)
-        return
-    for path in sorted(p for p in tmp.rglob("*") if not p.is_dir()):
-        target = out / path.relative_to(tmp)
-        target.parent.mkdir(parents=True, exist_ok=True)
-        os.replace(path, target)
-    shutil.rmtree(tmp)
-
-
 def aria_to_rig(
     src: str | os.PathLike, out: str | os.PathLike, sequence: str = "seq0", overwrite: bool = False
 ) -> dict:
@@ -159,24 +146,21 @@ def aria_to_rig(
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass overwrite=True (--overwrite) to replace it")
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
-    try:
-        tmp.chmod(0o777 & ~current_umask())  # mkdtemp's is private (0700); out gets a plain mkdir's
+    with staged_folder(out, "partial") as staging:
         total = sum(len(f) for f in images.values())
         with tqdm(total=total, desc="aria -> rig", unit="image") as bar:
             for name, files in images.items():
-                folder = tmp / sequence / "images" / name
+                folder = staging / sequence / "images" / name
                 folder.mkdir(parents=True)
                 for stamp, path in files.items():
                     check_image(path, cameras[name][0], name)
                     shutil.copyfile(path, folder / f"{stamp}.png")
                     bar.update()
         for name, (camera, _) in cameras.items():  # the project's YAML: predict.py camera=... reads it too
-            save_camera(camera, tmp / "calibration" / f"{name}.yaml")
+            save_camera(camera, staging / "calibration" / f"{name}.yaml")
         lines = [f"{stamp} " + " ".join(repr(v) for v in values) for stamp, values in poses]
         header = "# timestamp_ns tx ty tz qx qy qz qw (device -> odometry)\n"
-        (tmp / sequence / "poses.txt").write_text(header + "\n".join(lines) + "\n")
+        (staging / sequence / "poses.txt").write_text(header + "\n".join(lines) + "\n")
         rig = {
             "cameras": [
                 {
@@ -188,18 +172,15 @@ def aria_to_rig(
             ],
             "source": f"Aria export {src} (fisheyedepth.data.aria)",
         }
-        (tmp / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
+        (staging / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
         try:  # read back as training reads it: what it would refuse is never put in place
-            layout = RigLayout(tmp)
+            layout = RigLayout(staging)
             kept = {name: len(layout.frames(sequence, name)) for name in names}
         except (FileNotFoundError, ValueError) as err:
             raise ValueError(
-                f"{src}: the converted rig does not load: {str(err).replace(str(tmp), str(out))}"
+                f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
             ) from None
-        move_into(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        move_into_place(staging, out, [*targets[1:], targets[0]])  # file by file, rig.yaml last
     return {
         "cameras": names,
         "images": {n: len(f) for n, f in images.items()},

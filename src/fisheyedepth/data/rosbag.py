@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import logging
 import os
-import shutil
-import tempfile
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -39,7 +37,7 @@ from tqdm import tqdm
 from ..cameras import CameraModel, KannalaBrandtCamera, PinholeCamera, load_camera, save_camera
 from ..geometry import make_pose
 from ..images import read_image
-from ..utils import current_umask
+from ..utils import move_into_place, staged_folder
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix
 from .layouts import _transform as read_transform
 
@@ -230,34 +228,16 @@ def import_rosbag(
     for part in reversed(parts):  # rig.yaml first: the clash that says "this is a rig already"
         if (out / part).exists() and not overwrite:
             raise FileExistsError(f"{out / part} exists; pass overwrite=True (--overwrite) to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.importing-", dir=out.parent))
-    try:
-        summary = _import(bag, staging, cameras, info_topics, calibrations, extrinsics, odometry, tf_poses,
-                          body_frame, sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
-        _move_into_place(staging, out, parts)
-    except RosbagError as err:  # named by the bag, and by the path the file would have had
-        message = str(err).replace(str(staging), str(out))
-        raise RosbagError(message if str(bag) in message else f"{bag}: {message}") from None
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with staged_folder(out, "importing") as staging:
+        try:
+            summary = _import(bag, staging, cameras, info_topics, calibrations, extrinsics, odometry,
+                              tf_poses, body_frame, sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
+            move_into_place(staging, out, parts)  # rig.yaml last: a rig is complete when it has one
+        except RosbagError as err:  # named by the bag, and by the path the file would have had
+            message = str(err).replace(str(staging), str(out))
+            raise RosbagError(message if str(bag) in message else f"{bag}: {message}") from None
     summary["out"] = str(out)
     return summary
-
-
-def _move_into_place(staging: Path, out: Path, parts: list[Path]) -> None:
-    """The finished import at ``staging`` becomes ``out`` (one rename), or, where ``out`` holds other
-    files already, its ``parts`` replace theirs: the sequence folder whole (no stale image of an earlier
-    import stays), ``rig.yaml`` last, since a rig is complete when it has one."""
-    os.chmod(staging, 0o777 & ~current_umask())  # mkdtemp's 0700 would make the rig private
-    if not out.exists() or not any(out.iterdir()):
-        os.replace(staging, out)
-        return
-    for part in parts:
-        (out / part).parent.mkdir(parents=True, exist_ok=True)
-        if (out / part).is_dir():  # a folder cannot replace a non-empty one: set the old one aside
-            (out / part).rename(staging / ".replaced")
-        os.replace(staging / part, out / part)
 
 
 def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics, odometry, tf_poses,
