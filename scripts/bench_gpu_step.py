@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The full model's training step on a GPU (BENCHMARKS.md, "Time to accuracy", session 20): the
+"""The full model's training step on a GPU (BENCHMARKS.md, "Time to accuracy"): the
 network in float32 against bf16 autocast (``trainer.precision`` auto on a GPU), and ``gpu_10min``'s
 step (bf16, compiled kernels off) against the same with ``model.compile_kernels`` on. The variants take
 turns within every round, on one batch of a small rendered world (batch 4 at 256x256, two sources,

@@ -474,7 +474,7 @@ def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summar
 
 
 def test_bench_gpu_step_times_its_variants_side_by_side():
-    """scripts/bench_gpu_step.py (BENCHMARKS.md, session 20), tiny and on the CPU: every variant asked
+    """scripts/bench_gpu_step.py (BENCHMARKS.md, "Time to accuracy"), tiny and on the CPU: every variant asked
     for gets a row with a positive step time; the first is the reference of the ratios."""
     proc = subprocess.run(
         [sys.executable, "bench_gpu_step.py", "--device", "cpu", "--size", "64", "--batch", "1",
