@@ -4,6 +4,7 @@
 
     python scripts/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
                               [--post-process flip] [--lane left] [--set KEY=VALUE ...]
+    python scripts/heldout.py --from-records RECORD_OR_FOLDER [...] [--seeds ...] [--rig ...] [...]
 
 RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
 split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
@@ -14,9 +15,11 @@ rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json`` (``..._f
 ``synthetic_<rig>_<size>_seed<S>_f200_laneleft``, scored into ``..._laneleft``): the side cameras trade
 the near kerb for the far side of the street. ``--set`` passes more Hydra overrides to ``eval.py``
 (e.g. ``paths.data_dir=...``). Numbers: full-range abs_rel and a1, then kitti360-protocol abs_rel, all
-unscaled (real scale). Choose the held-out seeds before training, and never train or tune on them: the
-seed of the world the run trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its
-rig, in either lane.
+unscaled (real scale). ``--from-records`` prints the same rows from kept run records
+(``docs/records/**/*.json``, their ``results`` and ``heldout`` scores) and scores nothing: a world
+a record was not scored on reads ``(not scored)``. Choose the held-out seeds before training, and
+never train or tune on them: the seed of the world the run trained on (its ``.hydra/config.yaml``,
+``data.generate``) is refused for its rig, in either lane.
 """
 
 from __future__ import annotations
@@ -36,14 +39,41 @@ ROOT = Path(__file__).resolve().parents[1]
 FRAMES = 200  # the held-out worlds as they were named, whatever the training default (--set may differ)
 
 
+def formatted(results: dict) -> str:
+    """``abs_rel, a1 / kitti360 abs_rel`` of a results.json's ``results``."""
+    full, k360 = results["full"]["none"], results["kitti360"]["none"]
+    return f"{full['abs_rel']:.3f}, {full['a1']:.3f} / {k360['abs_rel']:.3f}"
+
+
 def scores(path: Path) -> str:
     """``abs_rel, a1 / kitti360 abs_rel`` of a results.json, or why there is none."""
     try:
-        results = json.loads(path.read_text())["results"]
-        full, k360 = results["full"]["none"], results["kitti360"]["none"]
-        return f"{full['abs_rel']:.3f}, {full['a1']:.3f} / {k360['abs_rel']:.3f}"
+        return formatted(json.loads(path.read_text())["results"])
     except (OSError, ValueError, KeyError) as err:
         return f"({path}: {type(err).__name__})"
+
+
+def folder_name(rig: str, seed: int, upsample: str | None, post_process: str, lane: str) -> str:
+    """The held-out score's folder in a run (its key in a record's ``heldout``)."""
+    suffix = (f"_{upsample}" if upsample else "") + (f"_{post_process}" if post_process != "none" else "")
+    suffix += "_laneleft" if lane == "left" else ""
+    return f"heldout_{rig}_seed{seed}{suffix}"
+
+
+def record_rows(paths: list[Path], seeds: list[int], *where) -> list[list[str]]:
+    """The table's rows from run records (``docs/records``): nothing is scored."""
+    from make_tables import records_under
+
+    rows = []
+    for record_file in (f for p in paths for f in records_under(p)):
+        record = json.loads(record_file.read_text())
+        own = record["results"]
+        cells = [record["name"].rsplit("/", 1)[-1], formatted(own["results"]) if own else "(no results)"]
+        for seed in seeds:
+            held = record["heldout"].get(folder_name(where[0], seed, *where[1:]))
+            cells.append(formatted(held["results"]) if held else "(not scored)")
+        rows.append(cells)
+    return rows
 
 
 def trained_world(run: Path) -> tuple[str, int] | None:
@@ -70,9 +100,7 @@ def score_heldout(
     if trained_world(run) == (rig, seed):  # the 200-frame world is the start of a longer one's drive
         # (in either lane: the other lane drives the same streets)
         raise ValueError(f"{run}: world {seed} ({rig}) is the world it trained on, not a held-out one")
-    suffix = (f"_{upsample}" if upsample else "") + (f"_{post_process}" if post_process != "none" else "")
-    suffix += "_laneleft" if lane == "left" else ""
-    out = run / f"heldout_{rig}_seed{seed}{suffix}"
+    out = run / folder_name(rig, seed, upsample, post_process, lane)
     if (out / "results.json").is_file():
         return out / "results.json"
     ckpt = run / "checkpoints" / "last.ckpt"
@@ -111,11 +139,19 @@ def main(argv=None) -> int:
     parser.add_argument("--post-process", choices=POST_PROCESSING, default="none")
     parser.add_argument("--lane", choices=("right", "left"), default="right", help="the car's lane")
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
+    parser.add_argument(
+        "--from-records", action="store_true", help="RUNs are run records or folders of them: score nothing"
+    )
     args = parser.parse_args(argv)
     lane = ", left lane" if args.lane == "left" else ""
     header = ["run", "own test", *(f"world {s} (held out{lane})" for s in args.seeds)]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
+    if args.from_records:
+        where = (args.rig, args.upsample, args.post_process, args.lane)
+        for cells in record_rows(args.runs, args.seeds, *where):
+            print("| " + " | ".join(cells) + " |")
+        return 0
     for run in args.runs:
         cells = [run.name, scores(run / "results.json")]
         for seed in args.seeds:

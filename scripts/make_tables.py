@@ -2,8 +2,12 @@
 """Collect results.json files into the paper's Table 1 and Table 2 (Markdown, and LaTeX with --latex).
 
     python scripts/make_tables.py outputs/ multirun/ [--protocol full] [--tables 1 2] [--latex] [--out F]
+    python scripts/make_tables.py docs/records/table2_world34_e20 [--heldout heldout_kitti360_seed1001]
 
-Each argument is a results.json file or a folder searched recursively. Rows are matched by experiment
+Each argument is a results.json file, a run record (``docs/records/**/*.json``: one JSON per kept run,
+its final results, held-out results, overrides and per-epoch curves) or a folder searched recursively
+for both. ``--heldout NAME`` tabulates the runs' scores on a held-out world instead: a run folder's
+``NAME/results.json``, a record's ``heldout[NAME]``. Rows are matched by experiment
 name; with several runs of one experiment (seeds) the metrics are averaged and the count is shown.
 Real-scale methods are scored unscaled; scale-less ones (PoseNet) median-scaled, and DNet with its
 camera-height scale recovery. The paper's KITTI-360 numbers are printed alongside for reference.
@@ -45,10 +49,50 @@ TABLE2 = [
 ]
 
 
+def is_record(data) -> bool:
+    """A kept run's record (``docs/records``), as opposed to a ``results.json``."""
+    return isinstance(data, dict) and "format" in data and "curves" in data and "heldout" in data
+
+
+def records_under(path: Path) -> list[Path]:
+    """The run records at or below ``path`` (a record file or a folder of them), sorted."""
+    files = [path] if path.is_file() else sorted(path.rglob("*.json"))
+    out = []
+    for f in files:
+        if f.name.startswith("results") and f.parent.name != "records":
+            continue  # a run folder's results.json
+        try:
+            if is_record(json.loads(f.read_text())):
+                out.append(f)
+        except (OSError, ValueError):
+            continue
+    return out
+
+
 def find(paths: list[str]) -> list[Path]:
+    """results.json files and run records at or below each path."""
     out = []
     for p in map(Path, paths):
-        out += [p] if p.is_file() else sorted(p.rglob("results*.json"))
+        if p.is_file():
+            out.append(p)
+            continue
+        out += sorted(p.rglob("results*.json")) + records_under(p)
+    return out
+
+
+def load_results(files: list[Path], heldout: str | None = None) -> list[dict]:
+    """The results (``results.json`` content) each file holds: a record's final results or, with
+    ``heldout``, its score on that held-out world; a results.json as it is (with ``heldout``, only one
+    inside a folder of that name). Files without such results are left out."""
+    out = []
+    for f in files:
+        data = json.loads(f.read_text())
+        if is_record(data):
+            res = data["heldout"].get(heldout) if heldout else data["results"]
+        else:
+            res = data if heldout is None or f.parent.name == heldout else None
+        if res is not None:
+            out.append(res)
     return out
 
 
@@ -71,10 +115,10 @@ def cell(r: dict, m: str) -> str:
     return f"{r['metrics'][m]:.3f}" + ("" if sd is None else f"±{sd:.3f}")
 
 
-def collect(files: list[Path], protocol: str) -> dict[str, dict]:
+def collect(records: list[dict], protocol: str) -> dict[str, dict]:
+    """Table rows from results (``load_results``), keyed by experiment."""
     runs: dict[str, list] = defaultdict(list)
-    for f in files:
-        record = json.loads(f.read_text())
+    for record in records:
         res = record["results"].get(protocol)
         if res is None:
             continue
@@ -150,18 +194,23 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("runs", nargs="+", help="results.json files or folders")
+    parser.add_argument("runs", nargs="+", help="results.json files, run records or folders")
     parser.add_argument("--protocol", default="full")
+    parser.add_argument(
+        "--heldout", metavar="NAME", help="score on this held-out world, e.g. heldout_kitti360_seed1001"
+    )
     parser.add_argument("--latex", action="store_true")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--tables", nargs="+", default=["1", "2"], choices=["1", "2"])
     args = parser.parse_args(argv)
-    files = find(args.runs)
-    if not files:
-        print(f"no results.json under {args.runs}", file=sys.stderr)
+    results = load_results(find(args.runs), args.heldout)
+    if not results:
+        print(f"no results.json or run record under {args.runs}", file=sys.stderr)
         return 2
-    rows = collect(files, args.protocol)
-    text = f"Protocol: {args.protocol}; {len(files)} results files.\n\n"
+    rows = collect(results, args.protocol)
+    text = f"Protocol: {args.protocol}; {len(results)} results files.\n\n"
+    if args.heldout:
+        text = f"Held-out world: {args.heldout}. " + text
     specs = {"1": ("Table 1", TABLE1), "2": ("Table 2 (ablation)", TABLE2)}
     chosen = [specs[t] for t in args.tables]
     text += "\n".join(markdown(title, spec, rows) for title, spec in chosen)

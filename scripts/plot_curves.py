@@ -1,19 +1,22 @@
 #!/usr/bin/env python
 """Per-epoch validation curves of training runs: does every row learn, and has it flattened?
 
-    python scripts/plot_curves.py RUN_OR_SWEEP [...] --out curves.png [--csv curves.csv]
+    python scripts/plot_curves.py RUN_OR_SWEEP_OR_RECORD [...] --out curves.png [--csv curves.csv]
 
 Reads each run's ``logs/version_*/metrics.csv`` (a resumed run's versions are joined) and its
-``.hydra/config.yaml`` for the experiment name, and plots per epoch: the self-supervised validation loss
-and photometric error (what model selection uses), the PoseNet's rotation and translation-direction
-errors against the true relative poses (PoseNet rows only), and the median-scaled abs_rel against the
-ground truth (for information: never used to select). ``--csv`` writes the same numbers as a table.
+``.hydra/config.yaml`` for the experiment name, or a kept run's record (``docs/records/**/*.json``,
+a file or a folder of them: its per-epoch ``curves``, ``experiment`` and ``seed``), and plots per
+epoch: the self-supervised validation loss and photometric error (what model selection uses), the
+PoseNet's rotation and translation-direction errors against the true relative poses (PoseNet rows
+only), and the median-scaled abs_rel against the ground truth (for information: never used to
+select). ``--csv`` writes the same numbers as a table.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -31,23 +34,48 @@ PANELS = (
 )
 
 
+def records_under(path: Path) -> list[Path]:
+    """Run records with per-epoch curves at or below ``path`` (see make_tables.py)."""
+    from make_tables import records_under as under
+
+    return [f for f in under(path) if json.loads(f.read_text())["curves"]]
+
+
 def runs_under(paths: list[str]) -> list[Path]:
-    """Run folders (those holding ``logs/``) at or below each path."""
+    """Run folders (those holding ``logs/``) and run records at or below each path."""
     out: list[Path] = []
     for p in map(Path, paths):
-        found = sorted({m.parents[2] for m in p.rglob("metrics.csv") if m.parent.parent.name == "logs"})
+        found = (
+            []
+            if p.is_file()
+            else sorted({m.parents[2] for m in p.rglob("metrics.csv") if m.parent.parent.name == "logs"})
+        )
+        if p.suffix == ".json" or not found:
+            found += records_under(p)
         out += [r for r in found if r not in out]
     return out
 
 
 def run_name(run: Path) -> str:
+    if run.is_file():  # a record
+        record = json.loads(run.read_text())
+        seed = "?" if record.get("seed") is None else record["seed"]
+        return f"{record.get('experiment') or run.stem} s{seed}"
     cfg = run_config(run)
     return f"{cfg.get('experiment_name', run.name)} s{cfg.get('seed', '?')}" if cfg else run.name
 
 
 def curves(run: Path) -> dict[str, dict[int, float]]:
-    """``{metric: {epoch: value}}`` of the validation metrics, over every log version of the run."""
+    """``{metric: {epoch: value}}`` of the validation metrics, over every log version of the run (or
+    from its record)."""
     out: dict[str, dict[int, float]] = defaultdict(dict)
+    if run.is_file():
+        table = json.loads(run.read_text())["curves"]
+        for key, _ in PANELS:
+            for epoch, value in zip(table.get("epoch", []), table.get(key, []), strict=False):
+                if value is not None:
+                    out[key][int(epoch)] = float(value)
+        return out
     for metrics in sorted((run / "logs").glob("*/metrics.csv")) + sorted((run / "logs").glob("metrics.csv")):
         with metrics.open() as handle:
             for row in csv.DictReader(handle):
@@ -62,14 +90,14 @@ def curves(run: Path) -> dict[str, dict[int, float]]:
 def main(argv=None) -> int:
     formatter = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=formatter)
-    parser.add_argument("runs", nargs="+", help="run folders or sweep folders")
+    parser.add_argument("runs", nargs="+", help="run folders, sweep folders, run records or their folders")
     parser.add_argument("--out", required=True, help="PNG to write")
     parser.add_argument("--csv", help="also write the numbers as CSV")
     parser.add_argument("--labels", nargs="+", help="one label per run, in order (default: experiment)")
     args = parser.parse_args(argv)
     runs = runs_under(args.runs)
     if not runs:
-        print(f"no runs with logs/*/metrics.csv under {args.runs}", file=sys.stderr)
+        print(f"no runs with logs/*/metrics.csv or run records under {args.runs}", file=sys.stderr)
         return 2
     if args.labels and len(args.labels) != len(runs):
         print(f"--labels: {len(args.labels)} labels for {len(runs)} runs", file=sys.stderr)

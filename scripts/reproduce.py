@@ -3,6 +3,7 @@
 
     python scripts/reproduce.py [--epochs 20] [--size 96] [--tables 1 2] [--seeds 0 1] [--world-seed 34]
     python scripts/reproduce.py --runs RUN_OR_SWEEP... [--tables 2]   # rows already trained elsewhere
+    python scripts/reproduce.py --runs docs/records/table2_world34_e20   # the kept runs' records
 
 Runs ``train.py -m`` over the experiments and seeds (each trains, then evaluates its last checkpoint,
 selected without ground truth, on the test split into results.json), then ``make_tables.py`` on the
@@ -13,7 +14,8 @@ photometric error and PoseNet pose errors per epoch, written beside the tables
 The budget is the one every Table 2 row converges in (BENCHMARKS.md): 96x96 input, 20 epochs, the
 learning rate decayed x0.1 after 80 % of them (``--lr-step``, 16 of 20). On 2 CPU cores one run takes
 15-45 minutes; ``--runs`` builds the tables and the figure from runs trained in parallel (other
-processes, a cluster) with the same overrides, without training anything.
+processes, a cluster) with the same overrides, without training anything, or from the kept runs'
+records (``docs/records``: their results, overrides and per-epoch curves).
 
 The world is the synthetic kitti360 rig (200 frames: the tables' kept runs) rendered with ``--world-seed``,
 34 by default: its training segment turns (180 degrees over 57 frames) and so does its validation
@@ -35,7 +37,7 @@ from pathlib import Path
 
 import yaml
 
-from make_tables import find
+from make_tables import find, is_record, load_results
 
 from _benchmarks import publish
 
@@ -167,9 +169,7 @@ def _tested(sources: list[str]) -> str:
     """Which checkpoints the tables score, from the runs' results.json: e.g. ``last.ckpt x10``."""
     kinds = Counter(
         "best-NNN.ckpt" if name.startswith("best-") else name
-        for name in (
-            Path(json.loads(f.read_text()).get("checkpoint") or "in-memory").name for f in find(sources)
-        )
+        for name in (Path(r.get("checkpoint") or "in-memory").name for r in load_results(find(sources)))
     )
     return ", ".join(f"{k} x{n}" for k, n in sorted(kinds.items()))
 
@@ -178,15 +178,24 @@ PER_RUN = ("+experiment=", "experiment=", "seed=", "hydra.", "paths.")  # what d
 
 
 def _shared_overrides(sources: list[str]) -> list[str]:
-    """The Hydra overrides every run under ``sources`` was trained with (``.hydra/overrides.yaml``),
-    less the row and seed; overrides that differ between runs are listed as ``KEY: differs``."""
-    files = [f for s in sources for f in sorted(Path(s).rglob("overrides.yaml")) if f.parent.name == ".hydra"]
-    if not files:
+    """The Hydra overrides every run under ``sources`` was trained with (``.hydra/overrides.yaml``, or
+    a run record's ``overrides``), less the row and seed; overrides that differ between runs are listed
+    as ``KEY: differs``."""
+    lists = []
+    for source in map(Path, sources):
+        files = (
+            [source] if source.is_file() else sorted(source.rglob("*.yaml")) + sorted(source.rglob("*.json"))
+        )
+        for f in files:
+            if f.name == "overrides.yaml" and f.parent.name == ".hydra":
+                lists.append(yaml.safe_load(f.read_text()) or [])
+            elif f.suffix == ".json" and not f.name.startswith("results"):
+                data = json.loads(f.read_text())
+                if is_record(data) and data["overrides"] is not None:
+                    lists.append(data["overrides"])
+    if not lists:
         return ["(no .hydra/overrides.yaml in the runs)"]
-    runs = [
-        {o.split("=", 1)[0]: o for o in yaml.safe_load(f.read_text()) or [] if not o.startswith(PER_RUN)}
-        for f in files
-    ]
+    runs = [{o.split("=", 1)[0]: o for o in overrides if not o.startswith(PER_RUN)} for overrides in lists]
     keys = list(dict.fromkeys(k for r in runs for k in r))
     return [runs[0][k] if all(r.get(k) == runs[0].get(k) for r in runs) else f"{k}: differs" for k in keys]
 
