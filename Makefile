@@ -24,11 +24,13 @@ lint: install
 	$(PY) -m ruff check --no-cache src tests scripts train.py eval.py predict.py export.py
 	$(PY) -m ruff format --no-cache --check src tests scripts train.py eval.py predict.py export.py
 
+# The CPU benchmarks that need no trained checkpoint; each writes its section of BENCHMARKS.md.
+# ARGS=--quick: the smallest sizes, to check that they run (nothing written). scripts/bench_*.py: the rest.
 bench: install
-	$(PY) scripts/bench_geometry.py
-	$(PY) scripts/bench_synthetic.py
-	$(PY) scripts/bench_training.py
-	$(PY) scripts/bench_inference.py
+	$(PY) scripts/bench_geometry.py $(ARGS)
+	$(PY) scripts/bench_synthetic.py $(ARGS)
+	$(PY) scripts/bench_training.py $(ARGS)
+	$(PY) scripts/bench_inference.py $(ARGS)
 
 # The main job: render the default synthetic dataset if missing, train the full model (CPU budget),
 # evaluate it on the test split, print the metric table, write colourised distance maps.

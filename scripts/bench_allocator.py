@@ -10,27 +10,37 @@ of child alternate for ``--rounds`` rounds (the order swapped every round) and t
 median over rounds of the paired ratio. Page faults (minor, per step) and the peak resident set say
 why. Reads world 0 of ``make train`` (rendered on first use, like ``make train`` does).
 
-Usage: python scripts/bench_allocator.py [--rounds 4] [--steps 8] [--no-write]
+Usage: python scripts/bench_allocator.py [--rounds 4] [--steps 8] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, alternate, paired_ratio, peak_rss_kb, publish
+from _benchmarks import (
+    WORLD,
+    alternate,
+    bench_parser,
+    child_result,
+    markers,
+    paired_ratio,
+    parse_args,
+    peak_rss_kb,
+    publish,
+    repeated,
+    require_world,
+    run_child,
+)
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_allocator:start -->", "<!-- bench_allocator:end -->"
+START, END = markers("bench_allocator")
 KINDS = ("glibc defaults", "keep_freed_memory")
 
 
@@ -47,40 +57,29 @@ def child(kind: str, steps: int, cache: Path) -> None:
     torch.set_num_threads(2)
     batch = make_batch(WORLD, 256, 4, cache)
     module, optimizer = make_module("FFT + RS + MC (full)", True, "native", True)  # cpu_30min's step
-    times, faults = [], 0
-    for i in range(steps + 2):  # two warm-up steps (compilation, first allocations)
-        if i == 2:
-            faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-        t0 = time.perf_counter()
+    for _ in range(2):  # two warm-up steps (compilation, first allocations)
         step(module, optimizer, batch, bf16=True)
-        times.append(time.perf_counter() - t0)
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    times = repeated(lambda: step(module, optimizer, batch, bf16=True), steps, warmup=0)
     faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / steps
     peak = peak_rss_kb() / 1024
-    print(json.dumps({"step": statistics.median(times[2:]), "faults": faults, "peak_mb": peak}))
+    child_result({"step": statistics.median(times), "faults": faults, "peak_mb": peak})
 
 
 def measure(kind: str, steps: int, cache: Path) -> dict[str, float]:
-    command = [sys.executable, __file__, "--child", kind, "--steps", str(steps), "--cache", str(cache)]
-    out = subprocess.run(command, capture_output=True, text=True, check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return run_child(__file__, [kind, "--steps", steps, "--cache", cache])
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--steps", type=int, default=8)
-    parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
-    parser.add_argument("--child", choices=KINDS, help=argparse.SUPPRESS)
     parser.add_argument("--cache", type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"rounds": 1, "steps": 1})
     if args.child:
-        child(args.child, args.steps, args.cache)
+        child(args.child[0], args.steps, args.cache)
         return 0
-    if not (WORLD / "splits" / "train.txt").exists():
-        raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
+    require_world()
     with tempfile.TemporaryDirectory(prefix="fd-bench-alloc-") as tmp:
         results = alternate(KINDS, args.rounds, lambda kind: measure(kind, args.steps, Path(tmp)))
     ratio = paired_ratio(results[KINDS[0]], results[KINDS[1]], "step")

@@ -1,37 +1,48 @@
 #!/usr/bin/env python
 """Building a KITTI-360 dataset must cost O(frames) with a small constant: an index, no per-frame work.
 Measures, in a fresh process per size, the time and peak resident memory of ``FisheyeDataModule.setup``
-(train, val and test) with ``ground_truth: lidar`` as ``conf/data/kitti360.yaml`` sets it, and the time
-of the first training sample and the first scored (test) sample; then extrapolates to 80,000 frames
-(BENCHMARKS.md "Dataset at scale").
+(train, val and test) of the data module that ``data=kitti360`` configures (``conf/data/kitti360.yaml``:
+``ground_truth: lidar``; this benchmark's root, splits, size and cache), and the time of the first
+training sample and the first scored (test) sample; then extrapolates to 80,000 frames (BENCHMARKS.md
+"Dataset at scale").
 
-Usage: python scripts/bench_dataset.py [--frames 200 2000] [--baseline OLD_CHECKOUT] [--no-write]
+Usage: python scripts/bench_dataset.py [--frames 200 2000] [--baseline OLD_CHECKOUT] [--no-write] [--quick]
 
 The datasets use the KITTI-360 layout with the sizes that matter, the counts: pose rows, images and
 Velodyne scans, 80 % in a training drive, 10 % in a validation drive (every 10th row of the left camera)
 and 10 % in a test drive (every 5th row of the left camera). Images and scans are hard links to the
 synthetic default world's (rendered on first use by ``make train``), so they cost no disk. With
 ``--baseline``, the same measurement runs on another checkout's ``src`` (e.g. a ``git worktree`` of an
-older commit), side by side.
+older commit), side by side; the configuration is this checkout's, less the options the other code does
+not have.
 """
 
 from __future__ import annotations
 
-import argparse
+import inspect
 import json
 import os
-import resource
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, publish
+from omegaconf import OmegaConf
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_dataset:start -->", "<!-- bench_dataset:end -->"
+from _benchmarks import (
+    WORLD,
+    bench_parser,
+    child_result,
+    markers,
+    parse_args,
+    peak_rss_kb,
+    publish,
+    run_child,
+)
+from _compose import compose_config
+
+START, END = markers("bench_dataset")
 DRIVES = {"train": (2, 0.8, 1), "val": (10, 0.1, 10), "test": (0, 0.1, 5)}  # drive, share, row stride
 TARGET = 80_000
 
@@ -84,17 +95,41 @@ def splits() -> dict:
     }
 
 
+def datamodule_config(root: Path, cache: Path) -> dict:
+    """``data=kitti360``'s data module on this benchmark's dataset, as plain values (``_target_`` and
+    the constructor's arguments), with the sources the model warps."""
+    from fisheyedepth.config import source_offsets
+
+    cfg = compose_config(
+        ["data=kitti360"],
+        {
+            "data.datamodule.root": root,
+            "data.datamodule.splits": splits(),
+            "data.datamodule.size": [64, 64],
+            "data.datamodule.cache_dir": cache,
+        },
+    )
+    node = OmegaConf.to_container(cfg.data.datamodule, resolve=True)
+    return node | {"offsets": source_offsets(cfg)}
+
+
 def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kilobytes
+    return peak_rss_kb() / 1024
 
 
-def child(root: Path, cache: Path) -> dict:
-    """One measurement, in this (fresh) process."""
-    from fisheyedepth.data import FisheyeDataModule
+def child(config: Path, cache: Path) -> dict:
+    """One measurement, in this (fresh) process, of the data module ``config`` (a JSON file) describes;
+    options the code in use does not take (an older checkout's) are left out, and named."""
+    from hydra.utils import get_class, instantiate
 
+    node = json.loads(config.read_text())
+    taken = inspect.signature(get_class(node["_target_"]).__init__).parameters
+    dropped = sorted(k for k in node if not k.startswith("_") and k not in taken)
+    if dropped:
+        print(f"left out (not taken by this code): {', '.join(dropped)}", file=sys.stderr)
     before = peak_rss_mb()
     start = time.perf_counter()
-    dm = FisheyeDataModule(root, splits=splits(), ground_truth="lidar", size=(64, 64), cache_dir=cache)
+    dm = instantiate({k: v for k, v in node.items() if k not in dropped})
     dm.setup("fit")
     dm.setup("test")
     setup = time.perf_counter() - start
@@ -118,16 +153,13 @@ def child(root: Path, cache: Path) -> dict:
 
 
 def measure(root: Path, src: Path | None) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
+    env = {"OMP_NUM_THREADS": "1"}
     if src is not None:
         env["PYTHONPATH"] = str(src)
     with tempfile.TemporaryDirectory(prefix="fd-bench-cache-") as cache:
-        out = subprocess.run(
-            [sys.executable, __file__, "--child", str(root), cache], env=env, capture_output=True, text=True
-        )
-    if out.returncode:
-        raise RuntimeError(out.stderr[-3000:])
-    return json.loads(out.stdout.strip().splitlines()[-1])
+        config = Path(cache) / "datamodule.json"  # beside the cache, which counts .npz files only
+        config.write_text(json.dumps(datamodule_config(root, Path(cache))))
+        return run_child(__file__, [config, cache], env=env)
 
 
 def extrapolate(a: tuple[int, float], b: tuple[int, float], n: int) -> float:
@@ -181,16 +213,12 @@ def report(results: dict[str, dict[int, dict]], frames: list[int], command: str)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--frames", type=int, nargs="+", default=[200, 2000])
     parser.add_argument("--baseline", type=Path, help="another checkout, measured side by side (its src/)")
-    parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--child", nargs=2, type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"frames": [20, 40]})
     if args.child:
-        print(json.dumps(child(*args.child)))
+        child_result(child(*map(Path, args.child)))
         return 0
     codes = {"this commit": None}
     if args.baseline:
@@ -206,7 +234,7 @@ def main(argv=None) -> int:
     command = "python scripts/bench_dataset.py --frames " + " ".join(map(str, args.frames))
     if args.baseline:
         command += " --baseline <a worktree of the commit before>"
-    publish(report(results, args.frames, command), ROOT / "BENCHMARKS.md", START, END, not args.no_write)
+    publish(report(results, args.frames, command), args.output, START, END, not args.no_write)
     return 0
 
 

@@ -18,29 +18,38 @@ cycle (one batch start to the next: the loader's wait plus the step) after ``--w
 The two kinds alternate for ``--rounds`` rounds (the order swapped every round); the speed-up is the
 median of the paired per-round ratios.
 
-Usage: python scripts/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no-write]
+Usage: python scripts/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 import os
 import platform
 import runpy
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from _benchmarks import WORLD, alternate, paired_ratio, publish
+from _benchmarks import (
+    ROOT,
+    WORLD,
+    alternate,
+    bench_parser,
+    child_result,
+    markers,
+    paired_ratio,
+    parse_args,
+    publish,
+    require_world,
+    run_child,
+)
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_fit:start -->", "<!-- bench_fit:end -->"
+START, END = markers("bench_fit")
 KINDS = ("before the trims", "after the trims")
 
 
@@ -74,6 +83,7 @@ def restore_before() -> None:
 
     import fisheyedepth.data.augment as augment
     from fisheyedepth.module import FisheyeDepthModule
+    from fisheyedepth.training import StepGuard
 
     plain_adam = torch.optim.Adam
 
@@ -84,20 +94,21 @@ def restore_before() -> None:
 
     torch.optim.Adam = ForeachAdam
 
-    def per_tensor_check(self, optimizer) -> None:  # the hook as it was before the one-norm test
+    def per_tensor_check(self) -> None:  # the check as it was before the one-norm test
+        params = list(self.module.parameters())
         if self._dropping:
             self._dropping = False
-            for p in self.parameters():
+            for p in params:
                 p.grad = None
             return
-        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        grads = [p.grad for p in params if p.grad is not None]
         finite = not grads or bool(torch.stack([torch.isfinite(g).all() for g in grads]).all())
-        if self._any_rank(not finite):
-            for p in self.parameters():
+        if self.any_rank(not finite):
+            for p in params:
                 p.grad = None
-            self._skip_step("non-finite gradients on a rank", -1, 0)
+            self.skip("non-finite gradients on a rank", -1, 0)
 
-    FisheyeDepthModule.on_before_optimizer_step = per_tensor_check
+    StepGuard.check_gradients = per_tensor_check
     # and Lightning's clipping, which takes the gradients' norm again
     FisheyeDepthModule.configure_gradient_clipping = L.LightningModule.configure_gradient_clipping
     augment.colour_jitter = chain_jitter
@@ -149,39 +160,28 @@ def child(kind: str, steps: int, warmup: int, out_dir: Path) -> None:
         if exc.code:
             raise
     kept = cycles[warmup:]
-    print(json.dumps({"cycle": statistics.median(kept), "steps": len(kept)}))
+    child_result({"cycle": statistics.median(kept), "steps": len(kept)})
 
 
 def measure(kind: str, steps: int, warmup: int, tmp: Path, index: int) -> dict[str, float]:
-    out_dir = tmp / f"run{index}"
-    command = [sys.executable, __file__, "--child", kind, "--steps", str(steps), "--warmup", str(warmup)]
-    command += ["--out", str(out_dir)]
-    env = dict(os.environ, OMP_NUM_THREADS="2", PYTHONPATH=os.pathsep.join([str(ROOT / "src"), str(ROOT)]))
-    out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=ROOT)
-    if out.returncode:
-        raise RuntimeError(f"{kind}: child failed:\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    env = {"OMP_NUM_THREADS": "2", "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT)])}
+    arguments = [kind, "--steps", steps, "--warmup", warmup, "--out", tmp / f"run{index}"]
+    return run_child(__file__, arguments, env=env, cwd=ROOT)
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--steps", type=int, default=60)
     parser.add_argument("--warmup", type=int, default=15)
-    parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
-    parser.add_argument("--child", choices=KINDS, help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"rounds": 1, "steps": 3, "warmup": 1})
     if args.child:
-        child(args.child, args.steps, args.warmup, args.out)
+        child(args.child[0], args.steps, args.warmup, args.out)
         return 0
     if args.steps <= args.warmup:
         raise SystemExit(f"--steps {args.steps} must exceed --warmup {args.warmup}")
-    if not (WORLD / "splits" / "train.txt").exists():
-        raise SystemExit(f"{WORLD}: render it first (make train renders it on first use)")
+    require_world()
     with tempfile.TemporaryDirectory(prefix="fd-bench-fit-") as tmp:
         runs = itertools.count()  # each child writes its run into a folder of its own
         results = alternate(

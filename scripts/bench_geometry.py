@@ -7,17 +7,16 @@
    camera, interleaved round by round in one run so that machine noise hits all alike. Target: the
    fisheye/pinhole ratio <= 1.05 (fisheye projection costs nothing once rays are cached).
 
-Usage: python scripts/bench_geometry.py [--threads 2] [--rounds 15] [--device cpu] [--no-write]
+Usage: python scripts/bench_geometry.py [--threads 2] [--rounds 15] [--device cpu] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
 import time
-from pathlib import Path
+from functools import partial
 
 import torch
 
@@ -32,35 +31,24 @@ from fisheyedepth.cameras import (
 from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
 
-from _benchmarks import publish
+from _benchmarks import bench_parser, interleaved, markers, parse_args, publish, repeated
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_geometry:start -->", "<!-- bench_geometry:end -->"
+START, END = markers("bench_geometry")
 
 KITTI_02 = kitti360_camera(2)
 
 
-def sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def timed(fn, device) -> float:
-    sync(device)
-    t0 = time.perf_counter()
-    fn()
-    sync(device)
-    return time.perf_counter() - t0
+def synchronizer(device: torch.device):
+    """What waits for ``device`` to finish its work (nothing on the CPU)."""
+    return (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
 
 
 def bench_ray_cache(device, repeats: int) -> list[tuple[str, float, float]]:
     rows = []
     for size, target in ((1400, 1.0), (384, 0.050)):
         cam = KITTI_02.resize(size, size)
-        compute_rays(cam, device, torch.float64)  # warm-up
-        times = [
-            timed(lambda cam=cam: compute_rays(cam, device, torch.float64), device) for _ in range(repeats)
-        ]
+        build = partial(compute_rays, cam, device, torch.float64)
+        times = repeated(build, repeats, warmup=1, sync=synchronizer(device))
         rows.append((f"{size}x{size}", statistics.median(times), target))
     return rows
 
@@ -117,16 +105,8 @@ def bench_warp(device, rounds: int, batch: int = 8, size: int = 256) -> dict[str
         loss = (sample(image, warp.grid) * warp.valid[:, None]).mean()
         loss.backward()
 
-    for name in cams:  # warm-up
-        for _ in range(2):
-            step(name)
-    times = {name: [] for name in cams}
-    names = list(cams)
-    for r in range(rounds):
-        order = names[r % len(names) :] + names[: r % len(names)]  # rotate the order every round
-        for name in order:
-            times[name].append(timed(lambda name=name: step(name), device))
-    return times
+    runs = {name: (lambda name=name: step(name)) for name in cams}
+    return interleaved(runs, rounds, warmup=2, sync=synchronizer(device))
 
 
 def render(cache_rows, warp_times, args, device) -> str:
@@ -167,16 +147,12 @@ def render(cache_rows, warp_times, args, device) -> str:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--no-write", action="store_true", help="print only; leave BENCHMARKS.md alone")
-    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"rounds": 1, "repeats": 1})
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     cache_rows = bench_ray_cache(device, args.repeats)

@@ -6,7 +6,7 @@ turns within every round, on one batch of a small rendered world (batch 4 at 256
 4 scales, channels_last, loss at native resolution: ``cpu_30min``'s model; Adam as
 ``bench_training.py`` makes it, not the fused one that training uses on a GPU).
 
-    python scripts/bench_gpu_step.py [--device cuda] [--rounds 5] [--steps 20] [--variants NAME ...]
+    python scripts/bench_gpu_step.py [--device cuda] [--rounds 5] [--steps 20] [--variants NAME ...] [--quick]
 
 Prints a Markdown table: each variant's warm-up (its compilation included) and its median time per
 step; the ratios are against the first variant measured. Nothing is written: paste the table into
@@ -15,16 +15,16 @@ BENCHMARKS.md with the command and the device.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import torch
 
 from bench_training import make_batch, make_module, step
 from fisheyedepth.data.synthetic import generate
+
+from _benchmarks import bench_parser, interleaved, parse_args, timed
 
 VARIANTS = {  # name: (bf16 autocast, compiled kernels)
     "float32": (False, False),
@@ -33,15 +33,8 @@ VARIANTS = {  # name: (bf16 autocast, compiled kernels)
 }
 
 
-def synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__, write=False)
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--steps", type=int, default=20, help="steps timed together in each round")
@@ -49,8 +42,9 @@ def main(argv=None) -> None:
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--batch", type=int, default=4)
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"rounds": 1, "steps": 1, "warmup": 1, "size": 64, "batch": 1})
     device = torch.device(args.device)
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
     with tempfile.TemporaryDirectory() as tmp:
         root = generate(
             Path(tmp) / "d", "kitti360", frames=20, size=args.size, seed=0, lidar=False, progress=False
@@ -61,24 +55,11 @@ def main(argv=None) -> None:
         bf16, compiled = VARIANTS[name]
         module, optimizer = make_module("FFT + RS + MC (full)", True, "native", compiled)
         module.to(device)  # the optimiser holds the same parameters; its state is made at the first step
-        synchronize(device)
-        t0 = time.perf_counter()
-        for _ in range(args.warmup):
-            step(module, optimizer, batch, bf16)
-        synchronize(device)
-        warmup[name] = time.perf_counter() - t0
-        runs[name] = (module, optimizer, bf16)
-    times: dict[str, list[float]] = {name: [] for name in runs}
+        runs[name] = lambda m=module, o=optimizer, bf16=bf16: step(m, o, batch, bf16)
+        warmup[name] = timed(lambda run=runs[name]: [run() for _ in range(args.warmup)], sync)
+    # each round: every variant's block of --steps steps, timed together
+    times = interleaved(runs, args.rounds, warmup=0, repeat=args.steps, together=True, sync=sync)
     names = list(runs)
-    for r in range(args.rounds):
-        for name in names[r % len(names) :] + names[: r % len(names)]:
-            module, optimizer, bf16 = runs[name]
-            synchronize(device)
-            t0 = time.perf_counter()
-            for _ in range(args.steps):
-                step(module, optimizer, batch, bf16)
-            synchronize(device)
-            times[name].append((time.perf_counter() - t0) / args.steps)
     where = (
         torch.cuda.get_device_name(device)
         if device.type == "cuda"

@@ -10,13 +10,16 @@ and static int8. Goal: >= 10 fps at 384x384 on 2 threads.
 Accuracy (``--ckpt`` and ``--data``): each path made from that checkpoint at its training size, scored on
 the ``--split`` split of ``--data`` (full range, unscaled). Goal: abs_rel at most 0.01 above float32.
 
+An untrained network is the one ``model=fisheyedepth`` (or ``model=fisheyedepth_lite``) configures, with
+``base_focal`` unset: no training cameras to take it from. ``--data`` is read as ``data=synthetic``
+reads its dataset (a KITTI-360-layout folder with split files).
+
 Usage: python scripts/bench_inference.py [--size 384] [--threads 2] [--rounds 20]
-           [--ckpt CKPT --data DATASET [--split test]] [--calibration DIR] [--no-write]
+           [--ckpt CKPT --data DATASET [--split test]] [--calibration DIR] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import statistics
@@ -26,7 +29,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fisheyedepth.data import FisheyeDataModule
 from fisheyedepth.evaluation import evaluate
 from fisheyedepth.inference import ExportableNet
 from fisheyedepth.models.heads import at_least_float32, distance_to_sigmoid
@@ -39,11 +41,12 @@ from fisheyedepth.runtimes import (
     onnx_session,
 )
 
-from _benchmarks import WORLD, publish
+from _benchmarks import WORLD, bench_parser, interleaved, markers, parse_args, publish
+from _compose import build_datamodule, build_module, compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_inference:start -->", "<!-- bench_inference:end -->"
-LITE = {"decoder_width": 0.5, "n_bins": 32}  # conf/model/fisheyedepth_lite.yaml
+START, END = markers("bench_inference")
+MODELS = {"full": ["model=fisheyedepth"], "lite": ["model=fisheyedepth_lite"]}  # conf/model/
+DATA = ["data=synthetic"]  # conf/data/: the --data folder is read as the synthetic world is
 BLOCK = 3  # timed frames per runner and round: a deployment runs one runtime frame after frame
 DEFAULT_CALIBRATION = WORLD / "data_2d_raw"
 
@@ -59,11 +62,12 @@ def softmax_expectation(logits, depth_scale, bins, min_distance, max_distance):
 
 
 def load(ckpt: str | None, lite: bool = False) -> FisheyeDepthModule:
-    """A trained module, or an untrained one (speed only); ``lite``: ``model=fisheyedepth_lite``."""
+    """A trained module, or an untrained one (speed only) as ``model=fisheyedepth`` configures it;
+    ``lite``: ``model=fisheyedepth_lite``."""
     torch.manual_seed(0)
     if ckpt:
         return FisheyeDepthModule.from_checkpoint(ckpt)
-    return FisheyeDepthModule(**LITE) if lite else FisheyeDepthModule()
+    return build_module(compose_config(MODELS["lite" if lite else "full"]), base_focal=None)
 
 
 def old_path(module: FisheyeDepthModule) -> ExportableNet:
@@ -138,19 +142,10 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
         session = basic_session(data, args.threads) if basic else onnx_session(data, args.threads)
         runners[name] = lambda s=session: s.run(None, feed)
         notes[name] = note
-    times = {name: [] for name in runners}
     with torch.no_grad():
-        for run in runners.values():  # warm-up
-            for _ in range(3):
-                run()
-        names = list(runners)
-        for r in range(args.rounds):  # each round: every runner in turn, a block of BLOCK frames each
-            for name in names[r % len(names) :] + names[: r % len(names)]:
-                runners[name]()  # untimed: the previous runner's idle threads settle
-                for _ in range(BLOCK):
-                    t0 = time.perf_counter()
-                    runners[name]()
-                    times[name].append(time.perf_counter() - t0)
+        # each round: every runner in turn, one untimed frame (the previous runner's idle threads
+        # settle), then a block of BLOCK frames
+        times = interleaved(runners, args.rounds, warmup=3, repeat=BLOCK, settle=True)
     return {name: statistics.median(ts) for name, ts in times.items()}, notes
 
 
@@ -158,7 +153,8 @@ def accuracy(ckpt: str, args, tmp: Path) -> dict[str, dict[str, float]]:
     """Each path made from ``ckpt`` at its training size, on the ``--split`` split of ``--data``."""
     module = load(ckpt)
     size = tuple(module.hparams["input_size"])
-    dm = FisheyeDataModule(args.data, "kitti360", {args.split: f"splits/{args.split}.txt"}, batch_size=4)
+    values = {"data.datamodule.root": args.data, "data.datamodule.cache_dir": tmp / "cache"}
+    dm = build_datamodule(compose_config(DATA, values))
     calibration = calibration_set(args.calibration, size)
     net = ExportableNet(TorchRuntime(module).module.depth_net).eval()
     paths = {"PyTorch float32": TorchRuntime(load(ckpt))}
@@ -175,9 +171,7 @@ def accuracy(ckpt: str, args, tmp: Path) -> dict[str, dict[str, float]]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--size", type=int, default=384)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=20)
@@ -188,8 +182,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--calibration", type=Path, default=DEFAULT_CALIBRATION, help="training images for int8"
     )
-    parser.add_argument("--no-write", action="store_true")
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"size": 64, "rounds": 1})
     if args.data and not (args.ckpt or args.lite_ckpt):
         parser.error("--data needs --ckpt or --lite-ckpt (accuracy is that of a trained network)")
     torch.set_num_threads(args.threads)
@@ -245,7 +238,7 @@ def main(argv=None) -> int:
                     f"{delta:+.4f} | {'met' if delta <= 0.01 else 'NOT met'} |"
                 )
     lines.append(END)
-    publish("\n".join(lines) + "\n", ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
+    publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
     return 0
 
 

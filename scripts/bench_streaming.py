@@ -4,7 +4,7 @@ short and a long clip of the same frames, in each runtime; its fps and its peak 
 must not grow with the video's length (BENCHMARKS.md "Streaming").
 
 Usage: python scripts/bench_streaming.py --ckpt CKPT [--frames 50 1000] [--size 384] [--threads 2]
-           [--calibration DIR] [--no-write]
+           [--calibration DIR] [--no-write] [--quick]
 
 The clip repeats rendered frames of the synthetic default world (rendered on first use by ``make train``)
 resized to ``--size``; each runtime's network runs at ``--size`` too (``export.py size=``).
@@ -12,9 +12,7 @@ resized to ``--size``; each runtime's network runs at ``--size`` too (``export.p
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -23,10 +21,9 @@ from pathlib import Path
 
 import cv2
 
-from _benchmarks import WORLD, publish
+from _benchmarks import ROOT, WORLD, bench_parser, markers, parse_args, peak_rss_of, publish
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_streaming:start -->", "<!-- bench_streaming:end -->"
+START, END = markers("bench_streaming")
 
 
 def write_clip(path: Path, frames: int, size: int) -> None:
@@ -44,39 +41,20 @@ def write_clip(path: Path, frames: int, size: int) -> None:
 
 def peak_run(args: list[str], threads: int) -> tuple[float, dict]:
     """Peak RSS (MB) of ``python predict.py ARGS`` and its summary.json."""
-    probe = (
-        "import resource, subprocess, sys;"
-        "r = subprocess.run([sys.executable, *sys.argv[1:]], capture_output=True, text=True);"
-        "sys.stderr.write(r.stderr[-3000:]);"
-        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
-    )
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    proc = subprocess.run(
-        [sys.executable, "-c", probe, str(ROOT / "predict.py"), *args],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        env=env,
-    )
-    if proc.returncode:
-        raise RuntimeError(proc.stderr)
+    command = [sys.executable, ROOT / "predict.py", *args]
+    peak = peak_rss_of(command, env={"OMP_NUM_THREADS": str(threads)}, cwd=ROOT)
     out = next(a.split("=", 1)[1] for a in args if a.startswith("output="))
-    return int(proc.stdout.strip().splitlines()[-1]) / 1024.0, json.loads(
-        (Path(out) / "summary.json").read_text()
-    )
+    return peak / 1024.0, json.loads((Path(out) / "summary.json").read_text())
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--ckpt", required=True)
     parser.add_argument("--frames", nargs=2, type=int, default=[50, 1000])
     parser.add_argument("--size", type=int, default=384)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--calibration", type=Path, default=WORLD / "data_2d_raw")
-    parser.add_argument("--no-write", action="store_true")
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"frames": [2, 4], "size": 64})
     calib = WORLD / "calibration" / "image_02.yaml"
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -133,7 +111,7 @@ def main(argv=None) -> int:
         *rows,
         END,
     ]
-    publish("\n".join(lines) + "\n", ROOT / "BENCHMARKS.md", START, END, write=not args.no_write)
+    publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
     return 0
 
 

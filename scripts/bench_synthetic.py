@@ -6,12 +6,11 @@ Camera-frames per second at 256x256 with 2x2 supersampling on 2 CPU cores (targe
 2. the whole generator (`generate`: rendering, LiDAR, PNG/NPY/BIN files), in one process with 2 threads
    and with 2 worker processes of 1 thread each.
 
-Usage: python scripts/bench_synthetic.py [--frames 24] [--size 256] [--no-write]
+Usage: python scripts/bench_synthetic.py [--frames 24] [--size 256] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import platform
 import tempfile
@@ -24,10 +23,9 @@ from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, mak
 from fisheyedepth.data.synthetic.raycast import scene_tensors
 from fisheyedepth.data.synthetic.render import CameraRenderer
 
-from _benchmarks import publish
+from _benchmarks import bench_parser, markers, parse_args, publish, timed
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_synthetic:start -->", "<!-- bench_synthetic:end -->"
+START, END = markers("bench_synthetic")
 
 
 def render_only(frames: int, size: int, supersample: int) -> float:
@@ -38,38 +36,23 @@ def render_only(frames: int, size: int, supersample: int) -> float:
     renderers = [CameraRenderer(cam, rig.cam_to_pose[name], supersample) for name, cam in rig.cameras.items()]
     for r in renderers:  # warm-up
         r.render(scene, world, poses[0])
-    t0 = time.perf_counter()
-    for pose in poses[2:]:
-        for r in renderers:
-            r.render(scene, world, pose)
-    return frames * len(renderers) / (time.perf_counter() - t0)
+    seconds = timed(lambda: [r.render(scene, world, pose) for pose in poses[2:] for r in renderers])
+    return frames * len(renderers) / seconds
 
 
 def end_to_end(frames: int, size: int, supersample: int, workers: int) -> float:
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        generate(
-            Path(tmp) / "d",
-            "kitti360",
-            frames=frames,
-            size=size,
-            supersample=supersample,
-            workers=workers,
-            progress=False,
-        )
-        return frames * 2 / (time.perf_counter() - t0)
+        options = {"frames": frames, "size": size, "supersample": supersample, "workers": workers}
+        seconds = timed(lambda: generate(Path(tmp) / "d", "kitti360", progress=False, **options))
+        return frames * 2 / seconds
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--frames", type=int, default=24)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--supersample", type=int, default=2)
-    parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
-    args = parser.parse_args(argv)
+    args = parse_args(parser, argv, quick={"frames": 9, "size": 64, "supersample": 1})
     torch.set_num_threads(2)
     rows = [
         ("rendering only, 1 process x 2 threads", render_only(args.frames, args.size, args.supersample)),

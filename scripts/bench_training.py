@@ -17,7 +17,7 @@ each a module switch, and the compiled expectation's bin sums as channel reducti
 fuses, instead of the 1x1 convolution whose backward it calls as an external kernel (always on with
 ``compile_kernels``).
 
-Usage: python scripts/bench_training.py [--rounds 5] [--no-write]
+Usage: python scripts/bench_training.py [--rounds 5] [--size 256] [--batch 4] [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -26,8 +26,6 @@ import argparse
 import os
 import platform
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,15 +34,32 @@ import torch
 from torch.nn import functional as F
 
 import fisheyedepth.losses.photometric as photometric
-from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+from fisheyedepth.data import collate
 from fisheyedepth.data.synthetic import generate
 from fisheyedepth.models import bin_expectation
 from fisheyedepth.module import FisheyeDepthModule
 
-from _benchmarks import peak_rss_kb, publish
+from _benchmarks import (
+    bench_parser,
+    child_result,
+    interleaved,
+    markers,
+    parse_args,
+    peak_rss_kb,
+    publish,
+    run_child,
+)
+from _compose import build_datamodule, build_module, compose_config
 
-ROOT = Path(__file__).resolve().parents[1]
-START, END = "<!-- bench_training:start -->", "<!-- bench_training:end -->"
+START, END = markers("bench_training")
+# Every row's model: ``model=fisheyedepth`` (conf/model/) with these overrides: sources one frame before
+# and after the target (the batch's too), no training pictures. Then where a row's switches and levers are.
+MODEL = ["model=fisheyedepth", "model.objective.source_offsets=[-1,1]", "model.log_images_every=0"]
+SWITCHES = ("model.objective.fisheye_projection", "model.objective.real_scale", "model.net.multi_channel")
+CHANNELS_LAST, COMPILE_KERNELS = "model.net.channels_last", "model.compile_kernels"
+LOSS_RESOLUTION = "model.objective.loss_resolution"
+# The training batch: ``data=synthetic`` on the world given, un-augmented (the same batch every time).
+BATCH_DATA = ["data=synthetic", "data.datamodule.augment=null"]
 CONFIGS = {  # name: (fisheye_projection, real_scale, multi_channel)
     "Monodepth2 baseline": (False, False, False),
     "FFT": (True, False, False),
@@ -56,8 +71,13 @@ CONFIGS = {  # name: (fisheye_projection, real_scale, multi_channel)
 
 
 def make_batch(root: Path, size: int, batch: int, cache_dir: Path):
-    layout = Kitti360Layout(root)
-    dataset = FisheyeDataset(layout, "splits/train.txt", size=(size, size), cache_dir=cache_dir)
+    """The first ``batch`` training samples of the synthetic dataset at ``root``, at ``size`` x ``size``."""
+    values = {
+        "data.datamodule.root": root,
+        "data.datamodule.size": [size, size],
+        "data.datamodule.cache_dir": cache_dir,
+    }
+    dataset = build_datamodule(compose_config(BATCH_DATA + MODEL, values)).dataset("train")
     return collate([dataset[i] for i in range(batch)])
 
 
@@ -96,17 +116,12 @@ def avg_pool_mean3(x: torch.Tensor) -> torch.Tensor:
 def make_module(
     config: str, channels_last: bool = False, loss_resolution: str = "full", compiled: bool = False
 ) -> tuple[FisheyeDepthModule, torch.optim.Optimizer]:
-    fisheye, real, mc = CONFIGS[config]
+    """Row ``config``'s model with the levers given (base focal unset: depth_scale 1), and an Adam."""
+    flags = [*zip(SWITCHES, CONFIGS[config], strict=True), (CHANNELS_LAST, channels_last)]
+    flags += [(LOSS_RESOLUTION, loss_resolution), (COMPILE_KERNELS, compiled)]
+    overrides = [f"{key}={str(value).lower()}" for key, value in flags]
     torch.manual_seed(0)
-    module = FisheyeDepthModule(
-        fisheye_projection=fisheye,
-        real_scale=real,
-        multi_channel=mc,
-        log_images_every=0,
-        channels_last=channels_last,
-        loss_resolution=loss_resolution,
-        compile_kernels=compiled,
-    )
+    module = build_module(compose_config(MODEL + overrides), base_focal=None)
     module.on_fit_start()  # what the trainer calls first: compiles the kernels when asked
     return module, torch.optim.Adam(module.parameters(), lr=1e-4)
 
@@ -114,7 +129,7 @@ def make_module(
 def step(module, optimizer, batch, bf16: bool = False) -> None:
     # as trainer.precision=bf16-mixed, on the batch's device (bench_gpu_step.py runs it on a GPU)
     with torch.autocast(batch.image.device.type, dtype=torch.bfloat16, enabled=bf16):
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))  # geometry and loss in float32
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))  # geometry and loss in float32
     optimizer.zero_grad()
     loss.backward()
     optimizer.step()
@@ -146,23 +161,18 @@ def memory_child(config: str, root: Path, size: int, batch: int) -> None:
     module, optimizer = make_module(config)
     for _ in range(2):
         step(module, optimizer, data)
-    print(peak_rss_kb())
+    child_result(peak_rss_kb())
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = bench_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--size", type=int, default=256)
     parser.add_argument("--batch", type=int, default=4)
-    parser.add_argument("--no-write", action="store_true")
-    parser.add_argument("--output", type=Path, default=ROOT / "BENCHMARKS.md")
-    parser.add_argument("--memory-child", help=argparse.SUPPRESS)
     parser.add_argument("--data", type=Path, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    if args.memory_child:
-        memory_child(args.memory_child, args.data, args.size, args.batch)
+    args = parse_args(parser, argv, quick={"rounds": 1, "size": 64, "batch": 1})
+    if args.child:
+        memory_child(args.child[0], args.data, args.size, args.batch)
         return 0
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as tmp:
@@ -174,35 +184,11 @@ def main(argv=None) -> int:
         levers = {name: Lever(*flags) for name, flags in LEVERS.items()}
         runs = {name: (lambda m=m, o=o: step(m, o, data)) for name, (m, o) in modules.items()}
         runs |= {name: (lambda lever=lever: lever(data)) for name, lever in levers.items()}
-        for run in runs.values():  # warm-up (and the compilation)
-            run()
-        times = {name: [] for name in runs}
-        names = list(runs)
-        for r in range(args.rounds):
-            for name in names[r % len(names) :] + names[: r % len(names)]:
-                t0 = time.perf_counter()
-                runs[name]()
-                times[name].append(time.perf_counter() - t0)
+        times = interleaved(runs, args.rounds, warmup=1)  # the warm-up compiles too
         peak = {}
         for name in CONFIGS:
-            out = subprocess.run(
-                [
-                    sys.executable,
-                    __file__,
-                    "--memory-child",
-                    name,
-                    "--data",
-                    str(root),
-                    "--size",
-                    str(args.size),
-                    "--batch",
-                    str(args.batch),
-                ],
-                capture_output=True,
-                text=True,
-                check=True,
-            )
-            peak[name] = int(out.stdout.strip().splitlines()[-1]) / 1024
+            memory = [name, "--data", root, "--size", args.size, "--batch", args.batch]
+            peak[name] = run_child(__file__, memory) / 1024
 
     med = {name: statistics.median(ts) for name, ts in times.items()}
 

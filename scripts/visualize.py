@@ -2,7 +2,12 @@
 """Look at what a model sees: panels for a dataset split, and abs_rel against the angle of incidence.
 
     python scripts/visualize.py --ckpt outputs/train/<run>/checkpoints/last.ckpt [--ckpt OTHER ...] \\
-        --data data/synthetic_kitti360_256_seed0_f200 [--split test] [--out viz] [--panels 8]
+        --data data/synthetic_kitti360_256_seed0_f200 [--data-config synthetic] [--split test] [--out viz] \\
+        [--panels 8] [--set KEY=VALUE ...]
+
+The dataset is read as ``train.py data=<--data-config>`` reads it (``conf/data/``: synthetic, kitti360 or
+rig), with ``--data`` as its root and ``--set`` as more Hydra overrides
+(``data.datamodule.cameras=[image_02]``).
 
 Writes ``panel_XXX.png`` (input | predicted distance | ground truth | relative error) for the first
 checkpoint and ``abs_rel_by_angle.png``: one bar group per angle bin (0-30, 30-60, 60-90, >90 degrees)
@@ -19,9 +24,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from fisheyedepth.data import FisheyeDataModule  # noqa: E402
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
 from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
+
+from _compose import ROOT, build_datamodule, compose_config  # noqa: E402
+
+DATA_CONFIGS = sorted(p.stem for p in (ROOT / "conf" / "data").glob("*.yaml"))
 
 
 def main(argv=None) -> int:
@@ -30,13 +38,17 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--ckpt", action="append", required=True)
     parser.add_argument("--data", required=True)
-    parser.add_argument("--layout", default="kitti360")
+    parser.add_argument(
+        "--data-config", default="synthetic", choices=DATA_CONFIGS, help="conf/data/NAME.yaml"
+    )
+    parser.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="more Hydra overrides")
     parser.add_argument("--split", default="test")
     parser.add_argument("--protocol", default="full")
     parser.add_argument("--out", type=Path, default=Path("viz"))
     parser.add_argument("--panels", type=int, default=8)
     args = parser.parse_args(argv)
-    dm = FisheyeDataModule(args.data, args.layout, {args.split: f"splits/{args.split}.txt"}, batch_size=4)
+    cfg = compose_config([f"data={args.data_config}", *args.set], {"data.datamodule.root": args.data})
+    dm = build_datamodule(cfg)
     labels, scores = [], []
     for i, ckpt in enumerate(args.ckpt):
         module = FisheyeDepthModule.from_checkpoint(ckpt)
@@ -51,7 +63,7 @@ def main(argv=None) -> int:
             pictures=args.out if i == 0 else None,
             n_pictures=args.panels,
         )[args.protocol]
-        scaling = "none" if module.hparams["real_scale"] else "median"
+        scaling = "none" if module.pose_net is None else "median"  # real-scale poses: no PoseNet
         labels.append(f"{Path(ckpt).parent.parent.name} ({scaling})")
         bands = res[f"{scaling}_by_angle"]  # a band without pixels has no number (None): no bar
         values = [bands[f"{lo}-{hi}"]["abs_rel"] for lo, hi in ANGLE_BINS]

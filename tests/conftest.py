@@ -117,10 +117,11 @@ TRAIN_SEQ = "2013_05_28_drive_0000_sync"
 
 
 def load_script(name: str):
-    """``scripts/<name>.py`` as a module, to test its functions without a subprocess."""
+    """``scripts/<name>.py`` as a module (``research/error_bands``: one in a folder of scripts/), to test
+    its functions without a subprocess."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(Path(name).name, ROOT / "scripts" / f"{name}.py")
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     return script
@@ -189,14 +190,45 @@ def checkpoint(kitti_data, tmp_path_factory):
     from fisheyedepth.module import FisheyeDepthModule
 
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0, 1), input_size=(64, 64), base_focal=20.0)  # as train.py's auto
+    module = FisheyeDepthModule(
+        net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64)
+    )  # as train.py's auto
     batch = tiny_batch(kitti_data)
     opt = torch.optim.Adam(module.parameters(), 1e-3)
     for _ in range(3):
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))
         opt.zero_grad()
         loss.backward()
         opt.step()
     path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_world(tmp_path_factory) -> Path:
+    """The world ``+debug=tiny`` trains on (12 frames at 64 px), rendered once per test session the way
+    train.py renders it on first use (``prepare_data`` on the composed train config), instead of once in
+    every module that trains a tiny run; a test that needs it under its own ``paths.data_dir`` takes a
+    copy (:func:`copy_tiny_world`)."""
+    from hydra import compose, initialize_config_dir
+
+    from fisheyedepth.cli import prepare_data
+
+    data_dir = tmp_path_factory.mktemp("tiny_world")
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("train", [*TINY, f"paths.data_dir={data_dir}"])
+    prepare_data(cfg)
+    root = Path(cfg.data.datamodule.root)
+    assert (root / "synthetic.json").is_file(), root
+    return root
+
+
+def copy_tiny_world(tiny_world: Path, data_dir: Path) -> Path:
+    """``data_dir`` (``paths.data_dir`` of a tiny run) holding its own copy of the tiny world, so that
+    train.py finds it rendered; returns ``data_dir``."""
+    import shutil
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(tiny_world, data_dir / tiny_world.name)
+    return data_dir

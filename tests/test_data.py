@@ -97,10 +97,17 @@ def test_base_focal_auto_is_the_mean_focal_of_the_training_cameras_at_the_traini
         empty.base_focal("train")
 
 
-def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
+@pytest.fixture(scope="module")
+def surround4(tmp_path_factory):
+    """A surround4 world (9 frames at 64 px, no LiDAR), rendered once for the tests that only read it."""
     from fisheyedepth.data.synthetic import generate
 
-    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+    out = tmp_path_factory.mktemp("s4") / "s4"
+    return generate(out, "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+
+
+def test_mixed_cameras_and_models_in_one_batch(surround4, cache):
+    root = surround4
     dm = FisheyeDataModule(
         root, size=(64, 64), batch_size=8, splits={"train": "splits/train.txt"}, cache_dir=cache
     )
@@ -111,17 +118,15 @@ def test_mixed_cameras_and_models_in_one_batch(tmp_path, cache):
     assert len(focals) == 4 and max(focals.values()) / min(focals.values()) > 1.05  # the cameras differ
     base = dm.base_focal("train")
     assert base == pytest.approx(sum(focals.values()) / 4, rel=1e-9)
-    module = FisheyeDepthModule(scales=(0,), base_focal=base)
+    module = FisheyeDepthModule(net={"scales": (0,), "base_focal": base})
     scale = module.depth_net.depth_scale(batch.camera)
     assert torch.allclose(scale, torch.tensor([min(c.paraxial_focal()) / base for c in batch.camera]))
-    loss, _ = module.losses(batch, module(batch.image, batch.camera))
+    loss, _ = module.objective(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss)
 
 
-def test_rig_sources_are_the_other_cameras_warped_with_extrinsics_and_odometry(tmp_path, cache):
-    from fisheyedepth.data.synthetic import generate
-
-    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+def test_rig_sources_are_the_other_cameras_warped_with_extrinsics_and_odometry(surround4, cache):
+    root = surround4
     layout = Kitti360Layout(root)
     names = sorted(layout.cameras)
     ds = FisheyeDataset(layout, [{"sequence": TRAIN_SEQ}], rig_offsets=(0,), cache_dir=cache)
@@ -161,10 +166,8 @@ def test_rig_sources_are_the_other_cameras_warped_with_extrinsics_and_odometry(t
     assert all(gt < min(near, far) and gt < 0.035 for gt, near, far in better)  # 0.014-0.030 at GT
 
 
-def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(tmp_path, cache):
-    from fisheyedepth.data.synthetic import generate
-
-    root = generate(tmp_path / "s4", "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(surround4, cache):
+    root = surround4
     dm = FisheyeDataModule(
         root,
         size=(64, 64),
@@ -179,13 +182,15 @@ def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(tmp_pat
         "MeiCamera",
         "KannalaBrandtCamera",
     }
-    module = FisheyeDepthModule(scales=(0, 1), base_focal=dm.base_focal("train"), rig_offsets=(0,))
-    loss, _ = module.losses(batch, module(batch.image, batch.camera))
+    module = FisheyeDepthModule(
+        net={"scales": (0, 1), "base_focal": dm.base_focal("train")}, objective={"rig_offsets": (0,)}
+    )
+    loss, _ = module.objective(batch, module(batch.image, batch.camera))
     loss.backward()
     grads = [p.grad for p in module.depth_net.parameters() if p.grad is not None]
     assert torch.isfinite(loss) and grads and all(torch.isfinite(g).all() for g in grads)
     with pytest.raises(ValueError, match="rig_offsets.*real_scale=true"):
-        FisheyeDepthModule(real_scale=False, rig_offsets=(0,))
+        FisheyeDepthModule(objective={"real_scale": False, "rig_offsets": (0,)})
 
 
 def test_rig_frames_are_paired_by_nearest_timestamp_and_a_missing_one_drops_the_target(
@@ -611,7 +616,7 @@ def test_bad_images_name_the_file_or_are_skipped_and_counted(broken, cache, dama
     # frame 3 is the target of one sample and a neighbour of two others, for the damaged camera
     assert len(batch.skipped_frames) == 3 and all(str(path) in r for r in batch.skipped_frames)
     assert batch.image.shape[0] == len(ds) - 3 and torch.isfinite(batch.image).all()
-    module = FisheyeDepthModule(scales=(0,))
+    module = FisheyeDepthModule(net={"scales": (0,)})
     module._count_skipped(batch)
     with pytest.warns(UserWarning, match="3 frames skipped"):
         module.on_train_epoch_end()

@@ -28,7 +28,7 @@ from fisheyedepth.config import resolve_base_focal, resolve_precision
 from conftest import TINY, load_script
 
 ROOT = Path(__file__).resolve().parents[1]
-EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml"))
+EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("[!_]*.yaml"))  # _paper: a base
 TABLE_EXPERIMENTS = [e for e in EXPERIMENTS if e.startswith(("ablation_", "table1_"))]
 
 
@@ -54,15 +54,16 @@ def test_every_experiment_composes(experiment):
         "cpu_30min": (True, True, True),  # the full model, at a larger size for longer
         "gpu_10min": (True, True, True),  # cpu_30min on a GPU for longer
     }[experiment]
-    assert (m.fisheye_projection, m.real_scale, m.multi_channel) == expected
+    assert (m.objective.fisheye_projection, m.objective.real_scale, m.net.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
-        assert m.attention is False
+        assert m.net.attention is False
     if experiment == "table1_dnet":
         assert "dnet" in cfg.eval.scalings
     if experiment == "cpu_30min":
         default = compose_train([])
         assert list(cfg.data.datamodule.size) == [256, 256] != list(default.data.datamodule.size)
-        assert cfg.model.lr_step < cfg.trainer.max_epochs and cfg.model.loss_resolution == "native"
+        assert cfg.model.scheduler.step_size < cfg.trainer.max_epochs
+        assert cfg.model.objective.loss_resolution == "native"
 
 
 def flat(tree, prefix=""):
@@ -88,13 +89,14 @@ def test_gpu_recipe_is_cpu_30min_longer_on_a_gpu():
         "trainer.log_every_n_steps": (10, 50),
         "trainer.deterministic": (False, None),
         "trainer.max_epochs": (10, 17),
-        "model.lr_step": (8, 14),
+        "model.scheduler.step_size": (8, 14),
         "model.compile_kernels": (True, False),
         "data.datamodule.num_workers": (1, 12),
         "data.generate.workers": (2, 16),
     }
-    assert gpu["model.lr_step"] / gpu["trainer.max_epochs"] == pytest.approx(
-        cpu["model.lr_step"] / cpu["trainer.max_epochs"], abs=0.03
+    step = "model.scheduler.step_size"
+    assert gpu[step] / gpu["trainer.max_epochs"] == pytest.approx(
+        cpu[step] / cpu["trainer.max_epochs"], abs=0.03
     )
 
 
@@ -142,7 +144,7 @@ def test_trainers_share_one_base_and_clipping_has_one_name():
     assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 8, 10)
     assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 8, 50)
     assert ddp.max_epochs == 8 and all(t.precision == "auto" for t in (cpu, gpu, ddp))
-    assert compose_train([]).model.lr_step == 6  # the decay for the last quarter of every trainer
+    assert compose_train([]).model.scheduler.step_size == 6  # the decay for the last quarter of every trainer
     assert ddp.strategy == "ddp" and ddp.sync_batchnorm is True
     assert "grad_clip" not in compose_train([]).model
 
@@ -153,11 +155,11 @@ def test_table_experiments_keep_the_papers_loss_frames_and_float32(experiment):
     accuracy levers of make train (sources two frames away, 600 rendered frames); the Table 1/2 rows
     keep Monodepth2's full-resolution loss on the +-1 neighbours in float32, as their kept runs did."""
     default = compose_train([])
-    assert default.model.loss_resolution == "native" and default.model.compile_kernels is True
-    assert list(default.model.source_offsets) == [-2, 2] and default.data.generate.frames == 600
+    assert default.model.objective.loss_resolution == "native" and default.model.compile_kernels is True
+    assert list(default.model.objective.source_offsets) == [-2, 2] and default.data.generate.frames == 600
     cfg = compose_train([f"+experiment={experiment}"])
-    assert cfg.model.loss_resolution == "full" and cfg.trainer.precision == "32-true"
-    assert list(cfg.model.source_offsets) == [-1, 1]
+    assert cfg.model.objective.loss_resolution == "full" and cfg.trainer.precision == "32-true"
+    assert list(cfg.model.objective.source_offsets) == [-1, 1]
 
 
 def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, monkeypatch):
@@ -292,7 +294,7 @@ def test_train_eval_resume_tables(workdir):
     hparams = yaml.safe_load(next((first / "logs").rglob("hparams.yaml")).read_text())
     calib = workdir / "data" / "synthetic_kitti360_64_seed0_f12" / "calibration"
     focals = [min(load_camera(calib / f"image_0{i}.yaml").paraxial_focal()) for i in (2, 3)]
-    assert hparams["base_focal"] == pytest.approx(sum(focals) / 2)  # base_focal: auto, at the 64 px of TINY
+    assert hparams["net"]["base_focal"] == pytest.approx(sum(focals) / 2)  # auto, at the 64 px of TINY
 
     evaluated = workdir / "eval1"
     run(
@@ -357,7 +359,7 @@ def test_train_eval_resume_tables(workdir):
     assert "best-NNN.ckpt x1, last.ckpt x1" in reproduced and "FFT + RS + MC | none | 2 |" in reproduced
     budget = next(line for line in reproduced.splitlines() if line.startswith("Budget overrides"))
     assert "trainer.max_epochs: differs" in budget and "trainer.limit_train_batches=3" in budget  # the runs'
-    assert "select: differs" in budget and "model.lr_step" not in budget and "seed=" not in budget
+    assert "select: differs" in budget and "model.scheduler.step_size" not in budget and "seed=" not in budget
     assert len(list((workdir / "reproduce").glob("*_runs/curves.png"))) == 1
 
     # last: its results.json files inside run1 would be collected by the table scripts above
@@ -527,19 +529,18 @@ def test_precision_auto_is_bf16_only_where_bf16_is_native(monkeypatch):
 
 
 def test_the_data_module_loads_the_sources_the_model_warps(tmp_path):
-    """``model.source_offsets`` reaches the data module (it once did not: ``[-2,2]`` trained on the +-1
-    neighbours); a contradicting ``data.datamodule.offsets`` is refused, naming both."""
+    """``model.objective.source_offsets`` reaches the data module (it once did not: ``[-2,2]`` trained
+    on the +-1 neighbours); a contradicting ``data.datamodule.offsets`` is refused, naming both."""
     from fisheyedepth.config import source_offsets
 
-    cfg = compose_train(["model.source_offsets=[-3,1]", f"paths.data_dir={tmp_path}"])
+    cfg = compose_train(["model.objective.source_offsets=[-3,1]", f"paths.data_dir={tmp_path}"])
     assert source_offsets(cfg) == [-3, 1]
     datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg))
     assert datamodule.offsets == (-3, 1)
     assert source_offsets(compose_train([])) == [-2, 2]
-    clash = compose_train(["model.source_offsets=[-2,2]", "+data.datamodule.offsets=[-1,1]"])
-    with pytest.raises(
-        ValueError, match=r"data.datamodule.offsets=\[-1, 1\] differs from model.source_offsets=\[-2, 2\]"
-    ):
+    clash = compose_train(["model.objective.source_offsets=[-2,2]", "+data.datamodule.offsets=[-1,1]"])
+    differs = r"data.datamodule.offsets=\[-1, 1\] differs from model.objective.source_offsets=\[-2, 2\]"
+    with pytest.raises(ValueError, match=differs):
         source_offsets(clash)
 
 

@@ -280,7 +280,7 @@ def test_broken_and_looping_links_are_counted_as_skipped(tmp_path):
     ]
 
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0, 1), input_size=(SIZE, SIZE), base_focal=20.0)
+    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(SIZE, SIZE))
     ckpt = tmp_path / "untrained.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
     calib = save_camera(kitti02().resize(SIZE, SIZE), tmp_path / "cam.yaml")

@@ -37,7 +37,7 @@ from fisheyedepth.inference import DistancePredictor
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.utils import atomic_write_text
 
-from conftest import TINY, TRAIN_SEQ
+from conftest import TINY, TRAIN_SEQ, copy_tiny_world
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_RUN = [
@@ -84,8 +84,10 @@ def images_of(kitti_data, dst: Path, n: int = 2) -> Path:
 
 # ------------------------------------------------------------------ training: SIGTERM, resuming in place
 @pytest.fixture(scope="module")
-def data_dir(tmp_path_factory):
-    return tmp_path_factory.mktemp("faults_data")
+def data_dir(tiny_world, tmp_path_factory):
+    """``paths.data_dir`` with the tiny world already rendered: these runs are about SIGTERM and resuming
+    (rendering on first use is test_entrypoints' fast_dev_run's)."""
+    return copy_tiny_world(tiny_world, tmp_path_factory.mktemp("faults_data"))
 
 
 def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_dir, tmp_path):
@@ -185,10 +187,54 @@ def test_broken_checkpoints_are_named(checkpoint, tmp_path, kind, capsys):
 
 def test_weight_shapes_that_do_not_fit_are_named(checkpoint, tmp_path):
     ckpt = torch.load(checkpoint, weights_only=True)
-    ckpt["hyper_parameters"]["n_bins"] = 32
+    ckpt["hyper_parameters"]["net"]["n_bins"] = 32
     torch.save(ckpt, tmp_path / "shapes.ckpt")
     with pytest.raises(CheckpointError, match="weights do not fit"):
         FisheyeDepthModule.from_checkpoint(tmp_path / "shapes.ckpt")
+
+
+# the hyper-parameters of the ``checkpoint`` fixture's module as they were saved before the options
+# came in groups (net, objective, optimizer, scheduler): one flat dictionary
+FLAT_HPARAMS = {
+    "resnet": 18, "weights": None, "fisheye_projection": True, "real_scale": True, "multi_channel": True,
+    "n_bins": 64, "attention": True, "min_distance": 0.5, "max_distance": 150.0, "base_focal": 20.0,
+    "scales": (0, 1), "source_offsets": (-1, 1), "rig_offsets": (), "automask": True, "smoothness": 0.001,
+    "lr": 0.0001, "weight_decay": 1e-05, "lr_step": 8, "lr_gamma": 0.1, "eval_cap": (0.001, 80.0),
+    "log_images_every": 200, "input_size": (64, 64), "pose_translation_scale": None,
+    "pinhole_focal": "paraxial", "channels_last": False, "loss_resolution": "full", "compile_kernels": False,
+    "lr_schedule": "step", "upsample": "distance", "decoder_width": 1.0, "rim_margin": None,
+}  # fmt: skip
+
+
+def test_a_checkpoint_with_flat_hyper_parameters_loads_and_resumes_into_groups(checkpoint, tmp_path):
+    """A checkpoint written before the option groups (flat ``lr``, ``multi_channel``, ...) loads with
+    every option in its group, predicts what the grouped one predicts, and is checked for a resume
+    against a grouped config (``model.net.n_bins`` named when it differs)."""
+    from fisheyedepth.checkpoints import nested_hparams, network_differences
+
+    ckpt = torch.load(checkpoint, weights_only=True)
+    grouped = FisheyeDepthModule.from_checkpoint(checkpoint)
+    ckpt["hyper_parameters"] = dict(FLAT_HPARAMS)
+    torch.save(ckpt, tmp_path / "flat.ckpt")
+    module = FisheyeDepthModule.from_checkpoint(tmp_path / "flat.ckpt")
+    assert dict(module.hparams) == dict(grouped.hparams)
+    assert module.hparams.optimizer == {"_target_": "torch.optim.Adam", "_partial_": True} | {
+        "lr": 1e-4, "weight_decay": 1e-5,
+    }  # fmt: skip
+    assert module.hparams.scheduler["step_size"] == 8 and module.hparams.net["base_focal"] == 20.0
+    image = torch.rand(1, 3, 64, 64)
+    camera = [kitti360_camera(2).resize(64, 64)]
+    with torch.no_grad():
+        assert torch.equal(
+            module.eval()(image, camera)["distance"][0], grouped.eval()(image, camera)["distance"][0]
+        )
+    configured = FisheyeDepthModule.options(net={"scales": [0, 1], "n_bins": 32})
+    assert network_differences(FLAT_HPARAMS, configured) == [
+        "model.net.n_bins is 32 here, 64 in the checkpoint"
+    ]
+    assert network_differences(FLAT_HPARAMS, dict(grouped.hparams)) == []
+    cosine = nested_hparams(FLAT_HPARAMS | {"lr_schedule": "cosine", "lr": 1e-3})["scheduler"]
+    assert cosine["_target_"].endswith("CosineAnnealingLR") and cosine["eta_min"] == pytest.approx(1e-4)
 
 
 def test_a_checkpoint_with_a_retired_key_still_loads(checkpoint, tmp_path):
@@ -395,33 +441,52 @@ def _video(path: Path, kitti_data, frames: int, size: int = 384) -> Path:
     return path
 
 
-def peak_rss_mb(*args) -> tuple[float, subprocess.CompletedProcess]:
-    """Peak resident memory (MB) of a child ``python ARGS`` process, from the kernel's accounting."""
+def start_peak_rss(*args) -> subprocess.Popen:
+    """A child ``python ARGS`` process, started under a probe that prints the child's peak resident
+    memory (kB, from the kernel's accounting) when it ends: read it with :func:`peak_rss_mb`. Two probes
+    may run side by side; each reports its own child only."""
     probe = (
         "import resource, subprocess, sys;"
         "r = subprocess.run([sys.executable, *sys.argv[1:]], capture_output=True, text=True);"
         "sys.stderr.write(r.stderr[-2000:]);"
         "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss); sys.exit(r.returncode)"
     )
-    proc = python("-c", probe, *args, timeout=600)
-    return int(proc.stdout.strip().splitlines()[-1]) / 1024, proc
+    return subprocess.Popen(
+        [sys.executable, "-c", probe, *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )  # fmt: skip
+
+
+def peak_rss_mb(probe: subprocess.Popen) -> tuple[float, str]:
+    """The peak resident memory (MB) of a :func:`start_peak_rss` child, and its standard error; the child
+    must have succeeded."""
+    out, err = probe.communicate(timeout=600)
+    assert probe.returncode == 0, err
+    return int(out.strip().splitlines()[-1]) / 1024, err
+
+
+# a short and a long clip of frames of SIDE x SIDE pixels: the long one's extra frames, decoded up front,
+# would take 120 x 384 x 384 x 3 bytes = 51 MB, twice the growth the test allows
+SIDE, CLIPS = 384, (10, 130)
 
 
 def test_predict_streams_a_video_in_flat_memory(kitti_data, checkpoint, tmp_path):
-    """600 frames at 512 px took 906 MB against 608 MB for 30 when the whole video was decoded first."""
-    peaks = {}
-    for n in (20, 200):
-        video = _video(tmp_path / f"clip{n}.avi", kitti_data, n)
-        peak, proc = peak_rss_mb(
+    """600 frames at 512 px took 906 MB against 608 MB for 30 when the whole video was decoded first.
+    The two clips are predicted side by side, each in its own process."""
+    probes = {}
+    for n in CLIPS:
+        video = _video(tmp_path / f"clip{n}.avi", kitti_data, n, SIDE)
+        probes[n] = start_peak_rss(
             "predict.py", f"ckpt_path={checkpoint}", f"input={video}", f"camera={_calib(kitti_data)}",
             f"output={tmp_path / f'out{n}'}", f"hydra.run.dir={tmp_path / f'h{n}'}", "batch_size=4",
         )  # fmt: skip
-        assert proc.returncode == 0, proc.stderr
+    peaks = {n: peak_rss_mb(probe)[0] for n, probe in probes.items()}
+    for n in CLIPS:
         assert len(list((tmp_path / f"out{n}").glob("*_distance.npy"))) == n
-        peaks[n] = peak
-    print(f"predict.py peak RSS: {peaks[20]:.0f} MB for 20 frames, {peaks[200]:.0f} MB for 200 frames")
-    # decoding 180 more frames of 384 x 384 x 3 bytes up front would add 80 MB
-    assert peaks[200] - peaks[20] < 25, peaks
+    short, long = CLIPS
+    print(f"predict.py peak RSS: {peaks[short]:.0f} MB for {short} frames, {peaks[long]:.0f} MB for {long}")
+    assert (long - short) * SIDE * SIDE * 3 / 2**20 >= 2 * 25  # what decoding up front would add
+    assert peaks[long] - peaks[short] < 25, peaks
 
 
 def test_a_clash_is_found_before_anything_is_decoded(kitti_data, checkpoint, tmp_path):

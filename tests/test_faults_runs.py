@@ -32,7 +32,7 @@ from fisheyedepth.cli.train import train
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import OnnxRuntime, onnx_metadata
 
-from conftest import ROOT
+from conftest import ROOT, copy_tiny_world
 from test_faults_run import TINY_RUN, images_of, one_line_error, predict_cfg, python
 
 # one epoch of two steps, one validation batch: a run takes a few seconds
@@ -62,8 +62,9 @@ def snapshot(folder: Path) -> dict[str, tuple[int, int]]:
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
-    return tmp_path_factory.mktemp("world")
+def world(tiny_world, tmp_path_factory):
+    """``paths.data_dir`` of these runs, the tiny world already rendered in it."""
+    return copy_tiny_world(tiny_world, tmp_path_factory.mktemp("world"))
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +87,7 @@ def first_run(world, tmp_path_factory):
         patch.setenv("TMPDIR", str(elsewhere))
         patch.setattr(builtins, "open", recording_open)
         train(train_cfg(base / "run", world))
-    root = world / "synthetic_kitti360_64_seed0_f12"  # the world the run rendered
+    root = world / "synthetic_kitti360_64_seed0_f12"  # the world the run trained on
     return SimpleNamespace(
         dir=base / "run", elsewhere=elsewhere, writes=writes, root=root,
         last=base / "run" / "checkpoints" / "last.ckpt", calib=root / "calibration" / "image_02.yaml",
@@ -228,10 +229,10 @@ def test_a_size_the_network_cannot_run_at_is_named(command, first_run, world, tm
 def test_resuming_with_another_network_names_the_options(first_run, world, capsys):
     last = first_run.last
     before = snapshot(first_run.dir)
-    cfg = train_cfg(first_run.dir, world, f"ckpt_path={last}", "model.n_bins=32", "model.resnet=34")
+    cfg = train_cfg(first_run.dir, world, f"ckpt_path={last}", "model.net.n_bins=32", "model.net.resnet=34")
     assert one_line_error(train, cfg, capsys) == (
-        f"error: {last}: cannot resume it with another network: model.resnet is 34 here, 18 in the "
-        "checkpoint; model.n_bins is 32 here, 64 in the checkpoint"
+        f"error: {last}: cannot resume it with another network: model.net.resnet is 34 here, 18 in "
+        "the checkpoint; model.net.n_bins is 32 here, 64 in the checkpoint"
     )
     assert snapshot(first_run.dir) == before
 
@@ -239,7 +240,7 @@ def test_resuming_with_another_network_names_the_options(first_run, world, capsy
 def test_weights_that_do_not_fit_name_the_file_and_the_keys(first_run, tmp_path):
     full = torch.load(first_run.last, weights_only=True)
     ckpt = {k: full[k] for k in ("state_dict", "hyper_parameters")}
-    ckpt["hyper_parameters"]["n_bins"] = 32
+    ckpt["hyper_parameters"]["net"]["n_bins"] = 32
     ckpt["state_dict"]["depth_net.extra"] = torch.zeros(3)
     del ckpt["state_dict"]["depth_net.encoder.bn1.bias"]
     torch.save(ckpt, tmp_path / "bins.ckpt")
@@ -254,13 +255,13 @@ def test_weights_that_do_not_fit_name_the_file_and_the_keys(first_run, tmp_path)
 
 
 def test_a_non_numeric_option_is_named(world, tmp_path, capsys):
-    assert one_line_error(train, train_cfg(tmp_path / "run", world, "model.lr=abc"), capsys) == (
-        "error: model.lr: 'abc' is not a number"
+    assert one_line_error(train, train_cfg(tmp_path / "run", world, "model.optimizer.lr=abc"), capsys) == (
+        "error: model.optimizer.lr: 'abc' is not a number"
     )
-    with pytest.raises(ValueError, match=r"^n_bins: 32\.5 is not a whole number$"):
-        FisheyeDepthModule(n_bins=32.5)
-    with pytest.raises(ValueError, match=r"^weight_decay: True is not a number$"):
-        FisheyeDepthModule(weight_decay=True)
+    with pytest.raises(ValueError, match=r"^net\.n_bins: 32\.5 is not a whole number$"):
+        FisheyeDepthModule(net={"n_bins": 32.5})
+    with pytest.raises(ValueError, match=r"^optimizer\.weight_decay: True is not a number$"):
+        FisheyeDepthModule(optimizer={"weight_decay": True})
 
 
 def tiny_onnx(path: Path, graph_size: int, metadata_size: int, out_channels: int = 1) -> Path:

@@ -212,7 +212,7 @@ def eval_cfg(root: Path, ckpt: Path, out: Path):
 
 def test_eval_counts_an_unscored_image_and_refuses_a_split_in_millimetres(rig, tmp_path, capsys):
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0,), input_size=(64, 64), base_focal=20.0)
+    module = FisheyeDepthModule(net={"scales": (0,), "base_focal": 20.0}, input_size=(64, 64))
     ckpt = tmp_path / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
     np.save(gt_path(rig, STAMPS[0]), np.full((64, 64), 5000.0, np.float32))

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -26,8 +27,6 @@ from fisheyedepth.data.synthetic import (
 )
 from fisheyedepth.data.synthetic import writer as writer_module
 from fisheyedepth.data.synthetic.cli import main as cli_main
-
-from conftest import ROOT
 
 TINY = {"frames": 9, "size": 16, "supersample": 1, "lidar": False, "progress": False}
 # long enough to be killed mid-render on two cores: ~15 s of rendering after the first image
@@ -103,8 +102,22 @@ def test_an_absent_or_empty_folder_is_rendered(tmp_path):
         assert not hidden_siblings(root)
 
 
-def test_a_folder_the_generator_started_is_rendered_again(tmp_path):
-    root = generate(tmp_path / "d", seed=1, **TINY)
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    """A finished TINY dataset (seed 1), rendered once for the tests that start from one: each takes a
+    copy (:func:`copy_of`)."""
+    return generate(tmp_path_factory.mktemp("finished") / "d", seed=1, **TINY)
+
+
+def copy_of(finished: Path, root: Path) -> Path:
+    """``root``: a copy of the ``finished`` dataset, as ``generate(root, seed=1, **TINY)`` leaves it."""
+    shutil.copytree(finished, root)
+    assert is_complete(root) and made_by_generator(root)
+    return root
+
+
+def test_a_folder_the_generator_started_is_rendered_again(finished, tmp_path):
+    root = copy_of(finished, tmp_path / "d")
     (root / "synthetic.json").unlink()  # damaged: the marker says the generator made it
     (root / "leftover.png").write_bytes(b"old")
     assert made_by_generator(root) and not is_complete(root)
@@ -117,8 +130,8 @@ def test_a_folder_the_generator_started_is_rendered_again(tmp_path):
     assert is_complete(only_marker)
 
 
-def test_a_finished_dataset_is_reused_only_with_the_same_parameters(tmp_path):
-    root = generate(tmp_path / "d", seed=1, **TINY)
+def test_a_finished_dataset_is_reused_only_with_the_same_parameters(finished, tmp_path):
+    root = copy_of(finished, tmp_path / "d")
     (root / "notes.txt").write_text("kept")
     before = snapshot(root)
     assert ensure_dataset(root, seed=1, **TINY) == root
@@ -260,7 +273,7 @@ def render_in_python(out: Path) -> subprocess.Popen:
 @linux_only
 def test_sigterm_of_make_synthetic_stops_the_workers_and_removes_the_partial_folder(tmp_path):
     out = tmp_path / "d"
-    cmd = [sys.executable, str(ROOT / "scripts" / "make_synthetic.py"), "--out", str(out)]
+    cmd = [sys.executable, "-m", "fisheyedepth.data.synthetic.cli", "--out", str(out)]
     cmd += [f"--{k}={v}" for k, v in SLOW.items()] + ["--workers=2", "--no-lidar", "--quiet"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE)
     workers = wait_mid_render(proc, out)

@@ -210,7 +210,7 @@ def test_every_caller_gets_its_distance_from_one_path(kitti_data):
     torch.manual_seed(0)
     camera = load_camera(kitti_data / "calibration" / "image_02.yaml")  # 256x256
     focal = min(camera.resize(64, 64).paraxial_focal())
-    module = FisheyeDepthModule(base_focal=focal / 2, input_size=(64, 64), scales=(0,)).eval()
+    module = FisheyeDepthModule(net={"base_focal": focal / 2, "scales": (0,)}, input_size=(64, 64)).eval()
     image = torch.rand(1, 3, 256, 256)
     with torch.no_grad():
         net = module.depth_net(F.interpolate(image, size=(64, 64), mode="area"), 2.0, scales=(0,))

@@ -91,7 +91,7 @@ def test_lite_variant_is_the_same_network_with_fewer_channels_and_bins(tmp_path)
     from fisheyedepth.module import FisheyeDepthModule
 
     full = FisheyeDepthModule()
-    lite = FisheyeDepthModule(decoder_width=0.5, n_bins=32)
+    lite = FisheyeDepthModule(net={"decoder_width": 0.5, "n_bins": 32})
     assert lite.depth_net.decoder.channels == (8, 16, 32, 64, 128)
     assert full.depth_net.decoder.channels == (16, 32, 64, 128, 256)
     assert lite.depth_net.heads["0"].logits[1].out_channels == 32
@@ -107,7 +107,7 @@ def test_lite_variant_is_the_same_network_with_fewer_channels_and_bins(tmp_path)
     back = FisheyeDepthModule.from_checkpoint(path)
     assert back.depth_net.decoder.channels == (8, 16, 32, 64, 128)
     with pytest.raises(ValueError, match="decoder_width: 0"):
-        FisheyeDepthModule(decoder_width=0)
+        FisheyeDepthModule(net={"decoder_width": 0})
 
 
 def test_gather_output_is_a_monotone_expectation_within_the_bins():

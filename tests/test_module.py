@@ -15,17 +15,18 @@ from torch.utils.data import DataLoader
 
 from fisheyedepth.cameras import MeiCamera, PinholeCamera, erode_field_of_view, pinhole_like
 from fisheyedepth.data.batch import collate
+from fisheyedepth.losses.objective import SelfSupervisedObjective
 from fisheyedepth.models import MultiChannelHead, PoseNet, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 
-from conftest import tiny_batch, tiny_samples
+from conftest import ROOT, tiny_batch, tiny_samples
 
 
 def photometric_after(module, batch, steps, lr):
     opt = torch.optim.Adam(module.parameters(), lr)
     history = []
     for _ in range(steps):
-        loss, logs = module.losses(batch, module(batch.image, batch.camera))
+        loss, logs = module.objective(batch, module(batch.image, batch.camera))
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -37,7 +38,7 @@ def photometric_after(module, batch, steps, lr):
 @pytest.mark.parametrize("real_scale,lr,factor", [(True, 3e-4, 0.8), (False, 3e-4, 0.8)])
 def test_overfitting_a_batch_cuts_the_photometric_loss(kitti_data, real_scale, lr, factor):
     torch.manual_seed(0)
-    module = FisheyeDepthModule(real_scale=real_scale, automask=False, log_images_every=0)
+    module = FisheyeDepthModule(objective={"real_scale": real_scale, "automask": False}, log_images_every=0)
     history = photometric_after(module, tiny_batch(kitti_data), 40, lr)
     assert history[-1] < factor * history[0], history[::5]
 
@@ -49,10 +50,10 @@ def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
     results = {}
     for channels_last in (False, True):
         torch.manual_seed(0)
-        module = FisheyeDepthModule(channels_last=channels_last, log_images_every=0)
+        module = FisheyeDepthModule(net={"channels_last": channels_last}, log_images_every=0)
         conv = module.depth_net.encoder.conv1.weight
         assert conv.is_contiguous(memory_format=torch.channels_last) == channels_last
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))
         loss.backward()
         grads = {n: p.grad.clone() for n, p in module.named_parameters() if p.grad is not None}
         results[channels_last] = (loss.item(), grads, module.state_dict())
@@ -66,7 +67,7 @@ def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
     assert float(total / torch.cat([g.flatten() for g in grads_a.values()]).norm()) < 1e-3
     worst = max(float((grads_b[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads_a.items())
     assert worst < 1e-2, worst
-    FisheyeDepthModule(channels_last=False).load_state_dict(state_b)
+    FisheyeDepthModule(net={"channels_last": False}).load_state_dict(state_b)
 
 
 def test_channels_last_posenet_gives_the_same_poses_and_gradients():
@@ -91,13 +92,15 @@ def test_channels_last_posenet_gives_the_same_poses_and_gradients():
 
 def test_the_loss_measures_geometry(kitti_data):
     """Ground-truth distance as the prediction beats a wrong constant distance, for every camera."""
-    module = FisheyeDepthModule(scales=(0,), automask=False)
+    module = FisheyeDepthModule(net={"scales": (0,)}, objective={"automask": False})
     batch = tiny_batch(kitti_data, size=None)  # at 256 px: at 64 px mixed pixels swamp the parallax
     gt = batch.distance
 
     def loss_with(distance):
         disp = torch.full_like(distance, 0.5)
-        return module.losses(batch, {"distance": {0: distance}, "disp": {0: disp}})[1]["photometric/0"].item()
+        return module.objective(batch, {"distance": {0: distance}, "disp": {0: disp}})[1][
+            "photometric/0"
+        ].item()
 
     # the sky (GT 0) sits at 10 km in every case: its warps stay valid and nearly parallax-free
     surface = gt > 0
@@ -112,16 +115,21 @@ def test_the_loss_measures_geometry(kitti_data):
 def test_the_pinhole_stand_in_prefers_no_motion_to_the_truth(kitti_data):
     """Why the Monodepth2 baseline cannot learn the truth on a fisheye rig: with true distance and true
     poses, its pinhole warp reconstructs the target worse than no motion at all, while the fisheye warp
-    does far better than no motion (``scripts/diagnose_warp.py`` measures the same on whole worlds)."""
+    does far better than no motion (``scripts/research/diagnose_warp.py`` measures the same on whole
+    worlds)."""
     batch = tiny_batch(kitti_data, size=None)
     gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
     outputs = {"distance": {0: gt}, "disp": {0: torch.full_like(gt, 0.5)}}
     still = dataclasses.replace(batch, poses=torch.eye(4).expand_as(batch.poses).clone())
     errors = {}
     for fisheye in (True, False):
-        module = FisheyeDepthModule(fisheye_projection=fisheye, scales=(0,), automask=False)
+        module = FisheyeDepthModule(
+            net={"scales": (0,)}, objective={"fisheye_projection": fisheye, "automask": False}
+        )
         with torch.no_grad():
-            errors[fisheye] = [module.losses(b, outputs)[1]["photometric/0"].item() for b in (batch, still)]
+            errors[fisheye] = [
+                module.objective(b, outputs)[1]["photometric/0"].item() for b in (batch, still)
+            ]
     (fish_truth, fish_still), (pin_truth, pin_still) = errors[True], errors[False]
     assert fish_truth < 0.6 * fish_still, errors
     assert pin_truth > pin_still, errors
@@ -129,37 +137,43 @@ def test_the_pinhole_stand_in_prefers_no_motion_to_the_truth(kitti_data):
 
 def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
     full = FisheyeDepthModule()
-    pin = FisheyeDepthModule(fisheye_projection=False)
+    pin = FisheyeDepthModule(objective={"fisheye_projection": False})
     pin.load_state_dict(full.state_dict())
     batch = tiny_batch(kitti_data)
     cam = batch.camera[0]
-    assert isinstance(cam, MeiCamera) and full.warp_model(cam) is cam
-    assert pin.warp_model(cam) == pinhole_like(cam) and isinstance(pin.warp_model(cam), PinholeCamera)
-    gamma = FisheyeDepthModule(fisheye_projection=False, pinhole_focal="calibration").warp_model(cam)
+    assert isinstance(cam, MeiCamera) and full.objective.warp_model(cam) is cam
+    assert pin.objective.warp_model(cam) == pinhole_like(cam) and isinstance(
+        pin.objective.warp_model(cam), PinholeCamera
+    )
+    gamma = FisheyeDepthModule(
+        objective={"fisheye_projection": False, "pinhole_focal": "calibration"}
+    ).objective.warp_model(cam)
     assert (gamma.fx, gamma.fy, gamma.cx, gamma.cy) == (cam.gamma1, cam.gamma2, cam.u0, cam.v0)
-    assert pin.warp_model(cam).fx == pytest.approx(cam.gamma1 / (1 + cam.xi))  # paraxial
+    assert pin.objective.warp_model(cam).fx == pytest.approx(cam.gamma1 / (1 + cam.xi))  # paraxial
     with pytest.raises(ValueError, match="pinhole_focal: 'fov' is not one of paraxial, calibration"):
-        FisheyeDepthModule(fisheye_projection=False, pinhole_focal="fov")
+        FisheyeDepthModule(objective={"fisheye_projection": False, "pinhole_focal": "fov"})
     with torch.no_grad():
         out = full(batch.image, batch.camera)
         assert torch.equal(out["distance"][0], pin(batch.image, batch.camera)["distance"][0])
-        assert full.losses(batch, out)[0] != pin.losses(batch, out)[0]
+        assert full.objective(batch, out)[0] != pin.objective(batch, out)[0]
 
 
 def test_multi_channel_switch_replaces_only_the_heads():
-    mc, single = FisheyeDepthModule(), FisheyeDepthModule(multi_channel=False)
+    mc, single = FisheyeDepthModule(), FisheyeDepthModule(net={"multi_channel": False})
     assert all(isinstance(h, MultiChannelHead) for h in mc.depth_net.heads.values())
     assert all(isinstance(h, SigmoidHead) for h in single.depth_net.heads.values())
     for part in ("encoder", "decoder"):
         assert count_parameters(getattr(mc.depth_net, part)) == count_parameters(
             getattr(single.depth_net, part)
         )
-    assert mc.smoothness == single.smoothness == 1e-3  # shared: the switch changes the head alone
+    assert (
+        mc.objective.smoothness == single.objective.smoothness == 1e-3
+    )  # shared: the switch changes the head alone
     assert mc.pose_net is None and single.pose_net is None
     # with a PoseNet, its translation unit follows the head's first distance (Monodepth2's ratio)
     mc_pose, single_pose = (
-        FisheyeDepthModule(real_scale=False),
-        FisheyeDepthModule(real_scale=False, multi_channel=False),
+        FisheyeDepthModule(objective={"real_scale": False}),
+        FisheyeDepthModule(net={"multi_channel": False}, objective={"real_scale": False}),
     )
     # both heads start at the binned head's first distance (26 m), not Monodepth2's 1 m
     assert mc_pose.depth_net.initial_distance == pytest.approx(float(mc_pose.depth_net.bins.mean()))
@@ -179,21 +193,24 @@ def test_real_scale_switch_replaces_only_the_poses(kitti_data):
     batch = tiny_batch(kitti_data)
     moved = dataclasses.replace(batch, poses=batch.poses.clone())
     moved.poses[..., :3, 3] *= 1.5
-    real, learned = FisheyeDepthModule(automask=False), FisheyeDepthModule(real_scale=False, automask=False)
+    real, learned = (
+        FisheyeDepthModule(objective={"automask": False}),
+        FisheyeDepthModule(objective={"real_scale": False, "automask": False}),
+    )
     assert learned.pose_net is not None and real.pose_net is None
     assert count_parameters(real.depth_net) == count_parameters(learned.depth_net)
     with torch.no_grad():
         out = real(batch.image, batch.camera)
-        assert real.losses(batch, out)[0] != real.losses(moved, out)[0]  # real-scale poses are used ...
+        assert real.objective(batch, out)[0] != real.objective(moved, out)[0]  # real-scale poses are used ...
         out = learned(batch.image, batch.camera)
-        assert learned.losses(batch, out)[0] == learned.losses(moved, out)[0]  # ... or ignored
+        assert learned.objective(batch, out)[0] == learned.objective(moved, out)[0]  # ... or ignored
 
 
 def test_mixed_cameras_in_one_batch(kitti_data):
     batch = tiny_batch(kitti_data, frames=(4,), cameras=("image_02", "image_03"))
     assert batch.camera[0] != batch.camera[1]
-    module = FisheyeDepthModule(scales=(0, 1))
-    loss, logs = module.losses(batch, module(batch.image, batch.camera))
+    module = FisheyeDepthModule(net={"scales": (0, 1)})
+    loss, logs = module.objective(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss) and 0.1 < logs["used_pixels/0"].item() <= 1.0  # sky, body, corners: out
 
 
@@ -207,7 +224,7 @@ def test_lightning_fit_validate_predict_and_skip_non_finite_batches(kitti_data, 
     poisoned["image"][:] = float("nan")
     train = DataLoader([poisoned, *flat], batch_size=2, collate_fn=collate)
     val = DataLoader(flat, batch_size=3, collate_fn=collate)
-    module = FisheyeDepthModule(scales=(0, 1), log_images_every=1)
+    module = FisheyeDepthModule(net={"scales": (0, 1)}, log_images_every=1)
     logger = L.pytorch.loggers.CSVLogger(tmp_path, name="run")
     trainer = L.Trainer(
         max_epochs=1,
@@ -244,11 +261,13 @@ def test_a_posenet_row_learns_its_poses_on_a_tiny_world(kitti_data, multi_channe
     With the unit tied to the head's first distance and the body's motion predicted, the photometric
     loss falls and the translation direction is learned, for both cameras, within 40 steps."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(real_scale=False, multi_channel=multi_channel, scales=(0,))
+    module = FisheyeDepthModule(
+        net={"multi_channel": multi_channel, "scales": (0,)}, objective={"real_scale": False}
+    )
     batch = tiny_batch(kitti_data, frames=(1, 2, 3, 4))
-    before = module.pose_errors(batch)
+    before = module.objective.pose_errors(batch)
     history = photometric_after(module, batch, 40, 1e-3)
-    after = module.pose_errors(batch)
+    after = module.objective.pose_errors(batch)
     assert history[-1] < 0.85 * history[0], history[::5]
     assert after["direction_deg"] < min(0.3 * before["direction_deg"], 15), (before, after)
     assert after["reversed"] == 0 and after["rotation_deg"] < 2.0, after
@@ -268,16 +287,15 @@ def test_a_posenet_predicts_the_body_motion_and_each_camera_follows_its_extrinsi
     assert torch.allclose(body[0], body[1], atol=1e-5)  # image_02 and image_03 of frame 2
     samples = tiny_samples(kitti_data, frames=(2, 3), cameras=("image_02", "image_03"))
     flipped = collate([flip_sample(s) for s in samples])
-    module = FisheyeDepthModule(real_scale=False, scales=(0,))
 
     class Oracle(torch.nn.Module):  # a PoseNet that knows the body motion
         def forward(self, target, source, source_is_earlier):
             j = 0 if source_is_earlier else 1
             return body[:, j].to(target)
 
-    module.pose_net = Oracle()
+    objective = SelfSupervisedObjective(scales=(0,), real_scale=False, pose_net=Oracle())
     for b in (batch, flipped):
-        assert torch.allclose(module.relative_poses(b).double(), b.poses.double(), atol=1e-5)
+        assert torch.allclose(objective.relative_poses(b).double(), b.poses.double(), atol=1e-5)
 
 
 @pytest.mark.parametrize("real_scale,multi_channel", [(True, True), (False, False)])
@@ -289,15 +307,17 @@ def test_bf16_autocast_runs_the_networks_in_bf16_and_the_geometry_in_float32(
     batch = tiny_batch(kitti_data)
     torch.manual_seed(0)
     module = FisheyeDepthModule(
-        real_scale=real_scale, multi_channel=multi_channel, automask=False, log_images_every=0
+        net={"multi_channel": multi_channel},
+        objective={"real_scale": real_scale, "automask": False},
+        log_images_every=0,
     )
-    exact, _ = module.losses(batch, module(batch.image, batch.camera))
+    exact, _ = module.objective(batch, module(batch.image, batch.camera))
     seen: set[torch.dtype] = set()
     hook = module.depth_net.encoder.conv1.register_forward_hook(lambda m, i, o: seen.add(o.dtype))
     with torch.autocast("cpu", dtype=torch.bfloat16):
         outputs = module(batch.image, batch.camera)
-        poses = module.relative_poses(batch)
-        loss, logs = module.losses(batch, outputs)
+        poses = module.objective.relative_poses(batch)
+        loss, logs = module.objective(batch, outputs)
     hook.remove()
     assert seen == {torch.bfloat16}  # the network did run in bf16
     assert {v.dtype for maps in outputs.values() for v in maps.values()} == {torch.float32}
@@ -314,7 +334,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     loader = DataLoader(flat, batch_size=2, collate_fn=collate)
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0, 1), log_images_every=0)
+    module = FisheyeDepthModule(net={"scales": (0, 1)}, log_images_every=0)
     before = copy.deepcopy(module.state_dict())
     trainer = L.Trainer(
         max_epochs=1,
@@ -341,7 +361,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
 def test_the_module_clips_gradients_as_torch_does(algorithm):
     """By the norm that the non-finite test took (once per step), or by value: torch's own numbers."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(scales=(0,))
+    module = FisheyeDepthModule(net={"scales": (0,)})
     optimizer = module.configure_optimizers()["optimizer"]
     params = list(module.parameters())
     expected = []
@@ -356,9 +376,9 @@ def test_the_module_clips_gradients_as_torch_does(algorithm):
         torch.nn.utils.clip_grad_value_(expected, limit)
     module.on_before_optimizer_step(optimizer)
     if algorithm == "norm":
-        assert total > 3 and float(module._grad_norm) == pytest.approx(total, rel=1e-5)
+        assert total > 3 and float(module.guard.grad_norm) == pytest.approx(total, rel=1e-5)
     module.configure_gradient_clipping(optimizer, limit, algorithm)
-    assert module._grad_norm is None  # used once: the next step takes its own
+    assert module.guard.grad_norm is None  # used once: the next step takes its own
     worst = max(float((p.grad - e.grad).abs().max()) for p, e in zip(params, expected, strict=True))
     assert worst < 1e-9
     after = [p.grad for p in params]
@@ -377,13 +397,14 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     batch = tiny_batch(kitti_data, size=None)  # 256 px: scales 1-2 at 128 and 64 px
     gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
     modules = {
-        r: FisheyeDepthModule(scales=(0, 1, 2), automask=False, loss_resolution=r) for r in ("full", "native")
+        r: FisheyeDepthModule(net={"scales": (0, 1, 2)}, objective={"automask": False, "loss_resolution": r})
+        for r in ("full", "native")
     }
 
     def photometric(module, distance):
         maps = {s: F.interpolate(distance, scale_factor=0.5**s, mode="nearest") for s in (0, 1, 2)}
         outputs = {"distance": maps, "disp": {s: torch.full_like(d, 0.5) for s, d in maps.items()}}
-        return module.losses(batch, outputs)[1]
+        return module.objective(batch, outputs)[1]
 
     full, native = photometric(modules["full"], gt), photometric(modules["native"], gt)
     assert native["photometric/0"].item() == pytest.approx(full["photometric/0"].item(), rel=1e-6)
@@ -391,21 +412,21 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     wrong = photometric(modules["native"], torch.where(batch.distance > 0, torch.full_like(gt, 5.0), gt))
     for s in (0, 1, 2):
         assert native[f"photometric/{s}"] < 0.85 * wrong[f"photometric/{s}"], s
-    sizes = {(key[0].width, key[0].height) for key in modules["native"].rays._entries}
+    sizes = {(key[0].width, key[0].height) for key in modules["native"].objective.rays._entries}
     assert sizes == {(256, 256), (128, 128), (64, 64)}  # rays of the resized cameras, cached per size
     # a pixel partly covered by the vehicle body is neither scored nor sampled at the coarser size
     holed = batch.mask.clone()
     holed[:, :, 101, 37] = 0.0
     sources_holed = batch.source_mask.clone()
     sources_holed[:, :, :, 101, 37] = 0.0
-    level = modules["native"]._level(
+    level = modules["native"].objective.level(
         dataclasses.replace(batch, mask=holed, source_mask=sources_holed), (128, 128)
     )
     inside = (batch.mask[:, 0, 100:102, 36:38] > 0.5).all()
     assert inside and not level.mask[:, 50, 18].any() and level.source_mask[:, :, :, 50, 18].eq(0).all()
     assert level.source_mask[:, :, :, 50, 19].eq(1).all() and level.mask[:, 50, 19].all()
     with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
-        FisheyeDepthModule(loss_resolution="half")
+        FisheyeDepthModule(objective={"loss_resolution": "half"})
 
 
 def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(kitti_data):
@@ -415,20 +436,23 @@ def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(k
     masks are kept; the loss still measures geometry; a negative margin is refused."""
     batch = tiny_batch(kitti_data, size=None)  # 256 px
     plain, rim0, rim2 = (
-        FisheyeDepthModule(rim_margin=m, automask=False, loss_resolution="native") for m in (None, 0, 2)
+        FisheyeDepthModule(objective={"rim_margin": m, "automask": False, "loss_resolution": "native"})
+        for m in (None, 0, 2)
     )
-    full = plain._level(batch, None)
+    full = plain.objective.level(batch, None)
     inside = full.rays_valid  # the image circle at 256 px (one Mei camera per sample)
     assert not inside.all()  # the corners have no ray
     ring2 = inside & ~erode_field_of_view(inside, 2)
-    level = rim2._level(batch, None)
+    level = rim2.objective.level(batch, None)
     assert torch.equal(level.mask, full.mask & ~ring2)
-    assert torch.equal(rim0._level(batch, None).mask, full.mask)  # margin 0: nothing at the input size
+    assert torch.equal(
+        rim0.objective.level(batch, None).mask, full.mask
+    )  # margin 0: nothing at the input size
     body = batch.source_mask[:, :, 0] > 0.5
     assert torch.equal(level.source_mask[:, :, 0] > 0.5, body & erode_field_of_view(inside, 2)[:, None])
     assert int(ring2.sum()) > 0 and int((full.mask & ring2).sum()) > 0
     # at 64 px each pixel is a 4 x 4 footprint: with margin 0, one that reaches past the circle is dropped
-    coarse_plain, coarse = plain._level(batch, (64, 64)), rim0._level(batch, (64, 64))
+    coarse_plain, coarse = plain.objective.level(batch, (64, 64)), rim0.objective.level(batch, (64, 64))
     partial = F.avg_pool2d(inside[:, None].double(), 4)[:, 0] < 1
     assert torch.equal(coarse.mask, coarse_plain.mask & ~partial)
     dropped = coarse_plain.mask & partial
@@ -441,11 +465,11 @@ def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(k
     def photometric(distance):
         maps = {s: F.interpolate(distance, scale_factor=0.5**s, mode="nearest") for s in (0, 1, 2, 3)}
         outputs = {"distance": maps, "disp": {s: torch.full_like(d, 0.5) for s, d in maps.items()}}
-        return rim2.losses(batch, outputs)[1]["photometric/0"].item()
+        return rim2.objective(batch, outputs)[1]["photometric/0"].item()
 
     assert photometric(gt) < 0.85 * photometric(torch.where(batch.distance > 0, torch.full_like(gt, 5.0), gt))
     with pytest.raises(ValueError, match="rim_margin: -1 pixels is negative"):
-        FisheyeDepthModule(rim_margin=-1)
+        FisheyeDepthModule(objective={"rim_margin": -1})
 
 
 def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after_fitting(kitti_data):
@@ -459,25 +483,36 @@ def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after
     results = []
     for compiled in (False, True):
         torch.manual_seed(0)
-        module = FisheyeDepthModule(compile_kernels=compiled, scales=(0, 1), log_images_every=0)
+        module = FisheyeDepthModule(net={"scales": (0, 1)}, compile_kernels=compiled, log_images_every=0)
         module.on_fit_start()
         assert (module.depth_net.expectation is bin_expectation) != compiled
-        assert (module.reprojection.error_fn is photometric_error) != compiled
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        assert (module.objective.reprojection.error_fn is photometric_error) != compiled
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))
         loss.backward()
         results.append((loss.item(), {n: p.grad for n, p in module.named_parameters() if p.grad is not None}))
         module.on_fit_end()
         assert module.depth_net.expectation is bin_expectation
-        assert module.reprojection.error_fn is photometric_error
+        assert module.objective.reprojection.error_fn is photometric_error
     (plain, grads), (fused, fused_grads) = results
     assert fused == pytest.approx(plain, rel=1e-5)
     worst = max(float((fused_grads[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads.items())
     assert worst < 1e-3, worst
 
 
-def test_cosine_schedule_anneals_to_lr_gamma_over_the_run():
-    module = FisheyeDepthModule(lr_schedule="cosine", lr=1e-3, lr_gamma=0.1)
-    module.trainer = L.Trainer(max_epochs=4, logger=False, enable_checkpointing=False)
+def test_cosine_schedule_anneals_to_a_tenth_of_the_lr_over_the_run():
+    """``model/scheduler=cosine``: from ``model.optimizer.lr`` to a tenth of it over ``trainer.max_epochs``
+    (both followed when overridden); the optimiser is a config choice too."""
+    from hydra import compose, initialize_config_dir
+
+    from fisheyedepth.config import configured_model
+
+    overrides = ["model/scheduler=cosine", "model.optimizer.lr=1e-3", "trainer.max_epochs=4"]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name="train", overrides=overrides)
+    scheduler = configured_model(cfg)["scheduler"]
+    assert scheduler["_target_"] == "torch.optim.lr_scheduler.CosineAnnealingLR"
+    assert scheduler["T_max"] == 4 and scheduler["eta_min"] == pytest.approx(1e-4)
+    module = FisheyeDepthModule(optimizer={"lr": 1e-3}, scheduler=scheduler)
     config = module.configure_optimizers()
     optimizer, scheduler = config["optimizer"], config["lr_scheduler"]["scheduler"]
     lrs = []
@@ -489,14 +524,15 @@ def test_cosine_schedule_anneals_to_lr_gamma_over_the_run():
     assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-4)
     assert lrs[2] == pytest.approx(1e-4 + 0.5 * (1e-3 - 1e-4))  # half way: the mean of the two
     assert all(a > b for a, b in zip(lrs, lrs[1:], strict=False))
-    with pytest.raises(ValueError, match="lr_schedule: 'linear' is not one of step, cosine"):
-        FisheyeDepthModule(lr_schedule="linear")
+    sgd = {"_target_": "torch.optim.SGD", "_partial_": True, "lr": 0.1, "momentum": 0.9}
+    optimizer = FisheyeDepthModule(optimizer=sgd).configure_optimizers()["optimizer"]
+    assert type(optimizer) is torch.optim.SGD and optimizer.param_groups[0]["momentum"] == 0.9
 
 
 def test_adam_is_fused_on_cpu_and_steps_like_the_foreach_kernel():
     """The fused Adam (a speed lever) takes the steps the per-tensor kernels take, weight decay included."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(lr=1e-3, weight_decay=1e-2)
+    module = FisheyeDepthModule(optimizer={"lr": 1e-3, "weight_decay": 1e-2})
     optimizer = module.configure_optimizers()["optimizer"]
     assert optimizer.param_groups[0]["fused"] is True
     params = list(module.parameters())
@@ -547,7 +583,7 @@ def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_
     is restored, the skip is counted."""
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     train = DataLoader(flat, batch_size=2, collate_fn=collate)
-    module = FisheyeDepthModule(scales=(0,))
+    module = FisheyeDepthModule(net={"scales": (0,)})
     probe = _NanGradientOnce(step=1, value=value)
     trainer = L.Trainer(
         max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
@@ -573,20 +609,20 @@ from conftest import tiny_samples
 from fisheyedepth.data import collate
 from fisheyedepth.module import FisheyeDepthModule
 
-class Faulty(FisheyeDepthModule):
+def faulty(objective, args, result):
     # rank 1 alone: a non-finite loss at step 1; rank 0 alone: non-finite gradients at step 3
-    def losses(self, batch, outputs):
-        loss, logs = super().losses(batch, outputs)
-        if self.training and self.global_rank == 1 and self.global_step == 1:
-            loss = loss * float("nan")
-        if self.training and self.global_rank == 0 and self.global_step == 3:
-            loss.register_hook(lambda g: g * float("nan"))
-        return loss, logs
+    loss, logs = result
+    if module.training and module.global_rank == 1 and module.global_step == 1:
+        loss = loss * float("nan")
+    if module.training and module.global_rank == 0 and module.global_step == 3:
+        loss.register_hook(lambda g: g * float("nan"))
+    return loss, logs
 
 warnings.simplefilter("ignore")
 torch.manual_seed(0)
 samples = tiny_samples(sys.argv[1], frames=(1, 2, 3))
-module = Faulty(scales=(0,))
+module = FisheyeDepthModule(net={"scales": (0,)})
+module.objective.register_forward_hook(faulty)
 trainer = L.Trainer(strategy="ddp", accelerator="cpu", devices=2, max_steps=5, logger=False,
                     enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
                     limit_val_batches=0)
@@ -620,14 +656,14 @@ def test_ddp_never_hangs_when_one_rank_meets_a_bad_step(kitti_data, tmp_path):
 
 
 def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, checkpoint, tmp_path):
-    """``scripts/error_bands.py``: each camera's bands share its pixels and their parts add up to its
-    abs_rel; the training objective (``pixel_objective``) at the ground truth is below the one at a
-    barely trained model's prediction, and below the truth's at twice the distance."""
+    """``scripts/research/error_bands.py``: each camera's bands share its pixels and their parts add up
+    to its abs_rel; the training objective (``pixel_objective``) at the ground truth is below the one at
+    a barely trained model's prediction, and below the truth's at twice the distance."""
     from fisheyedepth.data import FisheyeDataset, Kitti360Layout
 
     from conftest import TRAIN_SEQ, load_script
 
-    script = load_script("error_bands")
+    script = load_script("research/error_bands")
     module = FisheyeDepthModule.from_checkpoint(checkpoint)
     dataset = FisheyeDataset(
         Kitti360Layout(kitti_data),
@@ -651,6 +687,6 @@ def test_error_bands_add_up_and_the_objective_prefers_the_truth(kitti_data, chec
         batch.distance[:, 0] > 0, batch.distance[:, 0], torch.full_like(batch.distance[:, 0], 1e4)
     )
     with torch.no_grad():
-        truth, _, usable = module.pixel_objective(batch, gt, batch.poses)
-        doubled, _, _ = module.pixel_objective(batch, gt * 2, batch.poses)
+        truth, _, usable = module.objective.pixel_objective(batch, gt, batch.poses)
+        doubled, _, _ = module.objective.pixel_objective(batch, gt * 2, batch.poses)
     assert truth[usable].mean() < 0.9 * doubled[usable].mean()

@@ -57,6 +57,15 @@ def test_configs_become_objects_only_in_the_commands():
     assert shown.returncode == 0 and "task_name: predict" in shown.stdout, shown.stderr[-500:]
 
 
+def test_the_lightning_module_keeps_the_lifecycle_alone():
+    """The objective (``losses/objective.py``), the step guard and the optimiser builders
+    (``training.py``) and the option groups (``options.py``) live apart from the LightningModule."""
+    package = ROOT / "src" / "fisheyedepth"
+    assert len((package / "module.py").read_text().splitlines()) <= 300
+    for name in ("losses/objective.py", "training.py", "options.py"):
+        assert (package / name).is_file(), name
+
+
 FAULTS_OF_REPEATED_STEPS = """
 import resource, sys
 if sys.argv[1] == "keep":

@@ -214,11 +214,11 @@ def test_a_short_finetune_on_the_real_rig_lowers_its_photometric_loss(aria_rig):
 
     torch.manual_seed(0)
     batch = aria_batch(aria_rig[1], size=96)
-    module = FisheyeDepthModule(scales=(0, 1), input_size=(96, 96), base_focal=45.0)
+    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 45.0}, input_size=(96, 96))
     optimiser = torch.optim.Adam(module.parameters(), 1e-3)
     losses = []
     for _ in range(20):
-        loss, _ = module.losses(batch, module(batch.image, batch.camera))
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()

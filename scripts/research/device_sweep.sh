@@ -3,7 +3,7 @@
 # (BENCHMARKS.md, "Time to accuracy": the GPU rows). Every variant trains on world 0 and is scored,
 # at its last checkpoint, on the worlds named by SEEDS. A variant is one line of VARIANTS:
 #   NAME OVERRIDE [OVERRIDE ...]          (Hydra overrides of train.py)
-# Usage: SEEDS="1001 1002 1003" OUT=out [TRAIN_LIMIT=seconds] bash scripts/device_sweep.sh VARIANTS
+# Usage: SEEDS="1001 1002 1003" OUT=out [TRAIN_LIMIT=seconds] bash scripts/research/device_sweep.sh VARIANTS
 # (on the lent machine, Python packages it lacks: scripts need hydra-core, omegaconf, antlr4 wheels).
 # Measured on an H100 (16 cores): three make-train recipes side by side ran 5 it/s each, about 7 min
 # for 22 of their 24 epochs (the 200-frame recipe of the time), plus 2-3 min of rendering: give one

@@ -12,24 +12,45 @@ their sources with the ground-truth distance and:
 A model whose error at the truth is above its error with no motion cannot learn the truth by
 minimising it: the Table 2 baseline's PoseNet is pulled away from the true motion, not towards it.
 
-    python scripts/diagnose_warp.py data/synthetic_kitti360_256_seed0_f200 [more roots] [--size 96]
+    python scripts/research/diagnose_warp.py data/synthetic_kitti360_256_seed0_f200 [more roots] [--size 96]
+        [--split train]
+
+Each dataset is read as ``data=synthetic`` reads it, un-augmented, with its rendered distance; each warp
+model is ``model=fisheyedepth`` with the overrides below (MODEL, WARPS).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import tempfile
 from pathlib import Path
 
 import torch
 
 from fisheyedepth.cameras.pinhole import PINHOLE_FOCALS
-from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
-from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.data import collate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
+from _compose import build_datamodule, build_module, compose_config  # noqa: E402
 
 SKY = 1e4  # metres given to pixels without ground truth (the sky): nearly parallax-free
 POSES = ("true", "reversed translation", "no motion")
+DATA = ["data=synthetic", "data.datamodule.augment=null", "data.datamodule.ground_truth=distance"]
+# The objective at scale 0 without auto-masking, with Monodepth2's neighbours one frame away (the data
+# module loads what the model warps); the rows differ in their warp model only.
+MODEL = [
+    "model=fisheyedepth",
+    "model.net.scales=[0]",
+    "model.objective.automask=false",
+    "model.objective.source_offsets=[-1,1]",
+    "model.log_images_every=0",
+]
+FISHEYE, PINHOLE_FOCAL = "model.objective.fisheye_projection", "model.objective.pinhole_focal"
+WARPS = {"fisheye": [f"{FISHEYE}=true"]} | {
+    f"pinhole ({f})": [f"{FISHEYE}=false", f"{PINHOLE_FOCAL}={f}"] for f in PINHOLE_FOCALS
+}
 
 
 def poses_for(name: str, true: torch.Tensor) -> torch.Tensor:
@@ -44,16 +65,16 @@ def poses_for(name: str, true: torch.Tensor) -> torch.Tensor:
 
 @torch.no_grad()
 def errors(root: Path, split: str, size: int, every: int, batch: int) -> dict[str, dict[str, float]]:
+    table, modules = {}, {}
     with tempfile.TemporaryDirectory() as cache:
-        dataset = FisheyeDataset(
-            Kitti360Layout(root), split, size=(size, size), ground_truth="distance", cache_dir=cache
-        )
+        values = {"data.datamodule.root": root, "data.datamodule.size": [size, size]}
+        values["data.datamodule.cache_dir"] = cache
+        datamodule = build_datamodule(compose_config(DATA + MODEL, values))
+        dataset = datamodule.dataset(split)
         samples = [dataset[i] for i in range(0, len(dataset), every)]
-    models = {"fisheye": {"fisheye_projection": True}}
-    models |= {f"pinhole ({f})": {"fisheye_projection": False, "pinhole_focal": f} for f in PINHOLE_FOCALS}
-    table = {}
-    for name, switches in models.items():
-        module = FisheyeDepthModule(scales=(0,), automask=False, log_images_every=0, **switches).eval()
+        for name, warp in WARPS.items():
+            modules[name] = build_module(compose_config(DATA + MODEL + warp, values), datamodule).eval()
+    for name, module in modules.items():
         sums, n = dict.fromkeys(POSES, 0.0), 0
         for start in range(0, len(samples), batch):
             b = collate(samples[start : start + batch])
@@ -61,7 +82,7 @@ def errors(root: Path, split: str, size: int, every: int, batch: int) -> dict[st
             outputs = {"distance": {0: gt}, "disp": {0: torch.full_like(gt, 0.5)}}
             for pose in POSES:
                 moved = dataclasses.replace(b, poses=poses_for(pose, b.poses))
-                sums[pose] += module.losses(moved, outputs)[1]["photometric/0"].item() * len(b)
+                sums[pose] += module.objective(moved, outputs)[1]["photometric/0"].item() * len(b)
             n += len(b)
         table[name] = {pose: s / n for pose, s in sums.items()}
     return table
@@ -74,7 +95,7 @@ def main(argv=None) -> int:
     parser.add_argument(
         "roots", nargs="+", type=Path, help="datasets in the KITTI-360 layout with distance maps"
     )
-    parser.add_argument("--split", default="splits/train.txt")
+    parser.add_argument("--split", default="train", help="a split of the data config: train, val or test")
     parser.add_argument("--size", type=int, default=96)
     parser.add_argument("--every", type=int, default=8, help="use every n-th sample")
     parser.add_argument("--batch", type=int, default=8)

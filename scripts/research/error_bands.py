@@ -5,7 +5,7 @@ ground-truth distance band, on a dataset with rendered distance maps (the synthe
 - ``share``: the band's share of the camera's scored pixels; ``abs_rel``, ``ratio`` (median of
   prediction / truth) and ``part`` (the band's part of the camera's abs_rel: the parts add up to it);
 - ``loss truth`` and ``loss pred``: the training objective per pixel
-  (``FisheyeDepthModule.pixel_objective``: scale 0, minimum reprojection over the sources with
+  (``SelfSupervisedObjective.pixel_objective``: scale 0, minimum reprojection over the sources with
   auto-masking, without training's tie-breaking noise) with the ground-truth distance and with the
   checkpoint's prediction, over the true relative poses;
 - ``used``: the share of the band's pixels whose loss depends on the prediction (a warp reaches them
@@ -14,25 +14,31 @@ ground-truth distance band, on a dataset with rendered distance maps (the synthe
 A band whose ``loss truth`` is well below its ``loss pred`` is one the objective would fix: the network
 has not got there (too few steps, a local minimum), not a loss that prefers the wrong answer.
 
-    python scripts/error_bands.py CHECKPOINT DATASET [--split splits/test.txt] [--offsets -2 2]
-                                  [--bands 0 1.5 3 6 10 20 40 80] [--every 1]
+    python scripts/research/error_bands.py CHECKPOINT DATASET [--split test] [--offsets -2 2]
+                                           [--bands 0 1.5 3 6 10 20 40 80] [--every 1]
 
 Everything is computed at the checkpoint's input size (the dataset is resized to it). Scored pixels:
-ground truth in (0, last band edge), inside the body mask and the camera's field of view.
+ground truth in (0, last band edge), inside the body mask and the camera's field of view. DATASET is read
+as ``data=synthetic`` reads it (DATA below), un-augmented, with its rendered distance.
 """
 
 from __future__ import annotations
 
 import argparse
 import itertools
+import sys
 import tempfile
 from pathlib import Path
 
 import torch
 
-from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
+from fisheyedepth.data import FisheyeDataset, collate
 from fisheyedepth.module import FisheyeDepthModule
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
+from _compose import build_datamodule, compose_config  # noqa: E402
+
+DATA = ["data=synthetic", "data.datamodule.augment=null", "data.datamodule.ground_truth=distance"]
 SKY = 1e4  # metres given to pixels without ground truth (the sky) when warping with the truth
 BANDS = (0.0, 1.5, 3.0, 6.0, 10.0, 20.0, 40.0, 80.0)
 
@@ -53,8 +59,8 @@ def error_bands(
         gt = batch.distance[:, 0]
         pred = module.depth_net.distance(batch.image, batch.camera)[:, 0].float()  # scale 0 only
         truth = torch.where(gt > 0, gt, torch.full_like(gt, SKY))
-        loss_truth, _, usable = module.pixel_objective(batch, truth, batch.poses)
-        loss_pred, used, _ = module.pixel_objective(batch, pred, batch.poses)
+        loss_truth, _, usable = module.objective.pixel_objective(batch, truth, batch.poses)
+        loss_pred, used, _ = module.objective.pixel_objective(batch, pred, batch.poses)
         names = batch.camera_name or [f"camera {i}" for i in range(len(batch))]
         for i, name in enumerate(names):
             scored = usable[i] & (gt[i] > edges[0]) & (gt[i] < edges[-1])
@@ -93,7 +99,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("checkpoint", type=Path)
     parser.add_argument("dataset", type=Path, help="a dataset in the KITTI-360 layout with distance maps")
-    parser.add_argument("--split", default="splits/test.txt")
+    parser.add_argument("--split", default="test", help="a split of the data config: train, val or test")
     parser.add_argument("--offsets", type=int, nargs="+", help="source frames (default: the checkpoint's)")
     parser.add_argument(
         "--source-baseline",
@@ -106,17 +112,16 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     module = FisheyeDepthModule.from_checkpoint(args.checkpoint)
     size = module.hparams.get("input_size")
-    offsets = args.offsets or list(module.hparams.source_offsets)
+    offsets = args.offsets or list(module.objective.source_offsets)
     with tempfile.TemporaryDirectory() as cache:
-        dataset = FisheyeDataset(
-            Kitti360Layout(args.dataset),
-            args.split,
-            size=None if size is None else tuple(size),
-            offsets=tuple(offsets),
-            ground_truth="distance",
-            cache_dir=cache,
-            source_baseline=args.source_baseline,
-        )
+        values = {
+            "data.datamodule.root": args.dataset,
+            "data.datamodule.size": None if size is None else list(size),
+            "data.datamodule.cache_dir": cache,
+            "data.datamodule.source_baseline": args.source_baseline,
+        }
+        datamodule = build_datamodule(compose_config(DATA, values), offsets=tuple(offsets))
+        dataset = datamodule.dataset(args.split)
         table = error_bands(module, dataset, tuple(args.bands), args.every)
     chosen = f"sources {offsets}" + (f", {args.source_baseline} m away" if args.source_baseline else "")
     print(f"{args.checkpoint} on {args.dataset} ({args.split}, {chosen})\n")

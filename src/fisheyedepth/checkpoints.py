@@ -71,18 +71,61 @@ RETIRED_HPARAMS = (
 RENAMED_HPARAMS = {("eval_min", "eval_max"): "eval_cap"}
 
 
+# Checkpoints written before the options came in groups store them flat: each flat key and where it
+# lives now (``lr_schedule`` picks the scheduler: "step" StepLR, "cosine" CosineAnnealingLR)
+NET_KEYS = ("resnet", "weights", "multi_channel", "n_bins", "attention", "min_distance", "max_distance")
+NET_KEYS += ("base_focal", "scales", "channels_last", "upsample", "decoder_width")
+OBJECTIVE_KEYS = ("fisheye_projection", "pinhole_focal", "real_scale", "pose_translation_scale")
+OBJECTIVE_KEYS += ("source_offsets", "rig_offsets", "automask", "rim_margin", "smoothness", "loss_resolution")
+FLAT_KEYS = {
+    **{k: f"net.{k}" for k in NET_KEYS},
+    **{k: f"objective.{k}" for k in OBJECTIVE_KEYS},
+    **{"lr": "optimizer.lr", "weight_decay": "optimizer.weight_decay"},
+    **{"lr_step": "scheduler.step_size", "lr_gamma": "scheduler.gamma"},
+}
+ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
+STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
+COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
+
+
+def nested_hparams(hparams: dict[str, Any]) -> dict[str, Any]:
+    """Hyper-parameters in groups (``net``, ``objective``, ``optimizer``, ``scheduler``): flat ones (a
+    checkpoint written before the groups) moved by :data:`FLAT_KEYS`, grouped ones as they are. The
+    flat cosine schedule annealed to ``lr * lr_gamma`` over the run's epochs, which the checkpoint does
+    not record: its scheduler keeps ``eta_min`` alone (evaluation builds none)."""
+    if "net" in hparams:
+        return dict(hparams)
+    out: dict[str, Any] = {"net": {}, "objective": {}, "optimizer": dict(ADAM), "scheduler": {}}
+    for key, value in hparams.items():
+        if key in FLAT_KEYS:
+            group, name = FLAT_KEYS[key].split(".")
+            out[group][name] = value
+        elif key != "lr_schedule":
+            out[key] = value
+    schedule = out.pop("scheduler")
+    if hparams.get("lr_schedule") == "cosine":
+        eta_min = out["optimizer"].get("lr", 1e-4) * schedule.get("gamma", 0.1)
+        out["scheduler"] = COSINE_LR | {"eta_min": eta_min}
+    else:
+        out["scheduler"] = STEP_LR | schedule
+    return out
+
+
 def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str, Any]:
-    """The checkpoint's hyper-parameters as constructor arguments (retired keys dropped)."""
+    """The checkpoint's hyper-parameters as constructor arguments (retired keys dropped, flat ones in
+    their groups)."""
     missing = [k for k in ("state_dict", "hyper_parameters") if k not in ckpt]
     if missing:
         raise CheckpointError(path, f"not a FisheyeDepth checkpoint (no {' / '.join(missing)})")
     hparams = dict(ckpt["hyper_parameters"])
-    hparams["weights"] = None  # the ImageNet file of the training machine is not needed: weights follow
     for key in RETIRED_HPARAMS:  # checkpoints written before a key was retired still load
         hparams.pop(key, None)
     for old, new in RENAMED_HPARAMS.items():
         if all(k in hparams for k in old):
             hparams[new] = tuple(hparams.pop(k) for k in old)
+    hparams = nested_hparams(hparams)
+    # the ImageNet file of the training machine is not needed: weights follow
+    hparams["net"] = {**hparams["net"], "weights": None}
     return hparams
 
 
@@ -101,9 +144,9 @@ def check_resumable(path: str | os.PathLike, model: dict[str, Any] | None = None
     return ckpt
 
 
-# The constructor arguments that shape the weights; n_bins and attention only for the binned head
-NETWORK = ("resnet", "decoder_width", "scales", "multi_channel", "real_scale")
-BINNED_HEAD = ("n_bins", "attention")
+# The options that shape the weights; n_bins and attention only for the binned head
+NETWORK = ("net.resnet", "net.decoder_width", "net.scales", "net.multi_channel", "objective.real_scale")
+BINNED_HEAD = ("net.n_bins", "net.attention")
 
 
 def _plain(value: Any) -> Any:
@@ -111,13 +154,17 @@ def _plain(value: Any) -> Any:
 
 
 def network_differences(stored: dict[str, Any], configured: dict[str, Any]) -> list[str]:
-    """``model.KEY is A here, B in the checkpoint`` for each argument of :data:`NETWORK` that differs."""
-    keys = NETWORK + (BINNED_HEAD if stored.get("multi_channel", True) else ())
-    return [
-        f"model.{k} is {configured[k]} here, {stored[k]} in the checkpoint"
-        for k in keys
-        if k in stored and k in configured and _plain(stored[k]) != _plain(configured[k])
-    ]
+    """``model.GROUP.KEY is A here, B in the checkpoint`` for each option of :data:`NETWORK` that
+    differs; ``stored`` flat or in groups (:func:`nested_hparams`), ``configured`` in groups."""
+    stored = nested_hparams(stored) if stored else {}
+    multi_channel = stored.get("net", {}).get("multi_channel", True)
+    differing = []
+    for name in NETWORK + (BINNED_HEAD if multi_channel else ()):
+        group, key = name.split(".")
+        here, there = configured.get(group) or {}, stored.get(group) or {}
+        if key in here and key in there and _plain(here[key]) != _plain(there[key]):
+            differing.append(f"model.{name} is {here[key]} here, {there[key]} in the checkpoint")
+    return differing
 
 
 def _listed(keys: list[str], show=str, first: int = 2) -> str:

@@ -1,31 +1,35 @@
-"""What a training config leaves to be worked out: ``auto`` values (``model.base_focal``,
+"""What a training config leaves to be worked out: ``auto`` values (``model.net.base_focal``,
 ``trainer.precision``), keys that two groups must agree on (the source offsets the model warps and the data
-loads), and checks of options against the network (its input sizes, a resumed checkpoint's network). One
-place, so that every command and test resolves a config the same way; nothing here builds an object
-from a config (that happens in :mod:`fisheyedepth.cli`)."""
+loads; ``${mul:...}``, the resolver of the cosine schedule), and checks of options
+against the network (its input sizes, a resumed checkpoint's network). One place, so that every command
+and test resolves a config the same way; nothing here builds an object from a config (that happens in
+:mod:`fisheyedepth.cli`)."""
 
 from __future__ import annotations
 
-import inspect
 import logging
+import re
 from typing import Any
 
 import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
+from .checkpoints import nested_hparams
 from .models.depth_net import check_input_size
 
 log = logging.getLogger("fisheyedepth")
+# ``${mul:a,b}``: a x b, e.g. the cosine schedule's floor, a tenth of the learning rate
+OmegaConf.register_new_resolver("mul", lambda a, b: a * b, replace=True)
 
 
 def resolve_base_focal(datamodule, resumed: dict[str, Any] | None = None) -> float | None:
-    """``base_focal: auto``: the training cameras' mean paraxial focal at the training size. A resumed
-    run keeps its checkpoint's number (Lightning restores weights, not constructor arguments), so its
-    distance scale cannot change mid-training; a different number from the data now is reported."""
+    """``model.net.base_focal: auto``: the training cameras' mean paraxial focal at the training size. A
+    resumed run keeps its checkpoint's number (Lightning restores weights, not constructor arguments), so
+    its distance scale cannot change mid-training; a different number from the data now is reported."""
     here = datamodule.base_focal("train")
     if resumed is not None:
-        stored = resumed.get("hyper_parameters", {}).get("base_focal", here)
+        stored = nested_hparams(resumed.get("hyper_parameters") or {})["net"].get("base_focal", here)
         if stored is None or abs(float(stored) - here) > 1e-6 * here:
             log.warning(
                 "base_focal auto: the resumed checkpoint keeps its base_focal %s; "
@@ -54,17 +58,23 @@ def resolve_precision(precision: Any, accelerator: str | None) -> Any:
 
 
 def source_offsets(cfg: DictConfig) -> list[int]:
-    """The source frames of every target: ``model.source_offsets``, which the data module must load
-    (the module's warps and PoseNet follow them). A different ``data.datamodule.offsets`` is refused:
-    it once let ``model.source_offsets=[-2,2]`` train silently on the +-1 neighbours."""
-    offsets = [int(o) for o in cfg.model.source_offsets]
+    """The source frames of every target: ``model.objective.source_offsets``, which the data module must
+    load (the objective's warps and PoseNet follow them). A different ``data.datamodule.offsets`` is
+    refused: it once let the model's [-2, 2] train silently on the +-1 neighbours."""
+    offsets = [int(o) for o in cfg.model.objective.source_offsets]
     data_offsets = cfg.data.datamodule.get("offsets")
     if data_offsets is not None and [int(o) for o in data_offsets] != offsets:
         raise ValueError(
-            f"data.datamodule.offsets={list(data_offsets)} differs from model.source_offsets={offsets}; "
-            "set model.source_offsets only (the data module loads what the model warps)"
+            f"data.datamodule.offsets={list(data_offsets)} differs from "
+            f"model.objective.source_offsets={offsets}; set model.objective.source_offsets only "
+            "(the data module loads what the model warps)"
         )
     return offsets
+
+
+def rig_offsets(cfg: DictConfig) -> list[int]:
+    """The time offsets at which the rig's other cameras are sources (``model.objective.rig_offsets``)."""
+    return [int(o) for o in cfg.model.objective.get("rig_offsets") or ()]
 
 
 def check_sizes(cfg: DictConfig) -> None:
@@ -76,8 +86,26 @@ def check_sizes(cfg: DictConfig) -> None:
 
 
 def configured_model(cfg: DictConfig) -> dict[str, Any]:
-    """The model's constructor arguments as configured (the constructor's defaults where it is silent)."""
-    params = inspect.signature(get_class(cfg.model._target_).__init__).parameters.values()
-    defaults = {p.name: p.default for p in params if p.default is not inspect.Parameter.empty}
+    """The model's constructor arguments as configured, in their groups (``net``, ``objective``,
+    ``optimizer``, ``scheduler``), with the module's defaults where the config is silent."""
     given = OmegaConf.to_container(cfg.model, resolve=True)
-    return defaults | {k: v for k, v in given.items() if not k.startswith("_")}
+    return get_class(cfg.model._target_).options(**{k: v for k, v in given.items() if not k.startswith("_")})
+
+
+def named_option(cfg: DictConfig, message: str) -> str | None:
+    """``message`` with the option it starts with (``lr: ...``, ``optimizer.lr: ...``) named as
+    configured, ``model.GROUP.KEY``; None when it starts with no option of the model."""
+    match = re.match(r"([\w.]+)([:=])", message)
+    if match is None:
+        return None
+    options = configured_model(cfg)
+    *group, key = match[1].split(".")
+    if group:
+        found = group if key in (options.get(group[0]) or {}) else []
+    else:
+        found = [g for g, v in options.items() if isinstance(v, dict) and key in v]
+        found = [None] if key in options else found
+    if len(found) != 1:
+        return None
+    name = key if found[0] is None else f"{found[0]}.{key}"
+    return f"model.{name}{message[match.end(1) :]}"

@@ -165,8 +165,9 @@ class TorchRuntime:
 
     def describe(self) -> dict[str, Any]:
         """What results.json records of the model: its switches, upsampling, runtime and precision."""
-        hp = self.module.hparams
-        out = {k: hp[k] for k in ("fisheye_projection", "real_scale", "multi_channel", "attention")}
+        net, objective = self.module.hparams.net, self.module.hparams.objective
+        out = {k: objective[k] for k in ("fisheye_projection", "real_scale")}
+        out |= {k: net[k] for k in ("multi_channel", "attention")}
         return out | {
             "upsample": self.module.depth_net.upsample,
             "runtime": "torch",

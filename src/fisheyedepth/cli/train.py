@@ -5,7 +5,6 @@ self-supervised validation loss (``select=best``). Neither uses ground truth."""
 from __future__ import annotations
 
 import logging
-import re
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +17,15 @@ from omegaconf import DictConfig
 
 from ..callbacks import run_folder
 from ..checkpoints import AtomicCheckpointIO, CheckpointError, check_resumable, weights_mismatch
-from ..config import check_sizes, configured_model, resolve_base_focal, resolve_precision, source_offsets
+from ..config import (
+    check_sizes,
+    configured_model,
+    named_option,
+    resolve_base_focal,
+    resolve_precision,
+    rig_offsets,
+    source_offsets,
+)
 from ..module import FisheyeDepthModule
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
 from .evaluate import run_evaluation
@@ -45,17 +52,19 @@ def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
 
 
 def build_model(cfg: DictConfig, **resolved):
-    """The configured module; an option it refuses is named ``model.<option>`` (Hydra wraps the error)."""
+    """The configured module, its option groups passed as plain dicts (the optimiser and scheduler are
+    built when training starts); an option it refuses is named ``model.<group>.<option>`` (Hydra wraps
+    the error)."""
     try:
-        return instantiate(cfg.model, **resolved, _convert_="all")
+        return instantiate(cfg.model, **resolved, _convert_="all", _recursive_=False)
     except InstantiationException as exc:
         cause = exc.__cause__
         if not isinstance(cause, INPUT_ERRORS):
             raise
         message = str(cause.args[0] if cause.args else cause)
-        name = re.match(r"(\w+)[:=]", message)
-        if isinstance(cause, ValueError) and name and name[1] in configured_model(cfg):
-            raise ValueError(f"model.{message}") from None
+        named = named_option(cfg, message) if isinstance(cause, ValueError) else None
+        if named is not None:
+            raise ValueError(named) from None
         raise cause from None
 
 
@@ -73,11 +82,11 @@ def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None)
     prepare_process(cfg)
     L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
-    rig = [int(o) for o in cfg.model.get("rig_offsets") or ()]
-    datamodule = instantiate(cfg.data.datamodule, offsets=source_offsets(cfg), rig_offsets=rig)
+    offsets = {"offsets": source_offsets(cfg), "rig_offsets": rig_offsets(cfg)}
+    datamodule = instantiate(cfg.data.datamodule, **offsets)
     resolved = {}
-    if cfg.model.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
-        resolved["base_focal"] = resolve_base_focal(datamodule, resumed)
+    if cfg.model.net.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
+        resolved["net"] = {"base_focal": resolve_base_focal(datamodule, resumed)}
     module = build_model(cfg, **resolved)
     if resumed is not None and (mismatch := weights_mismatch(module.state_dict(), resumed["state_dict"])):
         raise CheckpointError(cfg.ckpt_path, f"cannot resume it with this model: weights {mismatch}")

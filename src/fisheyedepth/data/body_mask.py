@@ -259,7 +259,7 @@ def open_layout(kind: str, root: Path, camera: str) -> Layout:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``fisheyedepth-estimate-mask`` (also ``scripts/estimate_body_mask.py``)."""
+    """Console script ``fisheyedepth-estimate-mask``."""
     parser = argparse.ArgumentParser(
         description="Estimate a camera's vehicle-body mask from a recording: still pixels with a ray "
         "below the horizon are body. Writes a PNG (255 = usable, 0 = body) where the layout reads it.",

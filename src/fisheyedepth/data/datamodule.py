@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from ..models.depth_net import scale_focal
 from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset
@@ -135,9 +136,9 @@ class FisheyeDataModule(L.LightningDataModule):
         return self.datasets[split]
 
     def base_focal(self, split: str = "train") -> float:
-        """The mean paraxial focal (pixels; the smaller of fx, fy, as ``DepthNet.depth_scale`` uses) of
-        the cameras that ``split`` samples, at the training size: ``base_focal: auto``. A camera with this
-        focal gets ``depth_scale`` 1; one with a longer focal sees objects larger and gets a larger scale."""
+        """The mean :func:`~fisheyedepth.models.depth_net.scale_focal` (pixels) of the cameras that
+        ``split`` samples, at the training size: ``base_focal: auto``. A camera with this focal gets
+        ``depth_scale`` 1; one with a longer focal sees objects larger and gets a larger scale."""
         dataset = self.dataset(split)
         names = sorted({item.camera for item in dataset.items})
         if not names:
@@ -147,7 +148,7 @@ class FisheyeDataModule(L.LightningDataModule):
             camera = self.layout.cameras[name].camera
             if self.size is not None:
                 camera = camera.resize(*self.size)
-            focals.append(min(camera.paraxial_focal()))
+            focals.append(scale_focal(camera))
         return float(sum(focals) / len(focals))
 
     def setup(self, stage: str | None = None) -> None:

@@ -492,7 +492,7 @@ def _pairs(values: list[str], what: str) -> dict[str, str]:
 
 
 def main(argv=None) -> int:
-    """Console script ``fisheyedepth-import-rosbag`` (also ``scripts/import_rosbag.py``)."""
+    """Console script ``fisheyedepth-import-rosbag``."""
     import argparse
     import json
 

@@ -238,12 +238,18 @@ class DepthNet(nn.Module):
 UPSAMPLING = ("distance", "logits")
 
 
+def scale_focal(camera):
+    """The focal length (pixels) that sets a camera's ``depth_scale``: the smaller of its paraxial fx and
+    fy. ``base_focal: auto`` is the mean of this over the training cameras."""
+    return min(camera.paraxial_focal())
+
+
 def depth_scale(cameras, base_focal: float | None) -> Tensor:
-    """Per-camera ``paraxial focal / base_focal`` ``[B]``, the factor on the network's distance that lets
+    """Per-camera ``scale_focal / base_focal`` ``[B]``, the factor on the network's distance that lets
     cameras of different focal lengths share one network; 1 for every camera when ``base_focal`` is None."""
     if base_focal is None:
         return torch.ones(len(cameras))
-    return torch.tensor([min(cam.paraxial_focal()) / base_focal for cam in cameras])
+    return torch.tensor([scale_focal(cam) / base_focal for cam in cameras])
 
 
 def distance_at_size(run, image: Tensor, cameras, input_size: tuple[int, int] | None) -> Tensor:

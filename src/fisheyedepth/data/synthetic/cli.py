@@ -1,4 +1,5 @@
-"""``fisheyedepth-synthetic`` / ``python scripts/make_synthetic.py``: render a synthetic fisheye dataset."""
+"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.data.synthetic.cli``): render a synthetic fisheye
+dataset."""
 
 from __future__ import annotations
 

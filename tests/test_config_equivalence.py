@@ -1,0 +1,102 @@
+"""The model options in groups (``net``, ``objective``, ``optimizer``, ``scheduler``) are the flat options
+they replaced, value for value: every experiment, model and schedule resolves to the hyper-parameters
+recorded before the change (``tests/data/config_before_groups.json``), moved by its key map; the
+checkpoint translation (:func:`~fisheyedepth.checkpoints.nested_hparams`) moves them the same way; and
+the default and Monodepth2 models give the recorded losses on a fixed batch."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from fisheyedepth.checkpoints import FLAT_KEYS, nested_hparams
+from fisheyedepth.cli.train import build_model
+from fisheyedepth.config import check_sizes, configured_model, source_offsets
+
+from conftest import ROOT, tiny_batch
+
+BEFORE = json.loads((ROOT / "tests" / "data" / "config_before_groups.json").read_text())
+CONFIGS = BEFORE["configs"]
+COSINE = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
+
+
+def plain(value):
+    """Lists for tuples, as JSON holds them."""
+    return json.loads(json.dumps(value))
+
+
+def grouped(flat: dict, max_epochs: int) -> dict:
+    """The recorded flat hyper-parameters moved by the fixture's key map."""
+    out = {"net": {}, "objective": {}, "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True}}
+    out["scheduler"] = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
+    for key, value in flat.items():
+        if key == "lr_schedule":
+            continue
+        *group, name = BEFORE["key_map"][key].split(".")
+        (out[group[0]] if group else out)[name] = value
+    if flat["lr_schedule"] == "cosine":
+        out["scheduler"] = COSINE | {"T_max": max_epochs, "eta_min": flat["lr"] * flat["lr_gamma"]}
+    return out
+
+
+def compose_train(overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
+def resolved(cfg, base_focal: float) -> dict:
+    """The module's options as ``cli/train.py`` resolves them, ``base_focal: auto`` given the number the
+    training cameras gave (the rendered world is not needed)."""
+    check_sizes(cfg)
+    source_offsets(cfg)
+    options = configured_model(cfg)
+    assert options["net"]["base_focal"] == "auto"
+    options["net"]["base_focal"] = base_focal
+    return plain(options)
+
+
+def test_the_key_map_is_the_checkpoint_translation():
+    assert {k: v for k, v in BEFORE["key_map"].items() if "." in v} == FLAT_KEYS
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_every_config_resolves_to_its_recorded_hyper_parameters(name):
+    entry = CONFIGS[name]
+    cfg = compose_train(entry["overrides"])
+    flat = entry["hparams"]
+    assert cfg.trainer.max_epochs == entry["max_epochs"]
+    expected = grouped(flat, entry["max_epochs"])
+    assert resolved(cfg, flat["base_focal"]) == expected
+    translated = plain(nested_hparams(flat))  # what an old checkpoint of this config loads as
+    if flat["lr_schedule"] == "cosine":  # the run's epochs are not in a checkpoint
+        expected["scheduler"].pop("T_max")
+    assert translated == expected
+
+
+@pytest.mark.parametrize("name", ["default", "ablation_baseline"])
+def test_the_objective_gives_the_recorded_losses(kitti_data, name):
+    """The module built from the config (seeded) and its objective on ``tiny_batch``, in training mode
+    (auto-masking's tie-breaking noise seeded) and in eval mode; also the module's hyper-parameters."""
+    entry, recorded = CONFIGS[name], BEFORE["losses"][name]
+    cfg = compose_train(entry["overrides"])
+    torch.manual_seed(0)
+    module = build_model(cfg, net={"base_focal": entry["hparams"]["base_focal"]})
+    assert plain(dict(module.hparams)) == grouped(entry["hparams"], entry["max_epochs"])
+    assert sum(p.numel() for p in module.parameters()) == recorded["parameters"]
+    batch = tiny_batch(kitti_data)
+    for mode in ("train", "eval"):
+        module.train(mode == "train")
+        with torch.set_grad_enabled(mode == "train"):
+            torch.manual_seed(1)
+            loss, logs = module.objective(batch, module(batch.image, batch.camera))
+        assert loss.item() == pytest.approx(recorded[f"{mode}_loss"], rel=1e-5, abs=1e-9)
+        got = {k: v.item() for k, v in logs.items()}
+        assert got == pytest.approx(recorded[f"{mode}_logs"], rel=1e-5, abs=1e-9)
+    gt = batch.distance[:, 0]
+    gt = torch.where(gt > 0, gt, torch.full_like(gt, 1e4))
+    error, used, usable = module.objective.pixel_objective(batch, gt, batch.poses)
+    assert [int(used.sum()), int(usable.sum())] == recorded["pixel"][1:]
+    assert float(error.double().sum()) == pytest.approx(recorded["pixel"][0], rel=1e-5)
