@@ -77,8 +77,8 @@ def flat(tree, prefix=""):
 
 
 def test_gpu_recipe_is_cpu_30min_longer_on_a_gpu():
-    """gpu_10min is the run of BENCHMARKS.md row 48: cpu_30min with more epochs, the decay after the
-    same 80 % of them, on a GPU; everything else (model, data, loss, optimiser) is cpu_30min's."""
+    """gpu_10min (BENCHMARKS.md, "Time to accuracy") is cpu_30min with more epochs, the decay after
+    the same 80 % of them, on a GPU; everything else (model, data, loss, optimiser) is cpu_30min's."""
     cpu = flat(OmegaConf.to_container(compose_train(["+experiment=cpu_30min"])))
     gpu = flat(OmegaConf.to_container(compose_train(["+experiment=gpu_10min"])))
     keys = {k for k in cpu.keys() | gpu.keys() if not k.startswith("hydra.")}

@@ -1,4 +1,4 @@
-"""Issue #10, data faults that used to train silently: non-rigid or duplicate poses, a camera that
+"""Data faults that used to train silently: non-rigid or duplicate poses, a camera that
 vanishes, grayscale and truncated images, a training size of another aspect ratio, and
 ``skip_bad_frames`` settable without a leading ``+``."""
 

@@ -1,4 +1,4 @@
-"""Faults of the entry points (issue #10): nothing lost, nothing silent.
+"""Faults of the entry points: nothing lost, nothing silent.
 
 Each test feeds one kind of bad input or fault a new user meets (a killed training run, a resumed run in
 the same folder, predictions on pixels without a ray, impossible or foreign calibrations, broken

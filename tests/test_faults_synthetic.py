@@ -1,4 +1,4 @@
-"""Faults around rendering the synthetic dataset (issue #10): a user's folder is never replaced, a killed
+"""Faults around rendering the synthetic dataset: a user's folder is never replaced, a killed
 render leaves no worker processes and no hidden temporary folder behind."""
 
 from __future__ import annotations

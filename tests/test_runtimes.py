@@ -121,7 +121,8 @@ def test_int8_file_is_close_to_float32_and_scores_within_0_01(onnx_files, kitti_
 
 
 def _datamodule(kitti_data):
-    base = OmegaConf.load(ROOT / "conf" / "data" / "synthetic.yaml").datamodule
+    data = ROOT / "conf" / "data"  # synthetic.yaml on top of the base its defaults list names
+    base = OmegaConf.merge(*(OmegaConf.load(data / f).datamodule for f in ("_common.yaml", "synthetic.yaml")))
     values = {
         "root": str(kitti_data),
         "size": [64, 64],
