@@ -4,14 +4,14 @@
 # at its last checkpoint, on the worlds named by SEEDS. A variant is one line of VARIANTS:
 #   NAME OVERRIDE [OVERRIDE ...]          (Hydra overrides of train.py)
 # Usage: SEEDS="1001 1002 1003" OUT=out [TRAIN_LIMIT=seconds] bash scripts/research/device_sweep.sh VARIANTS
-# (on the lent machine, Python packages it lacks: scripts need hydra-core, omegaconf, antlr4 wheels).
+# A GPU machine without the project's environment needs the hydra-core, omegaconf and antlr4 wheels.
 # Measured on an H100 (16 cores): three make-train recipes side by side ran 5 it/s each, about 7 min
 # for 22 of their 24 epochs (the 200-frame recipe of the time), plus 2-3 min of rendering: give one
-# call two recipes at most. Four cpu_30min variants beside a surround4 one (a second
+# run two recipes at most. Four cpu_30min variants beside a surround4 one (a second
 # sweep) ran 3.6-3.7 it/s each at 256 px, 10 epochs in about 11 minutes; rendering every world first
 # (3 workers each, both sweeps at once) had taken 12 minutes, so the training world now renders first
 # on every core and the held-out worlds render while the variants train.
-# A lent machine may be reclaimed between commands: run this under setsid and collect OUT later.
+# Run it under setsid: it outlives the shell that started it, and OUT is collected afterwards.
 # Writes OUT/sweep.tar.gz (each run's results, held-out results, metrics.csv and config; no checkpoints)
 # and OUT/summary.md (one row per run, scripts/heldout.py's format).
 set -u -o pipefail
