@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 STAMP := $(VENV)/.installed
 
-.PHONY: install test lint bench train reproduce clean
+.PHONY: install test lint bench train reproduce realscore clean
 
 install: $(STAMP)
 
@@ -40,6 +40,13 @@ train: install
 # Tables 1 and 2 on the synthetic world at a CPU budget; results into BENCHMARKS.md.
 reproduce: install
 	$(PY) scripts/reproduce.py $(ARGS)
+
+# A checkpoint (or an exported .onnx) scored on every real frame with ground truth (FISHEYEDEPTH_REALDATA,
+# default ../shared/realdata) beside a constant map: make realscore CKPT=RUN/checkpoints/last.ckpt
+# [ARGS="--pictures out/ --json out/real.json"].
+realscore: install
+	@test -n "$(CKPT)" || { echo "usage: make realscore CKPT=FILE.ckpt|FILE.onnx [ARGS=...]" >&2; exit 2; }
+	$(PY) scripts/real_world.py $(CKPT) $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache src/*.egg-info

@@ -12,8 +12,6 @@ import torch
 from fisheyedepth.cameras import KannalaBrandtCamera, RayCache, load_camera
 from fisheyedepth.geometry import make_pose, quaternion_to_matrix, relative_pose, sample, warp_to_source
 
-from conftest import load_script
-
 cv2 = pytest.importorskip("cv2")
 D64 = torch.float64
 
@@ -246,69 +244,3 @@ def test_train_py_trains_on_the_real_rig(aria_rig, tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "20 samples kept" in proc.stdout + proc.stderr  # 4 cameras x the 5 of 9 frames with +-2 neighbours
     assert "`Trainer.fit` stopped: `max_steps=1` reached" in proc.stdout + proc.stderr
-
-
-class ScaledLidar:
-    """A runtime: the frame's LiDAR times ``factor`` where it has a return, 10 m elsewhere."""
-
-    def __init__(self, lidar: torch.Tensor, factor: float):
-        self.lidar, self.factor = lidar, factor
-
-    def distance(self, images, cameras):
-        assert images.shape[-2:] == self.lidar.shape and len(cameras) == 1
-        d = torch.where(self.lidar > 0, self.lidar * self.factor, torch.full_like(self.lidar, 10.0))
-        return d[None, None]
-
-
-def test_real_frame_scores_the_lidar_points_as_they_are(realdata):
-    """scripts/real_frame.py: a prediction equal to the scan scores 0; half of it scores abs_rel 0.5
-    unscaled, a1 0, and 0 after median scaling with the ratio 2, under both protocols."""
-    script = load_script("real_frame")
-    frame = script.load_frame(realdata / "kitti360_frame")
-    assert (
-        frame.image.shape == (1, 3, 1400, 1400)
-        and 0.0 <= float(frame.image.min()) < float(frame.image.max()) <= 1
-    )
-    assert 0.02 < float((frame.lidar > 0).float().mean()) < 0.03  # the README's 2.6 % of pixels
-    exact, pred = script.score(ScaledLidar(frame.lidar, 1.0), frame)
-    half, _ = script.score(ScaledLidar(frame.lidar, 0.5), frame)
-    assert pred.shape == (1400, 1400)
-    for protocol in ("full", "kitti360"):
-        assert exact[protocol]["none"]["abs_rel"] == pytest.approx(0.0, abs=1e-7)
-        assert exact[protocol]["none"]["a1"] == 1.0 and exact[protocol]["none"]["images"] == 1
-        assert half[protocol]["none"]["abs_rel"] == pytest.approx(0.5, abs=1e-6)
-        assert half[protocol]["none"]["a1"] == 0.0
-        assert half[protocol]["median"]["scale_ratio"] == pytest.approx(2.0, rel=1e-6)
-        assert half[protocol]["median"]["abs_rel"] == pytest.approx(0.0, abs=1e-6)
-
-
-def test_real_frame_runs_a_checkpoint_and_keeps_its_picture(realdata, checkpoint, tmp_path, capsys):
-    script = load_script("real_frame")
-    args = [str(checkpoint), "--frame", str(realdata / "kitti360_frame"), "--pictures", str(tmp_path)]
-    script.main(args)
-    row = capsys.readouterr().out.strip().splitlines()[-1]
-    cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[0] == checkpoint.stem and len(cells) == 4
-    abs_rel, a1 = (float(x) for x in cells[1].split(","))
-    assert abs_rel > 0 and 0 <= a1 <= 1
-    picture = cv2.imread(str(tmp_path / f"{checkpoint.stem}_real_frame.png"))
-    assert picture.shape == (350, 4 * 350, 3)  # input | prediction | LiDAR | error
-    with pytest.raises(FileExistsError, match="real_frame.png exists"):
-        script.main(
-            [str(checkpoint), "--frame", str(realdata / "kitti360_frame"), "--pictures", str(tmp_path)]
-        )
-
-
-def test_real_frame_names_the_file_that_does_not_fit(realdata, tmp_path):
-    script = load_script("real_frame")
-    for path in (realdata / "kitti360_frame").iterdir():
-        (tmp_path / path.name).symlink_to(path)
-    (tmp_path / "image_02_lidar_distance.png").unlink()
-    cv2.imwrite(str(tmp_path / "image_02_lidar_distance.png"), np.zeros((1400, 1400), np.uint8))
-    with pytest.raises(ValueError, match=r"image_02_lidar_distance.png: expected a one-channel uint16"):
-        script.load_frame(tmp_path)
-    cv2.imwrite(str(tmp_path / "image_02_lidar_distance.png"), np.zeros((1400, 1400), np.uint16))
-    (tmp_path / "image_02_body_mask.png").unlink()
-    cv2.imwrite(str(tmp_path / "image_02_body_mask.png"), np.full((700, 700), 255, np.uint8))
-    with pytest.raises(ValueError, match=r"body_mask.png: 700x700, but image_02.yaml says 1400x1400"):
-        script.load_frame(tmp_path)

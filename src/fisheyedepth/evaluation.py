@@ -135,18 +135,7 @@ class Evaluator:
         self._follow(pred.device)
         p = self.protocol
         gt_z = gt * rays[..., 2]
-        keep = mask.bool() & valid & (gt > 0)
-        if source == "lidar_filtered" and p.occlusion is None:
-            raise ValueError(
-                f"the {p.name} protocol scores every projected LiDAR point, but this ground truth was "
-                "occlusion-filtered: read it with lidar_occlusion=None (FisheyeDataModule.scoring_loader)"
-            )
-        if source in ("lidar", "lidar_filtered") and p.occlusion is not None:
-            keep &= ~occlusion_filter(gt, p.occlusion)
-        if p.z_range is not None:
-            keep &= (gt_z > p.z_range[0]) & (gt_z < p.z_range[1])
-        if p.max_range is not None:
-            keep &= gt < p.max_range
+        keep = self._keep(gt, gt_z, mask, valid, source)
         angle = torch.rad2deg(torch.acos(rays[..., 2].clamp(-1, 1)))
         usable = gt[mask.bool() & valid & torch.isfinite(gt)]
         largest = float(usable.max()) if usable.numel() else 0.0
@@ -183,6 +172,32 @@ class Evaluator:
                 self.by_angle[(scaling, (lo, hi))].update(
                     q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]
                 )
+
+    def _keep(self, gt: Tensor, gt_z: Tensor, mask: Tensor, valid: Tensor, source: str | None) -> Tensor:
+        """The pixels with ground truth the protocol keeps, before its cap (see :meth:`update`)."""
+        p = self.protocol
+        keep = mask.bool() & valid & (gt > 0)
+        if source == "lidar_filtered" and p.occlusion is None:
+            raise ValueError(
+                f"the {p.name} protocol scores every projected LiDAR point, but this ground truth was "
+                "occlusion-filtered: read it with lidar_occlusion=None (FisheyeDataModule.scoring_loader)"
+            )
+        if source in ("lidar", "lidar_filtered") and p.occlusion is not None:
+            keep &= ~occlusion_filter(gt, p.occlusion)
+        if p.z_range is not None:
+            keep &= (gt_z > p.z_range[0]) & (gt_z < p.z_range[1])
+        if p.max_range is not None:
+            keep &= gt < p.max_range
+        return keep
+
+    def scored(self, gt: Tensor, mask: Tensor, camera: CameraModel, source: str | None = None) -> Tensor:
+        """``[H, W]`` bool: the pixels of one image that :meth:`update` scores (its arguments, less the
+        prediction): usable, with a ray, kept by the protocol and inside its cap."""
+        rays, valid = self.rays.get(camera, gt.device, gt.dtype)
+        gt_z = gt * rays[..., 2]
+        g = gt_z if self.protocol.quantity == "z" else gt
+        cap = self.protocol.cap
+        return self._keep(gt, gt_z, mask, valid, source) & (g > cap[0]) & (g < cap[1])
 
     def _follow(self, device: torch.device) -> None:
         """Keep every metric's state on the device of the images it is fed (``eval.py device=cuda``)."""

@@ -1,0 +1,57 @@
+#!/usr/bin/env python
+"""Score checkpoints (.ckpt) or exported files (.onnx) on every real fisheye frame with metric ground
+truth under ``FISHEYEDEPTH_REALDATA`` (default ``../shared/realdata``): the KITTI-360 frame against
+its LiDAR (80 m, inside the body mask), the ScanNet++ frame and four Aria Digital Twin SLAM frames
+against their rendered depth (capped at the frame's range). Real cameras, never trained on.
+
+    python scripts/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
+                                 [--pictures DIR] [--json OUT] [--force] [--post-process flip]
+
+Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
+the ratio ground truth / prediction), beside a constant map at the ground truth's median distance,
+the score any real-world result must beat; then the published zero-shot anchors on KITTI-360. The
+network runs at its input size on the image and camera resized alike, its distance upsampled to the
+frame's size. ``--pictures``: input | prediction | ground truth | error per model and frame;
+``--json``: every number (the kitti360 protocol under 8 m for the KITTI-360 frame too). Exit status
+1 when a frame's files are missing (each is named in the table), 2 on a malformed file or option.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from fisheyedepth.realworld import FRAME_SETS, default_root, score_models
+from fisheyedepth.runtimes import POST_PROCESSING
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("models", nargs="+", type=Path, help="checkpoints (.ckpt) or exported files (.onnx)")
+    parser.add_argument("--root", type=Path, default=default_root(), help="real data folder (%(default)s)")
+    parser.add_argument("--frames", nargs="+", choices=FRAME_SETS, default=list(FRAME_SETS))
+    parser.add_argument("--pictures", type=Path, help="write <model>_<frame>.png here")
+    parser.add_argument("--json", type=Path, help="write every number to this JSON file")
+    parser.add_argument("--force", action="store_true", help="replace existing pictures and JSON")
+    parser.add_argument("--post-process", default="none", choices=POST_PROCESSING)
+    args = parser.parse_args(argv)
+    try:
+        record = score_models(
+            args.models, args.root, args.frames, args.pictures, args.json, args.force, args.post_process,
+            echo=lambda line: print(line, flush=True),
+        )  # fmt: skip
+    except (OSError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    missing = [name for name, frame in record["frames"].items() if "missing" in frame]
+    if missing:
+        print(f"missing: {', '.join(missing)} (their rows name the path)", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
