@@ -2,7 +2,9 @@
 they replaced, value for value: every experiment, model and schedule resolves to the hyper-parameters
 recorded before the change (``tests/data/config_before_groups.json``), moved by its key map; the
 checkpoint translation (:func:`~fisheyedepth.checkpoints.nested_hparams`) moves them the same way; and
-the default and Monodepth2 models give the recorded losses on a fixed batch."""
+the default and Monodepth2 models give the recorded losses on a fixed batch. Options added since the
+recording (:data:`ADDED_SINCE_RECORDING`) are not in the fixture: every config must resolve each of them
+to the one value that keeps the recorded behaviour, and old checkpoints must load with that value."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from fisheyedepth.checkpoints import FLAT_KEYS, nested_hparams
+from fisheyedepth.checkpoints import ADDED_HPARAMS, FLAT_KEYS, nested_hparams
 from fisheyedepth.cli.train import build_model
 from fisheyedepth.config import check_sizes, configured_model, source_offsets
 
@@ -21,6 +23,9 @@ from conftest import ROOT, tiny_batch
 BEFORE = json.loads((ROOT / "tests" / "data" / "config_before_groups.json").read_text())
 CONFIGS = BEFORE["configs"]
 COSINE = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
+# Options added after the fixture was recorded, each with the value that reproduces the recorded
+# behaviour (a config setting another value is a new experiment, not one of the recorded ones)
+ADDED_SINCE_RECORDING = {"net.encoder": "resnet"}  # the EfficientNet-Lite0 encoder came later
 
 
 def plain(value):
@@ -29,7 +34,8 @@ def plain(value):
 
 
 def grouped(flat: dict, max_epochs: int) -> dict:
-    """The recorded flat hyper-parameters moved by the fixture's key map."""
+    """The recorded flat hyper-parameters moved by the fixture's key map, with the options added since
+    at their old-behaviour values (:data:`ADDED_SINCE_RECORDING`)."""
     out = {"net": {}, "objective": {}, "optimizer": {"_target_": "torch.optim.Adam", "_partial_": True}}
     out["scheduler"] = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
     for key, value in flat.items():
@@ -39,6 +45,9 @@ def grouped(flat: dict, max_epochs: int) -> dict:
         (out[group[0]] if group else out)[name] = value
     if flat["lr_schedule"] == "cosine":
         out["scheduler"] = COSINE | {"T_max": max_epochs, "eta_min": flat["lr"] * flat["lr_gamma"]}
+    for name, value in ADDED_SINCE_RECORDING.items():
+        group, key = name.split(".")
+        out[group][key] = value
     return out
 
 
@@ -60,6 +69,19 @@ def resolved(cfg, base_focal: float) -> dict:
 
 def test_the_key_map_is_the_checkpoint_translation():
     assert {k: v for k, v in BEFORE["key_map"].items() if "." in v} == FLAT_KEYS
+
+
+def test_options_added_since_the_recording_are_new_and_old_checkpoints_get_their_old_values():
+    assert not set(ADDED_SINCE_RECORDING) & set(BEFORE["key_map"].values())
+    assert ADDED_HPARAMS == ADDED_SINCE_RECORDING
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_every_config_resolves_the_added_options_to_their_old_behaviour(name):
+    options = configured_model(compose_train(CONFIGS[name]["overrides"]))
+    for option, value in ADDED_SINCE_RECORDING.items():
+        group, key = option.split(".")
+        assert options[group][key] == value, f"{name}: model.{option}"
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

@@ -83,6 +83,9 @@ FLAT_KEYS = {
     **{"lr": "optimizer.lr", "weight_decay": "optimizer.weight_decay"},
     **{"lr_step": "scheduler.step_size", "lr_gamma": "scheduler.gamma"},
 }
+# Options added after checkpoints had been written, each with the value that those checkpoints were trained
+# with: a checkpoint without one loads as it was trained (net.encoder: every encoder was a ResNet)
+ADDED_HPARAMS = {"net.encoder": "resnet"}
 ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
 STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
 COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
@@ -90,11 +93,20 @@ COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial
 
 def nested_hparams(hparams: dict[str, Any]) -> dict[str, Any]:
     """Hyper-parameters in groups (``net``, ``objective``, ``optimizer``, ``scheduler``): flat ones (a
-    checkpoint written before the groups) moved by :data:`FLAT_KEYS`, grouped ones as they are. The
+    checkpoint written before the groups) moved by :data:`FLAT_KEYS`, grouped ones as they are; the
+    options of :data:`ADDED_HPARAMS` a checkpoint predates set to the value it was trained with. The
     flat cosine schedule annealed to ``lr * lr_gamma`` over the run's epochs, which the checkpoint does
     not record: its scheduler keeps ``eta_min`` alone (evaluation builds none)."""
-    if "net" in hparams:
-        return dict(hparams)
+    out = dict(hparams) if "net" in hparams else _grouped(hparams)
+    for name, value in ADDED_HPARAMS.items():
+        group, key = name.split(".")
+        if key not in (out.get(group) or {}):
+            out[group] = {**(out.get(group) or {}), key: value}
+    return out
+
+
+def _grouped(hparams: dict[str, Any]) -> dict[str, Any]:
+    """Flat hyper-parameters in their groups (see :func:`nested_hparams`)."""
     out: dict[str, Any] = {"net": {}, "objective": {}, "optimizer": dict(ADAM), "scheduler": {}}
     for key, value in hparams.items():
         if key in FLAT_KEYS:
@@ -145,7 +157,8 @@ def check_resumable(path: str | os.PathLike, model: dict[str, Any] | None = None
 
 
 # The options that shape the weights; n_bins and attention only for the binned head
-NETWORK = ("net.resnet", "net.decoder_width", "net.scales", "net.multi_channel", "objective.real_scale")
+NETWORK = ("net.encoder", "net.resnet", "net.decoder_width", "net.scales", "net.multi_channel")
+NETWORK += ("objective.real_scale",)
 BINNED_HEAD = ("net.n_bins", "net.attention")
 
 

@@ -71,7 +71,7 @@ class FisheyeDepthModule(L.LightningModule):
         if not objective["real_scale"]:
             self.pose_net = PoseNet(
                 resnet=net["resnet"], weights=net["weights"], translation_scale=translation,
-                channels_last=net["channels_last"],
+                channels_last=net["channels_last"], encoder=net["encoder"],
             )  # fmt: skip
         self.objective = SelfSupervisedObjective(**objective, scales=net["scales"], pose_net=self.pose_net)
         self.scales = self.objective.scales

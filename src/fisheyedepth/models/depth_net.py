@@ -1,4 +1,5 @@
-"""The depth network: ResNet encoder, Monodepth2 U-Net decoder, and a head at each of 4 scales."""
+"""The depth network: a ResNet or EfficientNet-Lite0 encoder, Monodepth2 U-Net decoder, and a head at each
+of 4 scales."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .encoders import make_encoder
 from .heads import (
     MultiChannelHead,
     SigmoidHead,
@@ -19,7 +21,6 @@ from .heads import (
     distance_to_sigmoid,
     sigmoid_to_distance,
 )
-from .resnet import ResNetEncoder
 
 DECODER_CHANNELS = (16, 32, 64, 128, 256)  # Monodepth2's, full to 1/16 resolution
 SIZE_MULTIPLE = 32  # the encoder halves the image 5 times and the decoder's skips need every level whole
@@ -110,6 +111,10 @@ class DepthNet(nn.Module):
     - :meth:`for_cameras`: the same with each sample's camera (training);
     - :meth:`distance`: any image of a calibrated camera at its own resolution, resized to the
       training size and back (evaluation, prediction).
+
+    ``encoder``: "resnet" (a ResNet of depth ``resnet``; ``weights`` an optional torchvision ImageNet file)
+    or "efficientnet_lite0" (ImageNet weights from its installed package); see
+    :func:`~fisheyedepth.models.encoders.make_encoder`.
     """
 
     def __init__(
@@ -126,6 +131,7 @@ class DepthNet(nn.Module):
         channels_last: bool = False,
         upsample: str = "distance",
         decoder_width: float = 1.0,
+        encoder: str = "resnet",
     ):
         super().__init__()
         self.upsample = upsample  # checked by its setter
@@ -135,7 +141,7 @@ class DepthNet(nn.Module):
                 "'auto' is resolved from the training cameras by train.py"
             )
         self.base_focal = None if base_focal is None else float(base_focal)
-        self.encoder = ResNetEncoder(resnet, 1, weights)
+        self.encoder = make_encoder(encoder, 1, resnet, weights)
         widths = decoder_channels(decoder_width)
         self.decoder = DepthDecoder(self.encoder.channels, scales, widths)
         self.multi_channel, self.scales = multi_channel, tuple(scales)

@@ -1,5 +1,6 @@
-"""Monodepth2's PoseNet, for the ablation without real-scale poses: a ResNet on two stacked frames and a
-small convolutional decoder predicting axis-angle and translation (no metric scale)."""
+"""Monodepth2's PoseNet, for the ablation without real-scale poses: an encoder (a ResNet or
+EfficientNet-Lite0) on two stacked frames and a small convolutional decoder predicting axis-angle and
+translation (no metric scale)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,8 @@ import torch
 from torch import Tensor, nn
 
 from ..geometry import axis_angle_to_matrix, invert_pose, make_pose
+from .encoders import make_encoder
 from .heads import at_least_float32
-from .resnet import ResNetEncoder
 
 # Monodepth2's PoseNet outputs 0.01 x its raw values (radians, metres) while its depth head starts at
 # 1 / (1/100 + (1/0.1 - 1/100) / 2) = 0.2 m: a first translation of about 1 mm against 0.2 m of depth.
@@ -42,7 +43,9 @@ class PoseNet(nn.Module):
     """``translation_scale``: metres per raw output unit. Monodepth2's 0.01 suits its depth head, which
     starts at 0.2 m; a head that starts at distance ``d`` needs ``d * MONODEPTH2_TRANSLATION_PER_DISTANCE``
     so that the first warps have the same parallax (see ``FisheyeDepthModule``).
-    ``channels_last``: weights and input in NHWC memory order, as in ``DepthNet``."""
+    ``channels_last``: weights and input in NHWC memory order, as in ``DepthNet``. ``encoder``, ``resnet``
+    and ``weights`` as in ``DepthNet``; ImageNet weights of the first convolution are tiled over the two
+    images and halved."""
 
     def __init__(
         self,
@@ -50,9 +53,10 @@ class PoseNet(nn.Module):
         weights: str | os.PathLike | None = None,
         translation_scale: float = 0.01,
         channels_last: bool = False,
+        encoder: str = "resnet",
     ):
         super().__init__()
-        self.encoder = ResNetEncoder(resnet, 2, weights)
+        self.encoder = make_encoder(encoder, 2, resnet, weights)
         self.decoder = PoseDecoder(self.encoder.channels[-1], translation_scale)
         self.channels_last = channels_last
         if channels_last:
