@@ -6,6 +6,7 @@ against their rendered depth (capped at the frame's range). Real cameras, never 
 
     python scripts/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
+    python scripts/real_world.py --from-records docs/records/real_photographs   # kept scores
 
 Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
 the ratio ground truth / prediction), beside a constant map at the ground truth's median distance,
@@ -14,6 +15,8 @@ network runs at its input size on the image and camera resized alike, its distan
 frame's size. ``--pictures``: input | prediction | ground truth | error per model and frame;
 ``--json``: every number (the kitti360 protocol under 8 m for the KITTI-360 frame too). Exit status
 1 when a frame's files are missing (each is named in the table), 2 on a malformed file or option.
+``--from-records``: the MODEL arguments are run records (files or folders, ``docs/records``) whose
+``real_world`` scores are printed as kept, nothing re-scored.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from fisheyedepth.realworld import FRAME_SETS, default_root, score_models
+from fisheyedepth.realworld import FRAME_SETS, default_root, records_table, score_models
 from fisheyedepth.runtimes import POST_PROCESSING
 
 
@@ -37,7 +40,15 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="write every number to this JSON file")
     parser.add_argument("--force", action="store_true", help="replace existing pictures and JSON")
     parser.add_argument("--post-process", default="none", choices=POST_PROCESSING)
+    parser.add_argument("--from-records", action="store_true", help="MODEL...: run records; score nothing")
     args = parser.parse_args(argv)
+    if args.from_records:
+        try:
+            print("\n".join(records_table(args.models)))
+        except (OSError, ValueError) as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        return 0
     try:
         record = score_models(
             args.models, args.root, args.frames, args.pictures, args.json, args.force, args.post_process,

@@ -496,6 +496,37 @@ def row(
     )
 
 
+def records_table(paths: Sequence[Path]) -> list[str]:
+    """The scores kept in run records (``docs/records``: files, or folders searched for ``*.json``) that
+    hold a ``real_world`` entry, one row per record and frame (its first protocol), nothing re-scored."""
+    files: list[Path] = []
+    for path in map(Path, paths):
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such run record or folder")
+        files += [path] if path.is_file() else sorted(path.rglob("*.json"))
+    lines = [
+        "| run | frame | abs_rel, a1, rmse | median-scaled: abs_rel, a1, rmse (ratio) "
+        "| constant map: abs_rel, a1, rmse (at) |",
+        "|---|---|---|---|---|",
+    ]
+    for file in files:
+        real = json.loads(file.read_text()).get("real_world")
+        if real is None:
+            continue
+        for frame, r in real["frames"].items():
+            if "/" in frame:  # a second protocol of the frame (kitti360 under 8 m): the JSON only
+                continue
+            c = real["constant_map"][frame]
+            lines.append(
+                f"| {file.stem} | {frame} | {_cell(r['none'])} "
+                f"| {_cell(r['median'])} (x{r['median']['scale_ratio']:.2f}) "
+                f"| {_cell(c)} ({c['distance']:.2f} m) |"
+            )
+    if len(lines) == 2:
+        raise ValueError(f"{', '.join(map(str, paths))}: no run record with real-world scores")
+    return lines
+
+
 def anchors_table() -> list[str]:
     """The published anchors as printed beside the scores (and in the README, "Real photographs")."""
     lines = ["| published, zero-shot on KITTI-360 fisheyes (80 m) | abs_rel | a1 |", "|---|---|---|"]
