@@ -27,6 +27,8 @@ photometric error stays flat, whatever its depth does (BENCHMARKS.md).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import shutil
 import subprocess
@@ -37,6 +39,8 @@ from pathlib import Path
 
 import yaml
 
+import make_tables
+import plot_curves
 from make_tables import find, is_record, load_results
 
 from _benchmarks import publish
@@ -48,6 +52,21 @@ TABLES = {
     "1": ["ablation_baseline", "table1_dnet", "table1_fsnet", "table1_fsnet_rs", "ablation_full"],
     "2": ["ablation_baseline", "ablation_fft_only", "ablation_fft_rs", "ablation_fft_mc", "ablation_full"],
 }
+
+
+def _check(main, argv: list[str]) -> None:
+    """Run another script's ``main`` in this process (no second interpreter start); stop on failure."""
+    code = main(argv)
+    if code:
+        raise SystemExit(f"{main.__module__}.py {' '.join(argv)}: exit status {code}")
+
+
+def _printed(main, argv: list[str]) -> str:
+    """What another script's ``main`` prints, run in this process."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        _check(main, argv)
+    return out.getvalue()
 
 
 def main(argv=None) -> int:
@@ -97,27 +116,11 @@ def main(argv=None) -> int:
         t0 = time.time()
         subprocess.run(cmd, check=True, cwd=ROOT)
         minutes = (time.time() - t0) / 60
-    make_tables = [sys.executable, str(ROOT / "scripts" / "make_tables.py"), *sources]
-    make_tables += ["--tables", *args.tables]
-    tables = subprocess.run(
-        [*make_tables, "--protocol", "full"],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
-    reference = subprocess.run(
-        [*make_tables, "--protocol", "kitti360"],
-        check=True,
-        capture_output=True,
-        text=True,
-    ).stdout
+    tables_of = [*sources, "--tables", *args.tables]
+    tables = _printed(make_tables.main, [*tables_of, "--protocol", "full"])
+    reference = _printed(make_tables.main, [*tables_of, "--protocol", "kitti360"])
     figure = sweep / "curves.png"
-    subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "plot_curves.py"), *sources, "--out", str(figure),
-         "--csv", str(figure.with_suffix(".csv"))],
-        check=True,
-        cwd=ROOT,
-    )  # fmt: skip
+    _check(plot_curves.main, [*sources, "--out", str(figure), "--csv", str(figure.with_suffix(".csv"))])
     if not args.no_write:
         FIGURE.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(figure, FIGURE)

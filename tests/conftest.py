@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from fisheyedepth.cameras import (
@@ -21,6 +25,19 @@ from fisheyedepth.cameras.presets import tumvi_double_sphere, tumvi_kannala_bran
 from fisheyedepth.data.kitti360 import KITTI360_MEI, kitti360_camera
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (``make test`` runs one worker per core) each worker gets its share of the
+    cores: torch's intra-op threads and those of the processes a test starts (OMP_NUM_THREADS). Two
+    workers of two threads each on two cores run slower than one worker: their threads wait for each
+    other."""
+    workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if workers:
+        threads = max(1, (os.cpu_count() or 1) // int(workers))
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+
 
 KITTI_02 = KITTI360_MEI[2]
 KITTI_03 = KITTI360_MEI[3]
@@ -125,6 +142,24 @@ def load_script(name: str):
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
     return script
+
+
+def printed(script: str, argv: list[str]) -> str:
+    """What ``scripts/<script>.py`` prints for ``argv`` (its ``main`` must return 0), run in this process:
+    a script tested without a second interpreter's start (seconds each). The scripts import each other
+    as top-level modules, as they do when run from scripts/."""
+    scripts = str(ROOT / "scripts")
+    added = scripts not in sys.path
+    if added:
+        sys.path.insert(0, scripts)
+    out = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out):
+            assert load_script(script).main(argv) == 0
+    finally:
+        if added:
+            sys.path.remove(scripts)
+    return out.getvalue()
 
 
 def quaternion_xyzw(R: np.ndarray) -> list[float]:

@@ -25,7 +25,7 @@ from fisheyedepth.cli.evaluate import experiment_of
 from fisheyedepth.cli.train import selected_checkpoint
 from fisheyedepth.config import resolve_base_focal, resolve_precision
 
-from conftest import TINY, load_script
+from conftest import TINY, load_script, printed
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("[!_]*.yaml"))  # _paper: a base
@@ -343,19 +343,28 @@ def test_train_eval_resume_tables(workdir):
 
     curves = workdir / "curves"
     out = ["--out", f"{curves}.png", "--csv", f"{curves}.csv"]
-    run("scripts/plot_curves.py", str(first), str(resumed), *out)
+    printed("plot_curves", [str(first), str(resumed), *out])
     rows = [line.split(",") for line in Path(f"{curves}.csv").read_text().splitlines()[1:]]
     val_loss = {(r[0], int(r[2])) for r in rows if r[1] == "val/loss"}
     assert {e for _, e in val_loss} == {0, 1} and all(float(r[3]) > 0 for r in rows if r[1] == "val/loss")
     assert Path(f"{curves}.png").stat().st_size > 10_000
 
-    tables = run("scripts/make_tables.py", str(first), str(resumed), "--latex").stdout
+    tables = printed("make_tables", [str(first), str(resumed), "--latex"])
     assert "FFT + RS + MC" in tables and "| 2 |" in tables and "\\begin{tabular}" in tables
 
-    reproduced = run(
-        "scripts/reproduce.py", "--runs", str(first), str(resumed), "--tables", "2",
-        "--out", str(workdir / "reproduce"), "--no-write",
-    ).stdout  # fmt: skip
+    reproduced = printed(
+        "reproduce",
+        [
+            "--runs",
+            str(first),
+            str(resumed),
+            "--tables",
+            "2",
+            "--out",
+            str(workdir / "reproduce"),
+            "--no-write",
+        ],
+    )
     assert "best-NNN.ckpt x1, last.ckpt x1" in reproduced and "FFT + RS + MC | none | 2 |" in reproduced
     budget = next(line for line in reproduced.splitlines() if line.startswith("Budget overrides"))
     assert "trainer.max_epochs: differs" in budget and "trainer.limit_train_batches=3" in budget  # the runs'
@@ -364,10 +373,9 @@ def test_train_eval_resume_tables(workdir):
 
     # last: its results.json files inside run1 would be collected by the table scripts above
     tiny_data = [o for o in TINY if o.startswith("data.") or o.startswith("eval.")]
-    heldout = run(
-        "scripts/heldout.py", str(first), "--seeds", "5",
-        "--set", f"paths.data_dir={workdir}/data", *tiny_data,
-    ).stdout  # fmt: skip
+    heldout = printed(
+        "heldout", [str(first), "--seeds", "5", "--set", f"paths.data_dir={workdir}/data", *tiny_data]
+    )
     assert (workdir / "data" / "synthetic_kitti360_64_seed5_f12" / "synthetic.json").is_file()
     row = next(line for line in heldout.splitlines() if line.startswith("| run1 |")).split(" | ")
     held = json.loads((first / "heldout_kitti360_seed5" / "results.json").read_text())["results"]
