@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from ..data.synthetic import ensure_dataset, is_complete
+from ..data.synthetic import ensure_datasets
 from ..module import FisheyeDepthModule
 from ..runtimes import OnnxRuntime, TorchRuntime
 from ..utils import keep_freed_memory
@@ -71,10 +71,9 @@ def prepare_data(cfg: DictConfig) -> None:
     gen = cfg.data.get("generate")
     if not gen:
         return
-    root = Path(cfg.data.datamodule.root)
-    if not is_complete(root):
-        log.info("rendering the synthetic dataset into %s (first use)", root)
-    ensure_dataset(root, **OmegaConf.to_container(gen, resolve=True))
+    root = cfg.data.datamodule.root  # one folder, or a list (a mixed dataset: one world per folder)
+    root = OmegaConf.to_container(root, resolve=True) if OmegaConf.is_list(root) else str(root)
+    ensure_datasets(root, OmegaConf.to_container(gen, resolve=True), log)
 
 
 def free_path(path: Path) -> Path:

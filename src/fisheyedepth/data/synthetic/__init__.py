@@ -4,35 +4,54 @@
 rig of calibrated fisheye cameras, with real-scale poses, Velodyne scans and the exact distance of every
 pixel. ``ensure_dataset(root, ...)`` is the first-use variant for training: it reuses a finished dataset
 rendered with the same parameters, renders into an absent or empty folder, and never replaces a folder
-that this generator did not make. See docs/data-format.md for the layout.
+that this generator did not make; ``ensure_datasets`` does it for each folder of a mixed dataset.
+``scene="indoor"`` renders a furnished room walked through by a hand-held rig instead of the street, and
+``random_cameras=True`` draws every camera (model family, intrinsics, mounting) from the seed. See
+docs/data-format.md for the layout.
 """
 
-from .rig import RIGS, Rig, make_rig
-from .world import World, make_trajectory, make_world
+from .indoor import clearance, make_indoor_trajectory, make_indoor_world
+from .rig import FAMILIES, RIGS, Rig, camera_is_valid, make_rig, random_camera
+from .world import SCENES, World, make_trajectory, make_world
 from .writer import (
     MARKER,
     DatasetMismatch,
     NotASyntheticDataset,
     Terminated,
+    calibration_text,
     ensure_dataset,
+    ensure_datasets,
     generate,
     is_complete,
     made_by_generator,
+    make_scene_trajectory,
+    make_scene_world,
 )
 
 __all__ = [
+    "FAMILIES",
     "MARKER",
     "RIGS",
+    "SCENES",
     "DatasetMismatch",
     "NotASyntheticDataset",
     "Rig",
     "Terminated",
     "World",
+    "calibration_text",
+    "camera_is_valid",
+    "clearance",
     "ensure_dataset",
+    "ensure_datasets",
     "generate",
     "is_complete",
     "made_by_generator",
+    "make_indoor_trajectory",
+    "make_indoor_world",
     "make_rig",
+    "make_scene_trajectory",
+    "make_scene_world",
     "make_trajectory",
     "make_world",
+    "random_camera",
 ]

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .rig import RIGS
+from .world import SCENES
 from .writer import Terminated, generate, made_by_generator
 
 
@@ -37,6 +38,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=0, help="worker processes (0: render in this process)")
     p.add_argument("--no-lidar", action="store_true", help="skip the Velodyne scans")
     p.add_argument("--lane", default="right", choices=("right", "left"), help="the lane the car keeps to")
+    p.add_argument("--scene", default="street", choices=SCENES, help="a city street, or a furnished room")
+    p.add_argument(
+        "--random-cameras",
+        action="store_true",
+        help="draw every camera (model family, intrinsics, mounting height and tilt) from --seed",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
@@ -55,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
             a.overwrite,
             not a.quiet,
             lane=a.lane,
+            scene=a.scene,
+            random_cameras=a.random_cameras,
         )
     except (OSError, ValueError) as exc:  # a full disk: writer.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)

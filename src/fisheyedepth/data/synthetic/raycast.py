@@ -34,9 +34,15 @@ class SceneTensors:
     # kind -> (bounding-sphere centre [N, 3], its radius [N], top height [N], footprint radius [N] around
     # the centre's (x, y))
     bounds: dict[str, tuple[Tensor, Tensor, Tensor, Tensor]]
+    # True: bound the elevation of an object's top below the origin from its nearest point, as the street
+    # datasets were rendered; that bound is too low, so rays meeting such a top beyond its nearest point
+    # (a far part of a sidewalk's or a car's top) pass through it. False: the exact bound.
+    legacy_culling: bool = False
 
 
-def scene_tensors(world: World, device="cpu") -> SceneTensors:
+def scene_tensors(world: World, device="cpu", legacy_culling: bool = False) -> SceneTensors:
+    """The world's objects as tensors for :func:`cast`; ``legacy_culling`` reproduces the street
+    datasets' ground truth byte for byte (see :class:`SceneTensors`)."""
     f = dict(dtype=torch.float32, device=device)
     lo, hi = torch.as_tensor(world.boxes[:, :3], **f), torch.as_tensor(world.boxes[:, 3:], **f)
     cyl = torch.as_tensor(world.cylinders, **f).reshape(-1, 5)
@@ -64,6 +70,7 @@ def scene_tensors(world: World, device="cpu") -> SceneTensors:
             "cylinder": (cyl_centre, cyl_radius, cyl[:, 4], cyl[:, 2]),
             "sphere": (sph[:, :3], sph[:, 3], sph[:, 2] + sph[:, 3], sph[:, 3]),
         },
+        legacy_culling=legacy_culling,
     )
 
 
@@ -127,7 +134,7 @@ def _sphere_intersect(origin: Tensor, dirs: Tensor, sph: Tensor) -> Tensor:
     return torch.where(hit, t, torch.full_like(t, float("inf")))
 
 
-def _overlapping_pairs(origin, cone_dir, cone_cos_sin, tile_min_dz, bounds, max_range):
+def _overlapping_pairs(origin, cone_dir, cone_cos_sin, tile_min_dz, bounds, max_range, legacy=False):
     """(tile, object, nearest possible distance, sine of the object's highest elevation) for every tile
     cone that meets an object's bounding sphere and whose lowest ray is not above the object's top."""
     centre, radius, top, footprint = bounds
@@ -140,7 +147,10 @@ def _overlapping_pairs(origin, cone_dir, cone_cos_sin, tile_min_dz, bounds, max_
         return idx, idx, empty, empty
     v, dist, radius = v[idx], dist[idx], radius[idx]
     rise = top[idx] - origin[2]
-    flat = (v[:, :2].norm(dim=-1) - footprint[idx]).clamp_min(0)
+    # the top is seen highest from its nearest point when above the origin, from its farthest when below
+    across = v[:, :2].norm(dim=-1)
+    nearest = (across - footprint[idx]).clamp_min(0)
+    flat = nearest if legacy else torch.where(rise >= 0, nearest, across + footprint[idx])
     sin_top = rise / torch.sqrt(rise * rise + flat * flat).clamp_min(1e-9)  # sine of the highest elevation
     sin_b = (radius / dist).clamp(max=1.0)
     cos_b = torch.sqrt(1 - sin_b * sin_b)
@@ -190,7 +200,9 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
     ray_ids = torch.arange(n_rays, device=dirs.device).reshape(T, K)
     tile_min_dz = dirs[..., 2].amin(1)
     pairs = {
-        kind: _overlapping_pairs(origin, cone_dir, (cos_a, sin_a), tile_min_dz, scene.bounds[kind], max_range)
+        kind: _overlapping_pairs(
+            origin, cone_dir, (cos_a, sin_a), tile_min_dz, scene.bounds[kind], max_range, scene.legacy_culling
+        )
         for kind in ("box", "cylinder", "sphere")
         if scene.bounds[kind][0].shape[0]
     }

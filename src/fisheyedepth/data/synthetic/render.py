@@ -26,9 +26,12 @@ def _tile_size(h: int, w: int, preferred: int = 8) -> int:
 
 
 class _Rays:
-    """Rays of one sensor in its own frame, tiled, with the ego body's hits precomputed (it never moves)."""
+    """Rays of one sensor in its own frame, tiled, with the ego body's hits precomputed (it never moves;
+    ``ego=False``: a rig without a vehicle body, the indoor scene's)."""
 
-    def __init__(self, grid: Tensor, valid: Tensor, sensor_to_pose: np.ndarray, tile: tuple[int, int]):
+    def __init__(
+        self, grid: Tensor, valid: Tensor, sensor_to_pose: np.ndarray, tile: tuple[int, int], ego: bool = True
+    ):
         self.H, self.W = grid.shape[:2]
         self.th, self.tw = tile
         self.rays = tile_grid(grid, *tile)  # [T, K, 3] sensor frame
@@ -39,7 +42,7 @@ class _Rays:
         self.t_ego = torch.full((d_body.shape[0],), float("inf"))
         self.n_ego_body = torch.zeros_like(d_body)
         rows = torch.arange(d_body.shape[0])
-        for lo, hi in EGO_BODY:
+        for lo, hi in EGO_BODY if ego else ():
             t_box, axis = box_intersect(
                 t, d_body, torch.as_tensor(lo, dtype=torch.float32), torch.as_tensor(hi, dtype=torch.float32)
             )
@@ -75,13 +78,14 @@ class CameraFrame(NamedTuple):
 
 
 class CameraRenderer:
-    """Renders ``camera`` mounted at ``cam_to_pose`` with ``supersample`` x ``supersample`` antialiasing."""
+    """Renders ``camera`` mounted at ``cam_to_pose`` with ``supersample`` x ``supersample`` antialiasing
+    (``ego``: the ego vehicle's body is in view)."""
 
-    def __init__(self, camera: CameraModel, cam_to_pose: np.ndarray, supersample: int = 2):
+    def __init__(self, camera: CameraModel, cam_to_pose: np.ndarray, supersample: int = 2, ego: bool = True):
         self.camera, self.ss = camera, supersample
         fine = camera.resize(camera.width * supersample, camera.height * supersample)
-        self.fine = self._rays(fine, cam_to_pose)
-        self.centre = self._rays(camera, cam_to_pose)
+        self.fine = self._rays(fine, cam_to_pose, ego)
+        self.centre = self._rays(camera, cam_to_pose, ego)
         self.pixel_angle = 1.0 / min(
             camera.paraxial_focal()
         )  # radians per output pixel, for texture filtering
@@ -89,10 +93,10 @@ class CameraRenderer:
         self.body_mask = (~ego).numpy()  # True = usable (not the ego body; pixels without a ray included)
 
     @staticmethod
-    def _rays(camera: CameraModel, cam_to_pose) -> _Rays:
+    def _rays(camera: CameraModel, cam_to_pose, ego: bool = True) -> _Rays:
         rays, valid = compute_rays(camera, dtype=torch.float32)
         tile = _tile_size(camera.height, camera.width)
-        return _Rays(rays, valid, cam_to_pose, (tile, tile))
+        return _Rays(rays, valid, cam_to_pose, (tile, tile), ego)
 
     def render(self, scene: SceneTensors, world: W.World, pose: np.ndarray) -> CameraFrame:
         origin, dirs, hit = self.fine.cast(scene, pose)
@@ -119,10 +123,10 @@ def hdl64_directions(columns: int = 900) -> tuple[Tensor, Tensor]:
 
 
 class LidarRenderer:
-    def __init__(self, velo_to_pose: np.ndarray, columns: int = 900):
+    def __init__(self, velo_to_pose: np.ndarray, columns: int = 900, ego: bool = True):
         grid, valid = hdl64_directions(columns)
         tw = 30 if columns % 30 == 0 else _tile_size(1, columns, 32)
-        self.rays = _Rays(grid, valid, velo_to_pose, (8, tw))
+        self.rays = _Rays(grid, valid, velo_to_pose, (8, tw), ego)
         self.pixel_angle = 2 * math.pi / columns
 
     def render(self, scene: SceneTensors, world: W.World, pose: np.ndarray) -> np.ndarray:

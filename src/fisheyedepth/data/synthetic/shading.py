@@ -1,4 +1,6 @@
-"""Materials: world-fixed procedural albedo, Lambertian sun + ambient light, and the sky.
+"""Materials: world-fixed procedural albedo, Lambertian sun + ambient light, and the sky; indoors, floors
+of planks or tiles, painted or papered walls, wood and fabric, lit by ambient, directional and point light,
+with emissive windows and lamps.
 
 Lighting depends only on the surface (albedo, normal) and the fixed sun, never on the viewer, so
 brightness constancy holds between frames and cameras apart from occlusion and resampling. Textures are
@@ -81,6 +83,49 @@ def _facade(p: Tensor, n: Tensor, tint: Tensor, fp: Tensor, seed: int) -> Tensor
     return out
 
 
+def _floor(style: dict, p: Tensor, fp: Tensor, seed: int) -> Tensor:
+    """Planks (running bond, with grain along them) or square tiles, in the room's floor tint."""
+    u, v = (p[:, 0], p[:, 1]) if style["floor_axis"] == 0 else (p[:, 1], p[:, 0])
+    tint = torch.as_tensor(style["floor_tint"], dtype=p.dtype, device=p.device)
+    if style["floor"] == "planks":
+        length, width = style["plank"]
+        boards = _blocks(u, v, length, width, seed, fp)
+        grain = fbm2(u * 0.25, v * 4.0, 0.25, 4, seed + 1, fp * 4.0)
+        shade = boards * (0.75 + 0.5 * grain)
+    else:
+        side = style["tile"]
+        shade = _blocks(u, v, side, side, seed + 2, fp) * (0.85 + 0.3 * fbm2(u, v, 0.4, 4, seed + 3, fp))
+    return tint * shade[:, None]
+
+
+def _wall(style: dict, p: Tensor, n: Tensor, tint: Tensor, fp: Tensor, seed: int) -> Tensor:
+    """Paint with a soft mottle (or striped wallpaper) above a white skirting board."""
+    x, y, z = p.unbind(-1)
+    u = torch.where(n[:, 0].abs() > 0.5, y, x)
+    shade = 0.9 + 0.35 * (fbm3(x, y, z, 0.6, 5, seed, fp) - 0.5)
+    if style["wallpaper"] > 0:
+        w = style["wallpaper"]
+        stripe = _coverage((torch.remainder(u, 2 * w) - w / 2).abs(), w / 4, fp)
+        shade = shade * (1 - 0.15 * stripe)
+    out = tint * shade[:, None]
+    skirting = _coverage((z - 0.05).abs(), 0.05, fp)
+    return out * (1 - skirting[:, None]) + 0.9 * skirting[:, None]
+
+
+def _wood(p: Tensor, tint: Tensor, fp: Tensor, seed: int) -> Tensor:
+    x, y, z = p.unbind(-1)
+    grain = fbm3(x * 3.0, y * 3.0, z * 0.5, 0.3, 4, seed, fp * 3.0)
+    return tint * (0.6 + 0.8 * grain)[:, None]
+
+
+def _outside(p: Tensor, fp: Tensor, seed: int) -> Tensor:
+    """The bright view through a window: a pale sky with soft clouds, unlit."""
+    x, y, z = p.unbind(-1)
+    cloud = fbm3(x, y, z, 0.5, 3, seed, fp)
+    base = torch.tensor([0.82, 0.88, 0.96], dtype=p.dtype, device=p.device)
+    return base + 0.18 * cloud[:, None]
+
+
 def albedo(world: W.World, hit: Hit, points: Tensor, footprint: Tensor) -> Tensor:
     """``[R, 3]`` albedo in [0, 1] at each hit point (sky rays are left at 0)."""
     out = torch.zeros_like(points)
@@ -91,7 +136,9 @@ def albedo(world: W.World, hit: Hit, points: Tensor, footprint: Tensor) -> Tenso
             continue
         p, n, tint, fp = points[sel], hit.normal[sel], hit.tint[sel], footprint[sel]
         x, y, z = p.unbind(-1)
-        if m == W.GROUND:
+        if m == W.GROUND and world.scene == "indoor":
+            a = _floor(world.style, p, fp, seed + 100)
+        elif m == W.GROUND:
             a = _ground(world, p, fp, seed)
         elif m == W.SIDEWALK:
             top = n[:, 2] > 0.5
@@ -107,8 +154,22 @@ def albedo(world: W.World, hit: Hit, points: Tensor, footprint: Tensor) -> Tenso
             a = tint * (0.75 + 0.5 * fbm3(x, y, z, 0.6, 3, seed + 60, fp))[:, None]
         elif m == W.BARK:
             a = tint * (0.5 + 1.0 * fbm3(x * 2, y * 2, z * 0.5, 0.4, 3, seed + 70, fp))[:, None]
+        elif m == W.FOLIAGE and world.scene == "indoor":  # a house plant: leaves of a hand's size
+            a = tint * (0.4 + 1.2 * fbm3(x, y, z, 0.15, 4, seed + 80, fp))[:, None]
         elif m == W.FOLIAGE:
             a = tint * (0.4 + 1.2 * fbm3(x, y, z, 0.8, 4, seed + 80, fp))[:, None]
+        elif m == W.WALL:
+            a = _wall(world.style, p, n, tint, fp, seed + 110)
+        elif m == W.CEILING:
+            a = tint * (0.92 + 0.16 * (fbm2(x, y, 0.8, 4, seed + 120, fp) - 0.5))[:, None]
+        elif m in (W.WOOD, W.DOOR):
+            a = _wood(p, tint, fp, seed + 130 + (m == W.DOOR))
+        elif m == W.FABRIC:
+            a = tint * (0.7 + 0.6 * fbm3(x, y, z, 0.12, 4, seed + 140, fp))[:, None]
+        elif m == W.WINDOW:
+            a = _outside(p, fp, seed + 150)
+        elif m == W.LAMP:
+            a = tint * (0.92 + 0.16 * fbm3(x, y, z, 0.1, 2, seed + 160, fp))[:, None]
         else:  # the ego vehicle: dark and untextured
             a = torch.full_like(p, 0.06)
         out[sel] = a.clamp(0, 1)
@@ -134,6 +195,26 @@ def shade(world: W.World, hit: Hit, origin: Tensor, dirs: Tensor, pixel_angle: f
     slant = (hit.normal * dirs).sum(-1).abs().clamp_min(0.15)
     footprint = (t * pixel_angle / slant).clamp_min(1e-4)
     sun = torch.as_tensor(world.sun, dtype=dirs.dtype, device=dirs.device)
+    if world.scene == "indoor":
+        return _indoor(world, hit, points, albedo(world, hit, points, footprint), sun)
     light = 0.45 + 0.55 * (hit.normal @ sun).clamp_min(0)
     colour = albedo(world, hit, points, footprint) * light[:, None]
     return torch.where((hit.material == W.SKY)[:, None], sky(dirs), colour)
+
+
+def _indoor(world: W.World, hit: Hit, points: Tensor, albedo_: Tensor, toward: Tensor) -> Tensor:
+    """Interior light, viewer-independent like the sun's: ambient, a directional term (``world.sun``: the
+    direction the light comes from) and a point light with a soft falloff; windows and lamps glow."""
+    style = world.style
+    lamp = torch.as_tensor(style["light"], dtype=points.dtype, device=points.device)
+    to_lamp = lamp - points
+    dist = to_lamp.norm(dim=-1).clamp_min(1e-3)
+    point = (hit.normal * to_lamp).sum(-1).clamp_min(0) / dist / (1 + (dist / 2.5) ** 2)
+    light = (
+        style["ambient"] + style["directional"] * (hit.normal @ toward).clamp_min(0) + style["point"] * point
+    )
+    tint = torch.as_tensor(style["light_tint"], dtype=points.dtype, device=points.device)
+    colour = albedo_ * light[:, None] * tint
+    emissive = (hit.material == W.WINDOW) | (hit.material == W.LAMP)
+    colour = torch.where(emissive[:, None], albedo_, colour)
+    return torch.where((hit.material == W.SKY)[:, None], torch.zeros_like(colour), colour)

@@ -16,9 +16,30 @@ import math
 
 import numpy as np
 
-# materials
+# materials (the street's ten, then the indoor scene's; GROUND is the indoor floor too)
 SKY, GROUND, SIDEWALK, FACADE, CAR, CONCRETE, POLE, BARK, FOLIAGE, EGO = range(10)
-MATERIAL_NAMES = ("sky", "ground", "sidewalk", "facade", "car", "concrete", "pole", "bark", "foliage", "ego")
+WALL, CEILING, WOOD, FABRIC, WINDOW, DOOR, LAMP = range(10, 17)
+MATERIAL_NAMES = (
+    "sky",
+    "ground",
+    "sidewalk",
+    "facade",
+    "car",
+    "concrete",
+    "pole",
+    "bark",
+    "foliage",
+    "ego",
+    "wall",
+    "ceiling",
+    "wood",
+    "fabric",
+    "window",
+    "door",
+    "lamp",
+)
+EMISSIVE = (WINDOW, LAMP)  # their colour is their albedo, unlit (the outside seen through a window, a lamp)
+SCENES = ("street", "indoor")
 
 BODY_HEIGHT = 0.73  # the pose (IMU) frame origin above the ground; KITTI-360's cameras sit ~1.8 m high
 
@@ -40,6 +61,11 @@ class World:
     sphere_material: np.ndarray
     sphere_tint: np.ndarray
     sun: np.ndarray  # [3] unit vector towards the sun
+    # the indoor scene (fisheyedepth.data.synthetic.indoor); a street world keeps these defaults
+    scene: str = "street"
+    room: np.ndarray | None = None  # [6] the room's interior: lo xyz, hi xyz (the floor is z = 0)
+    walkway: np.ndarray | None = None  # [5] x0, y0, x1, y1, corner radius of the loop the camera walks
+    style: dict | None = None  # floor, wall paint and interior lighting parameters (see indoor.py)
 
     @property
     def extent(self) -> float:

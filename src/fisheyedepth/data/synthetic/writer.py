@@ -37,15 +37,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+import yaml
 from tqdm import tqdm
 
 from ... import __version__
-from ...cameras import opencv_yaml
+from ...cameras import CameraModel, opencv_yaml
 from ...utils import pid_alive
+from .indoor import make_indoor_trajectory, make_indoor_world
 from .raycast import scene_tensors
 from .render import CameraRenderer, LidarRenderer
 from .rig import RIGS, Rig, make_rig
-from .world import make_trajectory, make_world
+from .world import SCENES, World, make_trajectory, make_world
 
 SPLITS = ("train", "val", "test")
 SEQUENCES = {split: f"2013_05_28_drive_{i:04d}_sync" for i, split in enumerate(SPLITS)}
@@ -57,7 +59,10 @@ MARKER_TEXT = (
 )
 OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written
 # must match a finished dataset's synthetic.json (a key it lacks, from an older version, is not checked)
-CHECKED = ("rig", "frames", "size", "seed", "supersample", "lane")
+CHECKED = ("rig", "frames", "size", "seed", "supersample", "lane", "scene", "random_cameras")
+# parameters a street dataset with fixed cameras does not write into synthetic.json (its files stay those
+# of the versions before them): a finished dataset without the key was rendered with this value
+UNWRITTEN = {"scene": "street", "random_cameras": False}
 LANES = {"right": 1.75, "left": -1.75}  # the car's offset from the street's centreline, metres to its right
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
@@ -133,17 +138,43 @@ def _npy(array: np.ndarray) -> bytes:
     return buffer.getvalue()
 
 
+def make_scene_world(scene: str, seed: int) -> World:
+    """The world of ``scene`` ("street" or "indoor") drawn from ``seed``."""
+    if scene not in SCENES:
+        raise ValueError(f"scene must be one of {SCENES}, got {scene!r}")
+    return make_world(seed) if scene == "street" else make_indoor_world(seed)
+
+
+def make_scene_trajectory(world: World, frames: int, seed: int, lane: str = "right") -> np.ndarray:
+    """``[frames, 4, 4]`` body poses through ``world``: the car in ``lane``, or the walk around the room."""
+    if world.scene == "indoor":
+        return make_indoor_trajectory(world, frames, seed)
+    return make_trajectory(world, frames, seed, LANES[lane])
+
+
 class _Worker:
     """Renders and writes whole frames; built once per process."""
 
-    def __init__(self, root: Path, seed: int, rig_name: str, size: int, supersample: int, lidar: bool):
-        self.root, self.world, self.rig = root, make_world(seed), make_rig(rig_name, size)
-        self.scene = scene_tensors(self.world)
+    def __init__(
+        self,
+        root: Path,
+        seed: int,
+        rig_name: str,
+        size: int,
+        supersample: int,
+        lidar: bool,
+        scene: str = "street",
+        random_cameras: bool = False,
+    ):
+        self.root, self.world = root, make_scene_world(scene, seed)
+        self.rig = make_rig(rig_name, size, scene, random_cameras, seed)
+        # the street with its own cameras keeps the ground truth it has always had (SceneTensors)
+        self.scene = scene_tensors(self.world, legacy_culling=scene == "street" and not random_cameras)
         self.cameras = {
-            name: CameraRenderer(cam, self.rig.cam_to_pose[name], supersample)
+            name: CameraRenderer(cam, self.rig.cam_to_pose[name], supersample, self.rig.ego)
             for name, cam in self.rig.cameras.items()
         }
-        self.lidar = LidarRenderer(self.rig.velo_to_pose) if lidar else None
+        self.lidar = LidarRenderer(self.rig.velo_to_pose, ego=self.rig.ego) if lidar else None
 
     def __call__(self, job: Job) -> None:
         stem = f"{job.frame:010d}"
@@ -186,13 +217,23 @@ def _run_job(job: Job) -> None:
     _WORKER(job)
 
 
+def calibration_text(camera: CameraModel, name: str) -> str:
+    """A camera's ``calibration/<name>.yaml``: KITTI-360's OpenCV YAML for the models it has a layout for
+    (Mei, Kannala-Brandt), the project's own YAML for the others (double sphere, Fisheye624); both are
+    what ``load_camera`` reads back to the same camera."""
+    try:
+        return opencv_yaml(camera, name)
+    except TypeError:
+        return yaml.safe_dump(camera.to_dict(), sort_keys=False)
+
+
 def _write_layout(
     root: Path, rig: Rig, body_masks: dict[str, np.ndarray], jobs: list[Job], lidar: bool
 ) -> None:
     calib = root / "calibration"
     calib.mkdir(parents=True)
     for name, cam in rig.written.items():
-        (calib / f"{name}.yaml").write_text(opencv_yaml(cam, name))
+        (calib / f"{name}.yaml").write_text(calibration_text(cam, name))
         _write(calib / f"body_mask_{name}.png", _png(np.where(body_masks[name], 255, 0).astype(np.uint8)))
     (calib / "calib_cam_to_pose.txt").write_text(
         "".join(f"{k}: {_row(T)}\n" for k, T in rig.cam_to_pose.items())
@@ -311,7 +352,20 @@ def _move_into_place(tmp: Path, out: Path) -> None:
 
 
 def _metadata(rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict, lidar: bool) -> dict:
-    """``synthetic.json``: ``params`` are the generation parameters (seed, rig, size, supersample, frames)."""
+    """``synthetic.json``: ``params`` are the generation parameters (seed, rig, size, supersample, frames;
+    scene and random_cameras where they differ from the street with fixed cameras)."""
+    params = {k: v for k, v in params.items() if k not in UNWRITTEN or v != UNWRITTEN[k]}
+    counts = {"boxes": len(world.boxes), "cylinders": len(world.cylinders), "spheres": len(world.spheres)}
+    if world.scene == "indoor":
+        described = {
+            "room": world.room.tolist(),
+            "walkway": world.walkway.tolist(),
+            "light": world.sun.tolist(),
+            "style": {k: np.asarray(v).tolist() for k, v in world.style.items()},
+            **counts,
+        }
+    else:
+        described = {"pitch": world.pitch, "sun": world.sun.tolist(), **counts}
     return {
         "generator": f"fisheyedepth {__version__}",
         **params,
@@ -319,13 +373,7 @@ def _metadata(rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict,
         "sequences": {
             split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])} for split in SPLITS
         },
-        "world": {
-            "pitch": world.pitch,
-            "sun": world.sun.tolist(),
-            "boxes": len(world.boxes),
-            "cylinders": len(world.cylinders),
-            "spheres": len(world.spheres),
-        },
+        "world": described,
         "lidar": lidar,
     }
 
@@ -342,11 +390,16 @@ def generate(
     overwrite: bool = False,
     progress: bool = True,
     lane: str = "right",
+    scene: str = "street",
+    random_cameras: bool = False,
 ) -> Path:
     """Render ``frames`` frames of every camera of ``rig`` (plus LiDAR) into ``out``. Returns ``out``.
 
     ``lane``: the car keeps to the "right" lane (KITTI-360: the right cameras see the near kerb,
     poles and facades) or the "left" one (the mirror situation, for per-camera comparisons).
+    ``scene``: "street" (the city and the car) or "indoor" (a furnished room, a hand-held rig walking
+    through it; ``lane`` does not apply). ``random_cameras``: every camera's model family, intrinsics,
+    mounting height and tilt drawn from ``seed`` instead of the rig's own (``rig.random_camera``).
 
     ``overwrite`` replaces whatever ``out`` holds once the new dataset is complete (the CLI's explicit
     ``--overwrite``); ``ensure_dataset`` is the careful variant that replaces only what this generator made.
@@ -359,11 +412,13 @@ def generate(
         raise ValueError(f"size must be a multiple of 8 and at least 16, got {size}")
     if lane not in LANES:
         raise ValueError(f"lane must be one of {LANES}, got {lane!r}")
+    if scene not in SCENES:
+        raise ValueError(f"scene must be one of {SCENES}, got {scene!r}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
     ranges = split_frames(frames)
-    world = make_world(seed)
-    poses = make_trajectory(world, ranges["test"][1], seed, LANES[lane])
+    world = make_scene_world(scene, seed)
+    poses = make_scene_trajectory(world, ranges["test"][1], seed, lane)
     jobs = [Job(SEQUENCES[s], i - a, poses[i]) for s, (a, b) in ranges.items() for i in range(a, b)]
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -376,12 +431,13 @@ def generate(
             tmp.mkdir()
             (tmp / MARKER).write_text(MARKER_TEXT)
             (tmp / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
-            worker = _Worker(tmp, seed, rig, size, supersample, lidar)
+            worker = _Worker(tmp, seed, rig, size, supersample, lidar, scene, random_cameras)
             masks = {name: r.body_mask for name, r in worker.cameras.items()}
             _write_layout(tmp, worker.rig, masks, jobs, lidar)
-            desc = f"rendering {rig} {size}px"
+            desc = f"rendering {rig} {size}px" if scene == "street" else f"rendering {scene} {rig} {size}px"
+            initargs = (tmp, seed, rig, size, supersample, lidar, scene, random_cameras)
             with tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress) as bar:
-                _render(jobs, worker, workers, (tmp, seed, rig, size, supersample, lidar), bar)
+                _render(jobs, worker, workers, initargs, bar)
             params = {
                 "seed": seed,
                 "rig": rig,
@@ -389,6 +445,8 @@ def generate(
                 "supersample": supersample,
                 "frames": frames,
                 "lane": lane,
+                "scene": scene,
+                "random_cameras": random_cameras,
             }
             meta = _metadata(worker.rig, world, ranges, params, lidar)
             (tmp / OWNER).unlink()
@@ -445,6 +503,7 @@ def _check_parameters(root: Path, asked: dict) -> None:
         raise DatasetMismatch(f"{path} is not valid JSON ({exc}); delete {root} to render it again") from exc
     if not isinstance(meta, dict) or not str(meta.get("generator", "")).startswith("fisheyedepth"):
         raise _refusal(root)
+    meta = {**UNWRITTEN, **meta}
     differ = [f"{k} {meta[k]!r} (asked {asked[k]!r})" for k in CHECKED if k in meta and meta[k] != asked[k]]
     if differ:
         raise DatasetMismatch(
@@ -465,13 +524,16 @@ def ensure_dataset(
     lidar: bool = True,
     progress: bool = True,
     lane: str = "right",
+    scene: str = "street",
+    random_cameras: bool = False,
 ) -> Path:
     """The synthetic dataset at ``root``, rendered on first use (what ``train.py`` calls). Returns ``root``.
 
-    A finished dataset is used as it is, if it was rendered with the same rig, frames, size, seed and
-    supersample (``DatasetMismatch`` otherwise). An absent or empty ``root`` is rendered; a folder that this
-    generator started but that has no ``synthetic.json`` is rendered again. Anything else raises
-    ``NotASyntheticDataset`` (a ``FileExistsError``) and is left untouched.
+    A finished dataset is used as it is, if it was rendered with the same rig, frames, size, seed,
+    supersample, lane, scene and camera randomisation (``DatasetMismatch`` otherwise). An absent or
+    empty ``root`` is rendered; a folder that this generator started but that has no ``synthetic.json``
+    is rendered again. Anything else raises ``NotASyntheticDataset`` (a ``FileExistsError``) and is left
+    untouched.
     """
     root = Path(root)
     asked = {
@@ -481,6 +543,8 @@ def ensure_dataset(
         "seed": seed,
         "supersample": supersample,
         "lane": lane,
+        "scene": scene,
+        "random_cameras": random_cameras,
     }
     if is_complete(root):
         _check_parameters(root, asked)
@@ -499,4 +563,38 @@ def ensure_dataset(
         overwrite=root.exists(),
         progress=progress,
         lane=lane,
+        scene=scene,
+        random_cameras=random_cameras,
     )
+
+
+def ensure_datasets(root, generate: dict, log=None) -> list[Path]:
+    """:func:`ensure_dataset` for a data config: ``root`` one folder, or a list of folders (a mixed
+    dataset); ``generate`` the config's ``data.generate`` mapping. With a list, ``generate["worlds"]``
+    holds one mapping per folder, in the same order, whose keys replace the shared ones (``scene``,
+    ``seed``, ...). Each folder is rendered on first use like a single one (its own progress bar, its own
+    temporary folder renamed into place when complete). ``log``: a logger that names each folder it
+    renders. Returns the folders."""
+    shared = {k: v for k, v in dict(generate).items() if k != "worlds"}
+    worlds = generate.get("worlds")
+    if isinstance(root, str | os.PathLike):
+        if worlds:
+            raise ValueError(
+                "data.generate.worlds: one mapping per folder needs data.datamodule.root as a list"
+            )
+        jobs = [(Path(root), shared)]
+    else:
+        roots = [Path(r) for r in root]
+        if not worlds or len(worlds) != len(roots):
+            raise ValueError(
+                f"data.datamodule.root lists {len(roots)} folders, so data.generate.worlds needs one mapping "
+                f"per folder, in the same order; it has {len(worlds or [])}"
+            )
+        if len(set(roots)) != len(roots):
+            raise ValueError(f"data.datamodule.root names a folder twice: {[str(r) for r in roots]}")
+        jobs = [(r, {**shared, **dict(w)}) for r, w in zip(roots, worlds, strict=True)]
+    for folder, params in jobs:
+        if log is not None and not is_complete(folder):
+            log.info("rendering the synthetic dataset into %s (first use)", folder)
+        ensure_dataset(folder, **params)
+    return [folder for folder, _ in jobs]
