@@ -39,7 +39,8 @@ def photometric_after(module, batch, steps, lr):
 def test_overfitting_a_batch_cuts_the_photometric_loss(kitti_data, real_scale, lr, factor):
     torch.manual_seed(0)
     module = FisheyeDepthModule(objective={"real_scale": real_scale, "automask": False}, log_images_every=0)
-    history = photometric_after(module, tiny_batch(kitti_data), 40, lr)
+    # 25 steps: the ratio is 0.58-0.73 over seeds 0-2 for both rows (40 steps: 0.50-0.54)
+    history = photometric_after(module, tiny_batch(kitti_data), 25, lr)
     assert history[-1] < factor * history[0], history[::5]
 
 
@@ -259,14 +260,15 @@ def test_a_posenet_row_learns_its_poses_on_a_tiny_world(kitti_data, multi_channe
     that started at 1 m (sigmoid) or 26 m (bins) made the first warps 5x-130x too short, and a PoseNet
     predicting each camera's own motion learned one motion for both side cameras (reversed for one).
     With the unit tied to the head's first distance and the body's motion predicted, the photometric
-    loss falls and the translation direction is learned, for both cameras, within 40 steps."""
+    loss falls and the translation direction is learned, for both cameras, within 25 steps (seeds 0-2:
+    loss ratio 0.38-0.50, direction error 1.3-6.4 degrees, rotation under 1 degree, scale 10-48x)."""
     torch.manual_seed(0)
     module = FisheyeDepthModule(
         net={"multi_channel": multi_channel, "scales": (0,)}, objective={"real_scale": False}
     )
     batch = tiny_batch(kitti_data, frames=(1, 2, 3, 4))
     before = module.objective.pose_errors(batch)
-    history = photometric_after(module, batch, 40, 1e-3)
+    history = photometric_after(module, batch, 25, 1e-3)
     after = module.objective.pose_errors(batch)
     assert history[-1] < 0.85 * history[0], history[::5]
     assert after["direction_deg"] < min(0.3 * before["direction_deg"], 15), (before, after)
