@@ -50,6 +50,7 @@ from .cameras import (
     load_camera,
 )
 from .cameras.fisheye624 import ARIA_PARAMS
+from .cameras.io import field
 from .evaluation import PROTOCOLS, Evaluator, Protocol
 from .images import read_image
 from .metrics import DepthMetrics
@@ -148,15 +149,6 @@ def read_json(path: Path) -> dict[str, Any]:
     return data
 
 
-def _field(tree: dict, dotted: str, path: Path) -> Any:
-    node: Any = tree
-    for part in dotted.split("."):
-        if not isinstance(node, dict) or part not in node:
-            raise CalibrationError(path, dotted, "missing")
-        node = node[part]
-    return node
-
-
 def _number(value: Any, key: str, path: Path) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise CalibrationError(path, key, f"expected a number, got {value!r}")
@@ -244,7 +236,7 @@ def scannetpp_camera(path: Path) -> CameraModel:
     """``calibration.json``: OpenCV fisheye (Kannala-Brandt) ``width height fx fy cx cy k1..k4``."""
     data = read_json(path)
     keys = ("width", "height", "fx", "fy", "cx", "cy", "k1", "k2", "k3", "k4")
-    values: dict[str, Any] = {key: _number(_field(data, key, path), key, path) for key in keys}
+    values: dict[str, Any] = {key: _number(field(data, key, path), key, path) for key in keys}
     for key in ("width", "height"):
         values[key] = _pixels(values[key], key, path)
     return camera_from_mapping({"model": "kannala_brandt", **values}, path)
@@ -282,9 +274,9 @@ def adt_camera(path: Path, name: str) -> CameraModel:
     data = read_json(path)
     key = f"cameras.{name}"
     params_key, size_key = f"{key}.projection_params", f"{key}.image_size"
-    params = _numbers(_field(data, params_key, path), len(ARIA_PARAMS), params_key, path)
+    params = _numbers(field(data, params_key, path), len(ARIA_PARAMS), params_key, path)
     width, height = (
-        _pixels(v, size_key, path) for v in _numbers(_field(data, size_key, path), 2, size_key, path)
+        _pixels(v, size_key, path) for v in _numbers(field(data, size_key, path), 2, size_key, path)
     )
     values = dict(zip(ARIA_PARAMS, params, strict=True))
     focal = values.pop("f")

@@ -67,7 +67,9 @@ def load_yaml(text: str, path) -> Any:
         raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
 
 
-def _get(tree: dict, dotted: str, path) -> Any:
+def field(tree: dict, dotted: str, path) -> Any:
+    """``tree[a][b]...`` for ``dotted`` "a.b..."; a :class:`CalibrationError` naming ``path`` and the key when
+    a level is missing."""
     node: Any = tree
     for part in dotted.split("."):
         if not isinstance(node, dict) or part not in node:
@@ -112,8 +114,8 @@ TANGENTIAL = ("p1", "p2")
 
 
 def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
-    model_type = str(_get(tree, "model_type", path)).strip().upper()
-    size = {"width": _get(tree, "image_width", path), "height": _get(tree, "image_height", path)}
+    model_type = str(field(tree, "model_type", path)).strip().upper()
+    size = {"width": field(tree, "image_width", path), "height": field(tree, "image_height", path)}
     if model_type not in OPENCV_LAYOUTS:
         raise CalibrationError(
             path, "model_type", f"unknown model_type {model_type!r}; expected MEI, KANNALA_BRANDT or PINHOLE"
@@ -127,7 +129,7 @@ def _opencv_to_dict(tree: dict, path, keep_tangential: bool) -> dict[str, Any]:
                     path, f"distortion_parameters.{name}", "pinhole distortion is not supported"
                 )
     out: dict[str, Any] = {"model": model, **size}
-    out.update({ours: _get(tree, theirs, path) for ours, theirs in keys.items()})
+    out.update({ours: field(tree, theirs, path) for ours, theirs in keys.items()})
     out["_source_keys"] = {**keys, "width": "image_width", "height": "image_height"}
     return out
 

@@ -228,36 +228,23 @@ class FisheyeDataModule(L.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         generator = torch.Generator().manual_seed(self.seed)
-        if not self._one_size():
-            dataset = self.dataset(split)
-            sampler = RootBatchSampler(
-                [len(d) for d in self.parts(split)],
-                self.batch_size,
-                shuffle,
-                drop_last=shuffle and len(dataset) > self.batch_size,
-                generator=generator,
-            )
-            return DataLoader(
-                dataset,
-                batch_sampler=sampler,
-                num_workers=self.num_workers,
-                collate_fn=collate,
-                pin_memory=self.pin_memory,
-                worker_init_fn=seed_worker,
-                generator=generator,
-                persistent_workers=self.num_workers > 0,
-            )
+        dataset = self.dataset(split)
+        drop_last = shuffle and len(dataset) > self.batch_size
+        if self._one_size():
+            batching = dict(batch_size=self.batch_size, shuffle=shuffle, drop_last=drop_last)
+        else:  # each batch from one root: images of one size
+            sizes = [len(d) for d in self.parts(split)]
+            sampler = RootBatchSampler(sizes, self.batch_size, shuffle, drop_last, generator=generator)
+            batching = dict(batch_sampler=sampler)
         return DataLoader(
-            self.dataset(split),
-            batch_size=self.batch_size,
-            shuffle=shuffle,
+            dataset,
+            **batching,
             num_workers=self.num_workers,
             collate_fn=collate,
             pin_memory=self.pin_memory,
             worker_init_fn=seed_worker,
             generator=generator,
             persistent_workers=self.num_workers > 0,
-            drop_last=shuffle and len(self.dataset(split)) > self.batch_size,
         )
 
     def train_dataloader(self) -> DataLoader:

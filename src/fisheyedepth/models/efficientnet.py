@@ -39,7 +39,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from .resnet import WeightsError
+from .resnet import load_checked, read_state_dict, tile_stem
 
 # Per stage: (blocks, kernel, stride of the first block, expansion, output channels)
 STAGES = (
@@ -188,35 +188,13 @@ class EfficientNetLiteEncoder(nn.Module):
         """Load a state dict in lukemelas' naming with ``weights_only=True``; the head and ``_fc`` only
         when this encoder has its classifier. A :class:`WeightsError` names the file and the first key
         that does not fit."""
-        path = Path(path)
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # unreadable, not a checkpoint, or refused by weights_only=True
-            raise WeightsError(f"{path}: cannot read ImageNet weights ({exc})") from None
-        if not isinstance(state, dict):
-            raise WeightsError(f"{path}: expected a state dict, got {type(state).__name__}")
+        state = read_state_dict(path)
         if not self.has_classifier:
             state = {k: v for k, v in state.items() if not k.startswith(CLASSIFIER_PREFIXES)}
-        if "_conv_stem.weight" in state and self.in_images > 1:
-            stem = state["_conv_stem.weight"]
-            state["_conv_stem.weight"] = torch.cat([stem] * self.in_images, 1) / self.in_images
-        own = self.state_dict()
-        missing = sorted(set(own) - set(state))
-        unexpected = sorted(set(state) - set(own))
-        if missing or unexpected:
-            key, what = (missing[0], "missing") if missing else (unexpected[0], "unexpected")
-            raise WeightsError(
-                f"{path}: key '{key}' {what} for an EfficientNet-Lite0 encoder "
-                f"({len(missing)} missing, {len(unexpected)} unexpected); "
-                "expected an EfficientNet-Lite0 state dict in EfficientNet-PyTorch's naming"
-            )
-        for key, value in state.items():
-            if value.shape != own[key].shape:
-                raise WeightsError(
-                    f"{path}: key '{key}' has shape {tuple(value.shape)}, "
-                    f"EfficientNet-Lite0 needs {tuple(own[key].shape)}"
-                )
-        self.load_state_dict(state)
+        load_checked(
+            self, tile_stem(state, "_conv_stem.weight", self.in_images), Path(path), "an EfficientNet-Lite0",
+            "an EfficientNet-Lite0 state dict in EfficientNet-PyTorch's naming",
+        )  # fmt: skip
 
     def stem(self, x: Tensor) -> Tensor:
         """``relu6(bn(conv3x3_stride2(normalise(x))))``: 32 channels at half the size."""

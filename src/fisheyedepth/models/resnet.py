@@ -20,6 +20,47 @@ class WeightsError(ValueError):
     """An ImageNet weights file does not fit the encoder; names the file and the key."""
 
 
+def read_state_dict(path: str | os.PathLike) -> dict:
+    """A state dict file read with ``weights_only=True``; a :class:`WeightsError` naming the file when it
+    is unreadable or holds something else."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # unreadable, not a checkpoint, or refused by weights_only=True
+        raise WeightsError(f"{path}: cannot read ImageNet weights ({exc})") from None
+    if not isinstance(state, dict):
+        raise WeightsError(f"{path}: expected a state dict, got {type(state).__name__}")
+    return state
+
+
+def tile_stem(state: dict, key: str, in_images: int) -> dict:
+    """For ``in_images`` stacked input images, the first convolution's weights tiled and divided by their
+    number (as Monodepth2 does for its pose encoder)."""
+    if key in state and in_images > 1:
+        state[key] = torch.cat([state[key]] * in_images, 1) / in_images
+    return state
+
+
+def load_checked(module: nn.Module, state: dict, path, name: str, expected: str) -> None:
+    """``module.load_state_dict(state)`` after checking every key and shape; a :class:`WeightsError`
+    names the file, the first key that does not fit, and ``name`` (the encoder) / ``expected``."""
+    own = module.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    if missing or unexpected:
+        key, what = (missing[0], "missing") if missing else (unexpected[0], "unexpected")
+        raise WeightsError(
+            f"{path}: key '{key}' {what} for {name} encoder "
+            f"({len(missing)} missing, {len(unexpected)} unexpected); expected {expected}"
+        )
+    for key, value in state.items():
+        if value.shape != own[key].shape:
+            raise WeightsError(
+                f"{path}: key '{key}' has shape {tuple(value.shape)}, {name} encoder needs "
+                f"{tuple(own[key].shape)}"
+            )
+    module.load_state_dict(state)
+
+
 class BasicBlock(nn.Module):
     expansion = 1
 
@@ -110,34 +151,11 @@ class ResNetEncoder(nn.Module):
         For several stacked input images the first convolution's weights are tiled and divided by their
         number (as Monodepth2 does for its pose encoder).
         """
-        path = Path(path)
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # unreadable, not a checkpoint, or refused by weights_only=True
-            raise WeightsError(f"{path}: cannot read ImageNet weights ({exc})") from None
-        if not isinstance(state, dict):
-            raise WeightsError(f"{path}: expected a state dict, got {type(state).__name__}")
-        state = {k: v for k, v in state.items() if not k.startswith("fc.")}
-        if "conv1.weight" in state and self.in_images > 1:
-            state["conv1.weight"] = torch.cat([state["conv1.weight"]] * self.in_images, 1) / self.in_images
-        own = self.state_dict()
-        missing = sorted(set(own) - set(state))
-        unexpected = sorted(set(state) - set(own))
-        if missing or unexpected:
-            key = (missing or unexpected)[0]
-            what = "missing" if missing else "unexpected"
-            raise WeightsError(
-                f"{path}: key '{key}' {what} for a resnet{self.depth} encoder "
-                f"({len(missing)} missing, {len(unexpected)} unexpected); "
-                f"expected a torchvision resnet{self.depth} state dict"
-            )
-        for key, value in state.items():
-            if value.shape != own[key].shape:
-                raise WeightsError(
-                    f"{path}: key '{key}' has shape {tuple(value.shape)}, "
-                    f"resnet{self.depth} needs {tuple(own[key].shape)}"
-                )
-        self.load_state_dict(state)
+        state = {k: v for k, v in read_state_dict(path).items() if not k.startswith("fc.")}
+        load_checked(
+            self, tile_stem(state, "conv1.weight", self.in_images), Path(path),
+            f"a resnet{self.depth}", f"a torchvision resnet{self.depth} state dict",
+        )  # fmt: skip
 
     def forward(self, x: Tensor) -> list[Tensor]:
         x = (x - 0.45) / 0.225  # Monodepth2's input normalisation
