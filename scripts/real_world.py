@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.from_records:
         try:
-            print("\n".join(records_table(args.models)))
+            print("\n".join(records_table(args.models, args.frames)))
         except (OSError, ValueError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

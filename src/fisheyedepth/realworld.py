@@ -488,9 +488,10 @@ def row(
     )
 
 
-def records_table(paths: Sequence[Path]) -> list[str]:
+def records_table(paths: Sequence[Path], sets: Sequence[str] = FRAME_SETS) -> list[str]:
     """The scores kept in run records (``docs/records``: files, or folders searched for ``*.json``) that
-    hold a ``real_world`` entry, one row per record and frame (its first protocol), nothing re-scored."""
+    hold a ``real_world`` entry, one row per record and frame of ``sets`` (its first protocol), nothing
+    re-scored."""
     files: list[Path] = []
     for path in map(Path, paths):
         if not path.exists():
@@ -506,7 +507,7 @@ def records_table(paths: Sequence[Path]) -> list[str]:
         if real is None:
             continue
         for frame, r in real["frames"].items():
-            if "/" in frame:  # a second protocol of the frame (kitti360 under 8 m): the JSON only
+            if "/" in frame or not frame.startswith(tuple(sets)):  # "/": a second protocol, the JSON only
                 continue
             c = real["constant_map"][frame]
             lines.append(
