@@ -45,8 +45,13 @@ from _benchmarks import WORLD, bench_parser, interleaved, markers, parse_args, p
 from _compose import build_datamodule, build_module, compose_config
 
 START, END = markers("bench_inference")
-MODELS = {"full": ["model=fisheyedepth"], "lite": ["model=fisheyedepth_lite"]}  # conf/model/
+MODELS = {  # conf/model/
+    "full": ["model=fisheyedepth"],
+    "lite": ["model=fisheyedepth_lite"],
+    "mobile": ["model=fisheyedepth_mobile"],
+}
 DATA = ["data=synthetic"]  # conf/data/: the --data folder is read as the synthetic world is
+FULL_INT8, MOBILE_INT8 = "ONNX Runtime int8 (QDQ, head float32)", "mobile: ONNX Runtime int8"
 BLOCK = 3  # timed frames per runner and round: a deployment runs one runtime frame after frame
 DEFAULT_CALIBRATION = WORLD / "data_2d_raw"
 
@@ -61,13 +66,13 @@ def softmax_expectation(logits, depth_scale, bins, min_distance, max_distance):
         return d * scale, distance_to_sigmoid(d, min_distance, max_distance)
 
 
-def load(ckpt: str | None, lite: bool = False) -> FisheyeDepthModule:
+def load(ckpt: str | None, variant: str = "full") -> FisheyeDepthModule:
     """A trained module, or an untrained one (speed only) as ``model=fisheyedepth`` configures it;
-    ``lite``: ``model=fisheyedepth_lite``."""
+    ``variant``: the key of :data:`MODELS` (``lite``: ``model=fisheyedepth_lite``, ...)."""
     torch.manual_seed(0)
     if ckpt:
         return FisheyeDepthModule.from_checkpoint(ckpt)
-    return build_module(compose_config(MODELS["lite" if lite else "full"]), base_focal=None)
+    return build_module(compose_config(MODELS[variant]), base_focal=None)
 
 
 def old_path(module: FisheyeDepthModule) -> ExportableNet:
@@ -119,7 +124,8 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     runners["PyTorch eager, + bf16 autocast"] = bf16
     notes["PyTorch eager, + bf16 autocast"] = "`predict.py precision=bf16`"
     feed = {"image": x.numpy()}
-    lite = ExportableNet(TorchRuntime(load(args.lite_ckpt, lite=True)).module.depth_net).eval()
+    lite = ExportableNet(TorchRuntime(load(args.lite_ckpt, "lite")).module.depth_net).eval()
+    mobile = ExportableNet(TorchRuntime(load(None, "mobile")).module.depth_net).eval()
     sessions = {
         "ONNX Runtime float32, before (softmax graph)": (onnx_export(old, size, focal), "today's export"),
         "ONNX Runtime float32, fused graph, basic graph optimisations": (
@@ -127,7 +133,7 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
             "ORT's `ORT_ENABLE_BASIC` (no layout or conv-activation fusions)",
         ),
         "ONNX Runtime float32, fused graph": (onnx_export(net, size, focal), "`export.py` + `runtime=onnx`"),
-        "ONNX Runtime int8 (QDQ, head float32)": (
+        FULL_INT8: (
             onnx_export(net, size, focal, "int8", calibration),
             "`export.py quantize=int8` + `runtime=onnx`",
         ),
@@ -135,6 +141,10 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
         "lite: ONNX Runtime int8": (
             onnx_export(lite, size, focal, "int8", calibration),
             "`model=fisheyedepth_lite`, `quantize=int8`",
+        ),
+        MOBILE_INT8: (
+            onnx_export(mobile, size, focal, "int8", calibration),
+            "`model=fisheyedepth_mobile` (EfficientNet-Lite0, a quarter of the decoder), `quantize=int8`",
         ),
     }
     for name, (data, note) in sessions.items():
@@ -214,6 +224,12 @@ def main(argv=None) -> int:
             f"| {name} | {notes[name]} | {med * 1e3:.1f} | {1 / med:.1f} | {base / med:.2f}x | "
             f"{'met' if 1 / med >= 10 else 'NOT met'} |"
         )
+    ratio = medians[FULL_INT8] / medians[MOBILE_INT8]
+    lines += [
+        "",
+        f"The mobile model's int8 export against the full model's, side by side: **{ratio:.2f}x** "
+        f"(goal >= 2x: {'met' if ratio >= 2 else 'NOT met'}).",
+    ]
     if args.data:
         import tempfile
 

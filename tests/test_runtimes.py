@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -412,9 +413,16 @@ def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint,
         "ONNX Runtime float32, fused graph",
         "ONNX Runtime int8 (QDQ, head float32)",
         "lite: ONNX Runtime int8",
+        "mobile: ONNX Runtime int8",
     ):
         fps = float(rows[name].split(" | ")[3])
         assert fps > 0, rows[name]
+    ratio = re.search(r"int8 export against the full model's, side by side: \*\*([\d.]+)x\*\*", proc.stdout)
+    ms = {name: float(rows[name].split(" | ")[2]) for name in ("ONNX Runtime int8 (QDQ, head float32)",
+                                                               "mobile: ONNX Runtime int8")}  # fmt: skip
+    assert ratio and float(ratio[1]) == pytest.approx(
+        ms["ONNX Runtime int8 (QDQ, head float32)"] / ms["mobile: ONNX Runtime int8"], rel=0.1
+    )
     scored = [line.split(" | ") for line in proc.stdout.splitlines() if line.startswith("| full | ")]
     assert [r[1] for r in scored] == [
         "PyTorch float32",
