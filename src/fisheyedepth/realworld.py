@@ -248,22 +248,29 @@ def load_scannetpp(folder: Path) -> RealFrame | Missing:
     for path in (folder, calibration, rgb, depth):
         if (gone := _need(path, "scannetpp")) is not None:
             return gone
-    cam = scannetpp_camera(calibration)
-    image = read_rgb(rgb)
-    z = read_uint16(depth, "millimetres of z-depth")
-    _check_size(rgb, image, cam, calibration)
-    _check_size(depth, z, cam, calibration)
+    return z_depth_frame("scannetpp", rgb, depth, scannetpp_camera(calibration), calibration)
+
+
+def z_depth_frame(
+    name: str, image_path: Path, depth_path: Path, cam: CameraModel, calibration: Path
+) -> RealFrame:
+    """An indoor frame: the image, and its uint16 z-depth in millimetres turned into distance along each
+    pixel's ray (every pixel with depth scored, capped at the frame's range)."""
+    image = read_rgb(image_path)
+    z = read_uint16(depth_path, "millimetres of z-depth")
+    _check_size(image_path, image, cam, calibration)
+    _check_size(depth_path, z, cam, calibration)
     distance = z_to_distance(torch.from_numpy(z.astype(np.float32) / 1000.0), cam)
     mask = torch.ones_like(distance, dtype=torch.bool)
-    protocols = _indoor("scannetpp", distance, cam, depth)
+    protocols = _indoor(name, distance, cam, depth_path)
     return RealFrame(
-        "scannetpp",
+        name,
         image,
         cam,
         distance,
         mask,
         protocols,
-        (calibration, rgb, depth),
+        (calibration, image_path, depth_path),
         view=(INDOOR_NEAR, protocols[0].cap[1]),
     )
 
@@ -320,26 +327,7 @@ def load_adt(folder: Path) -> list[RealFrame | Missing]:
             continue
         if camera not in cameras:
             cameras[camera] = adt_camera(calibration, camera)
-        cam = cameras[camera]
-        image = read_rgb(image_path)
-        z = read_uint16(depth_path, "millimetres of z-depth")
-        _check_size(image_path, image, cam, calibration)
-        _check_size(depth_path, z, cam, calibration)
-        distance = z_to_distance(torch.from_numpy(z.astype(np.float32) / 1000.0), cam)
-        mask = torch.ones_like(distance, dtype=torch.bool)
-        protocols = _indoor(name, distance, cam, depth_path)
-        frames.append(
-            RealFrame(
-                name,
-                image,
-                cam,
-                distance,
-                mask,
-                protocols,
-                (calibration, image_path, depth_path),
-                view=(INDOOR_NEAR, protocols[0].cap[1]),
-            )
-        )
+        frames.append(z_depth_frame(name, image_path, depth_path, cameras[camera], calibration))
     return frames
 
 

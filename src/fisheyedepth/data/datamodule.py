@@ -144,7 +144,6 @@ class FisheyeDataModule(L.LightningDataModule):
         self.cache_dir, self.seed = cache_dir, seed
         self.pose_noise = PoseNoise(**pose_noise) if isinstance(pose_noise, dict) else pose_noise
         self.datasets: dict[str, FisheyeDataset | ConcatDataset] = {}
-        self._parts: dict[str, list[FisheyeDataset]] = {}
         self._layouts: list | None = None
 
     @property
@@ -167,15 +166,14 @@ class FisheyeDataModule(L.LightningDataModule):
         if split not in self.datasets:
             if split not in self.splits:
                 raise KeyError(f"no {split!r} split configured (have {sorted(self.splits)})")
-            self._parts[split] = [self._dataset(layout, split) for layout in self.layouts]
-            parts = self._parts[split]
+            parts = [self._dataset(layout, split) for layout in self.layouts]
             self.datasets[split] = parts[0] if len(self.roots) == 1 else ConcatDataset(parts)
         return self.datasets[split]
 
     def parts(self, split: str) -> list[FisheyeDataset]:
         """The ``split``'s dataset of each root, in the order of ``root``."""
-        self.dataset(split)
-        return self._parts[split]
+        dataset = self.dataset(split)
+        return list(dataset.datasets) if isinstance(dataset, ConcatDataset) else [dataset]
 
     def _dataset(self, layout, split: str) -> FisheyeDataset:
         return FisheyeDataset(

@@ -426,11 +426,7 @@ def make_indoor_trajectory(world: W.World, n_frames: int, seed: int) -> np.ndarr
     closed = np.concatenate([path, path[:1]])
     phases = rng.uniform(0, 2 * math.pi, 7)
     k = np.arange(n_frames)
-    speed = (
-        0.12
-        + 0.035 * np.sin(2 * math.pi * k / 50 + phases[0])
-        + 0.015 * np.sin(2 * math.pi * k / 17 + phases[1])
-    )
+    speed = W.wobbling_speed(n_frames, 0.12, (0.035, 50), (0.015, 17), phases)
     # in the corners it slows down to turn at most TURN radians per frame
     chord = np.roll(path, -1, axis=0) - np.roll(path, 1, axis=0)  # central differences round the loop
     heading_along = np.arctan2(chord[:, 1], chord[:, 0])

@@ -301,6 +301,17 @@ def body_rotation(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarr
     return R @ Ry @ Rx
 
 
+def wobbling_speed(n_frames: int, mean: float, slow, fast, phases) -> np.ndarray:
+    """Metres per frame ``mean + a1 sin(2 pi k / T1 + phases[0]) + a2 sin(2 pi k / T2 + phases[1])``
+    for frames ``k``, with ``slow = (a1, T1)`` and ``fast = (a2, T2)``: a speed that varies smoothly."""
+    k = np.arange(n_frames)
+    return (
+        mean
+        + slow[0] * np.sin(2 * math.pi * k / slow[1] + phases[0])
+        + fast[0] * np.sin(2 * math.pi * k / fast[1] + phases[1])
+    )
+
+
 def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float = 1.75) -> np.ndarray:
     """``[n_frames, 4, 4]`` body-to-world poses of a car driving ``lane_offset`` metres to the right of
     the street's centreline (1.75: the right lane; negative: the left lane), with turns.
@@ -310,12 +321,7 @@ def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float =
     """
     rng = np.random.default_rng([seed, 7])
     phases = rng.uniform(0, 2 * math.pi, 4)
-    k = np.arange(n_frames)
-    speed = (
-        0.9
-        + 0.35 * np.sin(2 * math.pi * k / 90 + phases[0])
-        + 0.15 * np.sin(2 * math.pi * k / 31 + phases[1])
-    )
+    speed = wobbling_speed(n_frames, 0.9, (0.35, 90), (0.15, 31), phases)
     route = _route(world, rng, float(speed.sum()) * 1.2 + 20.0)
     centre = _fillet_path(route, radius=8.0)
     centre, _ = _resample(centre, 0.05)
