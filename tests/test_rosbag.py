@@ -195,10 +195,93 @@ def test_an_imported_bag_reproduces_poses_stamps_calibration_and_pixels(kind, po
         import_rosbag(bag, out, {"left": "/left/image_raw"}, odometry="/odom")
 
 
-def test_unsupported_input_is_named(frames, tmp_path):
+def camera_info(ros: str, model: str, D, K, width=640, height=480):
+    """A ``sensor_msgs/CameraInfo`` of ROS 1 (fields D, K, R, P) or ROS 2 (d, k, r, p), as in rosbags."""
     from rosbags.typesys import Stores, get_typestore
 
-    from fisheyedepth.data.rosbag import RosbagError, camera_from_info, import_rosbag, main
+    T = get_typestore(Stores.ROS1_NOETIC if ros == "ros1" else Stores.ROS2_HUMBLE).types
+    stamp = T["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    header = (
+        {"stamp": stamp, "frame_id": "c"} if ros == "ros2" else {"seq": 0, "stamp": stamp, "frame_id": "c"}
+    )
+    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    P = np.zeros(12)
+    P[[0, 2, 5, 6, 10]] = [K[0], K[2], K[4], K[5], 1.0]  # the rectified image's: ignored
+    fields = {"D": np.array(D, float), "K": np.array(K, float), "R": np.eye(3).ravel(), "P": P}
+    fields = {(k if ros == "ros1" else k.lower()): v for k, v in fields.items()}
+    return T["sensor_msgs/msg/CameraInfo"](
+        header=T["std_msgs/msg/Header"](**header), height=height, width=width, distortion_model=model,
+        binning_x=0, binning_y=0, roi=roi, **fields,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("ros", ["ros1", "ros2"])
+def test_camera_info_distortion_models(ros):
+    """plumb_bob (5) and rational_polynomial (8) become the opencv model, projecting as
+    ``cv2.projectPoints``; equidistant (4) Kannala-Brandt as ``cv2.fisheye``; no distortion a pinhole;
+    anything else is refused with the topic, the model and the coefficient count."""
+    from fisheyedepth.cameras import CAMERA_MODELS
+    from fisheyedepth.data.rosbag import RosbagError, camera_from_info
+
+    K = [612.4, 0.0, 318.7, 0.0, 611.9, 242.1, 0.0, 0.0, 1.0]
+    K3 = np.array(K).reshape(3, 3)
+    points = np.array([[0.3, -0.2, 1.0], [-0.45, 0.31, 1.4], [0.02, 0.5, 2.2], [0.0, 0.0, 3.0]])
+
+    def uv(camera):
+        out, valid = camera.project(torch.from_numpy(points))
+        assert bool(valid.all())
+        return out.numpy()
+
+    plumb_bob = [-0.2834, 0.0739, 0.00019, 1.76e-05, -0.0121]  # k1 k2 p1 p2 k3
+    camera = camera_from_info(camera_info(ros, "plumb_bob", plumb_bob, K), "/cam/camera_info")
+    assert isinstance(camera, CAMERA_MODELS["opencv"]) and (camera.width, camera.height) == (640, 480)
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (612.4, 611.9, 318.7, 242.1)
+    assert [camera.k1, camera.k2, camera.p1, camera.p2, camera.k3] == plumb_bob
+    assert (camera.k4, camera.k5, camera.k6) == (0, 0, 0)
+    expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K3, np.array(plumb_bob))[0].reshape(-1, 2)
+    assert np.allclose(uv(camera), expected, atol=1e-6)
+
+    rational = [0.41, -0.023, 0.0003, -0.0002, 0.0011, 0.77, 0.052, 0.0019]  # k1 k2 p1 p2 k3 k4 k5 k6
+    camera = camera_from_info(camera_info(ros, "rational_polynomial", rational, K), "/cam/camera_info")
+    assert camera.model_name == "opencv"
+    names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+    assert [getattr(camera, name) for name in names] == rational
+    expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K3, np.array(rational))[0].reshape(-1, 2)
+    assert np.allclose(uv(camera), expected, atol=1e-6)
+
+    equidistant = [0.0103, -0.0021, 0.0006, -0.0001]
+    camera = camera_from_info(camera_info(ros, "equidistant", equidistant, K), "/cam/camera_info")
+    assert camera == KannalaBrandtCamera(width=640, height=480, fx=612.4, fy=611.9, cx=318.7, cy=242.1,
+                                         k1=0.0103, k2=-0.0021, k3=0.0006, k4=-0.0001)  # fmt: skip
+    expected = cv2.fisheye.projectPoints(points[:, None], np.zeros((3, 1)), np.zeros((3, 1)), K3,
+                                         np.array(equidistant))[0].reshape(-1, 2)  # fmt: skip
+    assert np.allclose(uv(camera), expected, atol=1e-6)
+
+    for model, D in (("plumb_bob", [0.0] * 5), ("rational_polynomial", [0.0] * 8), ("", [])):
+        camera = camera_from_info(camera_info(ros, model, D, K), "/cam/camera_info")
+        assert camera == PinholeCamera(width=640, height=480, fx=612.4, fy=611.9, cx=318.7, cy=242.1)
+
+    for model, D, count in (
+        ("plumb_bob", [0.1, 0.0, 0.0, 0.0], 4),  # one short
+        ("rational_polynomial", [0.1, 0.0, 0.0, 0.0, 0.0], 5),  # plumb_bob's count under the other name
+        ("equidistant", [0.01, 0.0, 0.0, 0.0, 0.0], 5),
+        ("fisheye", [0.01, 0.0, 0.0, 0.0], 4),
+        ("", [0.1, 0.0, 0.0, 0.0, 0.0], 5),  # distortion without a model
+    ):
+        with pytest.raises(RosbagError) as info:
+            camera_from_info(camera_info(ros, model, D, K), "/cam/camera_info")
+        message = str(info.value)
+        assert message.startswith(f"/cam/camera_info: distortion model {model!r} with {count} coefficients")
+        assert "is not supported (expected plumb_bob with 5" in message
+
+    with pytest.raises(
+        RosbagError, match=r"/cam/camera_info: CameraInfo 640x480, distortion 'plumb_bob'.*fx"
+    ):
+        camera_from_info(camera_info(ros, "plumb_bob", plumb_bob, [-612.4, *K[1:]]), "/cam/camera_info")
+
+
+def test_unsupported_input_is_named(frames, tmp_path):
+    from fisheyedepth.data.rosbag import RosbagError, import_rosbag, main
 
     bag = tmp_path / "run"
     write_bag(bag, "ros2-sqlite3", frames)
@@ -206,19 +289,6 @@ def test_unsupported_input_is_named(frames, tmp_path):
         import_rosbag(bag, tmp_path / "a", {"front": "/front/image_raw"}, odometry="/odom")
     with pytest.raises(ValueError, match="exactly one of odometry=TOPIC or tf_poses"):
         import_rosbag(bag, tmp_path / "b", {"left": "/left/image_raw"})
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
-    zero = T["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
-    roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    info = T["sensor_msgs/msg/CameraInfo"](
-        header=T["std_msgs/msg/Header"](stamp=zero, frame_id="c"), height=8, width=8,
-        distortion_model="plumb_bob", d=np.array([0.1, 0, 0, 0, 0.0]), k=np.eye(3).ravel(),
-        r=np.eye(3).ravel(), p=np.zeros(12), binning_x=0, binning_y=0, roi=roi,
-    )  # fmt: skip
-    with pytest.raises(
-        RosbagError, match=r"/cam/camera_info: distortion model 'plumb_bob' .* is not supported"
-    ):
-        camera_from_info(info, "/cam/camera_info")
     # a problem with the second camera stops the import before anything is written
     with pytest.raises(ValueError, match="missing.yaml: cannot read calibration file"):
         import_rosbag(

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
+from ..cameras.calibration_files import CalibratedCamera, find_camera, read_calibration
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
 
 log = logging.getLogger(__name__)
@@ -46,6 +47,12 @@ class RigLayout:
     the pose time range are reported and left out, never extrapolated, and so are images in a gap of the
     poses longer than ``max_pose_gap`` seconds (default: ``rig.yaml``'s ``max_pose_gap``, else
     ``GAP_FACTOR`` times the sequence's median pose interval), never interpolated across it.
+
+    A top-level ``calibration: FILE`` (a Kalibr camchain or a Basalt calibration JSON,
+    :mod:`fisheyedepth.cameras.calibration_files`) gives the model and ``cam_to_body`` of every camera
+    entry that names neither: the file's camera ``calibration_camera`` (its name, ``cam1``, or its Kalibr
+    rostopic; default: the entry's name), composed with ``calibration_to_body`` (default identity).
+    Without ``cameras``, every camera of the file is used under its name there.
     """
 
     name = "rig"
@@ -75,6 +82,9 @@ class RigLayout:
         if max_pose_gap is not None and not _positive_seconds(max_pose_gap):
             raise CalibrationError(rig_file, "max_pose_gap", f"expected seconds > 0, got {max_pose_gap!r}")
         self.max_pose_gap = max_pose_gap
+        calibrated, calibration_to_body = self._calibration_file(rig, rig_file)
+        if entries is None and calibrated:  # every camera of the calibration file, by its name there
+            entries = [{"name": c.name} for c in calibrated]
         if not isinstance(entries, list) or not entries:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
         self.cameras = {}
@@ -86,15 +96,43 @@ class RigLayout:
             name = str(entry["name"])
             if cameras is not None and name not in cameras:
                 continue
+            calibrated_as = None  # the camera of the top-level calibration file this entry takes
+            if "calibration_camera" in entry and ("calibration" in entry or "model" in entry):
+                raise CalibrationError(
+                    rig_file,
+                    f"{where}.calibration_camera",
+                    "give either it or the camera's model/calibration",
+                )
             if "calibration" in entry:
                 camera = load_camera(self.root / entry["calibration"])
             elif "model" in entry:
                 camera = camera_from_mapping(dict(entry["model"]), f"{rig_file} ({where}.model)")
+            elif calibrated is not None:
+                try:
+                    calibrated_as = find_camera(
+                        calibrated, entry.get("calibration_camera", name), self.root / rig["calibration"]
+                    )
+                except CalibrationError as err:  # named by rig.yaml's entry and by the calibration file
+                    raise CalibrationError(rig_file, f"{where}.calibration_camera", str(err)) from None
+                camera = calibrated_as.camera
+            elif "calibration_camera" in entry:
+                raise CalibrationError(
+                    rig_file,
+                    f"{where}.calibration_camera",
+                    "given, but rig.yaml has no top-level 'calibration'",
+                )
             else:
-                raise CalibrationError(rig_file, f"{where}.model", "missing (or give 'calibration: FILE')")
-            if "cam_to_body" not in entry:
+                raise CalibrationError(
+                    rig_file,
+                    f"{where}.model",
+                    "missing (or give 'calibration: FILE', or a top-level 'calibration: CAMCHAIN')",
+                )
+            if "cam_to_body" in entry:
+                extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
+            elif calibrated_as is not None:
+                extrinsic = calibration_to_body @ calibrated_as.cam_to_body
+            else:
                 raise CalibrationError(rig_file, f"{where}.cam_to_body", "missing")
-            extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
             mask = masks.get(name) if masks else entry.get("mask")
             self.mask_paths[name] = mask = None if mask is None else self.root / mask
             if mask is not None and (expect_masks or mask.is_file()):
@@ -110,6 +148,26 @@ class RigLayout:
         self.outside: dict[tuple[str, str], list[int]] = {}
         self.in_gaps: dict[tuple[str, str], list[int]] = {}
         self._order_checked: set[Path] = set()
+
+    def _calibration_file(self, rig, rig_file: Path) -> tuple[list[CalibratedCamera] | None, np.ndarray]:
+        """The cameras of ``rig.yaml``'s top-level ``calibration`` (a Kalibr camchain or a Basalt
+        calibration JSON, relative to the root), and ``calibration_to_body``: the file's body frame (its
+        IMU, or Kalibr's cam0 without one) -> the rig's body frame (identity unless given)."""
+        if not isinstance(rig, dict) or "calibration" not in rig:
+            if isinstance(rig, dict) and "calibration_to_body" in rig:
+                raise CalibrationError(
+                    rig_file, "calibration_to_body", "given without a top-level 'calibration'"
+                )
+            return None, np.eye(4)
+        if not isinstance(rig["calibration"], str):
+            raise CalibrationError(
+                rig_file, "calibration", f"expected a file path, got {rig['calibration']!r}"
+            )
+        cameras = read_calibration(existing(self.root / rig["calibration"], "calibration file"))
+        to_body = np.eye(4)
+        if "calibration_to_body" in rig:
+            to_body = _transform(rig["calibration_to_body"], rig_file, "calibration_to_body")
+        return cameras, to_body
 
     def sequences(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir() if (p / "poses.txt").is_file())

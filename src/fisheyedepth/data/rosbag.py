@@ -6,9 +6,11 @@ folder with ``metadata.yaml`` and sqlite3 ``.db3`` or ``.mcap`` files) and write
 - ``<sequence>/images/<camera>/<stamp_ns>.png`` from ``sensor_msgs/Image`` (mono8, mono16, rgb8,
   bgr8, rgba8, bgra8) or ``sensor_msgs/CompressedImage``, stamped by their headers; 16-bit images are
   scaled from their bit depth (detected over the whole topic, or given) to the full 16-bit range;
-- ``calibration/<camera>.yaml`` from the camera's ``sensor_msgs/CameraInfo`` (``equidistant`` ->
-  Kannala-Brandt; ``plumb_bob``/``rational_polynomial`` without distortion -> pinhole; any other
-  model is refused, naming the topic and the model) or from a calibration file the user gives;
+- ``calibration/<camera>.yaml`` from the camera's ``sensor_msgs/CameraInfo`` (``plumb_bob`` with 5
+  coefficients or ``rational_polynomial`` with 8 -> the ``opencv`` model, a pinhole with OpenCV's
+  distortion; either without distortion -> pinhole; ``equidistant`` with 4 -> Kannala-Brandt; anything
+  else is refused, naming the topic, the model and the coefficient count; see :func:`camera_from_info`)
+  or from a calibration file the user gives;
 - ``rig.yaml`` with each camera's ``cam_to_body`` from ``/tf_static`` (the chain from the body frame
   to the camera's ``frame_id``) or given;
 - ``<sequence>/poses.txt`` from ``nav_msgs/Odometry`` (``--odometry``) or from ``/tf``
@@ -34,7 +36,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CameraModel, KannalaBrandtCamera, PinholeCamera, load_camera, save_camera
+from ..cameras import CameraModel, load_camera, save_camera
 from ..geometry import make_pose
 from ..images import read_image
 from ..utils import move_into_place, staged_folder
@@ -114,8 +116,30 @@ def scale_bit_depth(image: np.ndarray, bits: int) -> np.ndarray:
     return np.minimum(np.rint(image * (65535 / (2**bits - 1))), 65535).astype(np.uint16)
 
 
+# distortion_model -> (our model, our field for each coefficient of D, in order)
+CAMERA_INFO_MODELS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "plumb_bob": ("opencv", ("k1", "k2", "p1", "p2", "k3")),
+    "rational_polynomial": ("opencv", ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
+    "equidistant": ("kannala_brandt", ("k1", "k2", "k3", "k4")),
+}
+
+
 def camera_from_info(msg, topic: str) -> CameraModel:
-    """The camera model of a ``sensor_msgs/CameraInfo``."""
+    """The camera model of a ``sensor_msgs/CameraInfo``, for the *raw* (distorted) image.
+
+    ``K`` gives fx, fy, cx, cy (its skew ``K[1]`` is ignored: no model has one; a warning says so), and
+    ``D`` the distortion of ``distortion_model``:
+
+    - ``plumb_bob``, 5 coefficients k1 k2 p1 p2 k3 -> ``opencv`` (OpenCV's radial-tangential model);
+    - ``rational_polynomial``, 8 coefficients k1 k2 p1 p2 k3 k4 k5 k6 -> ``opencv`` (rational model);
+    - either with every coefficient zero, or an empty ``distortion_model`` without distortion -> pinhole;
+    - ``equidistant``, 4 coefficients k1 k2 k3 k4 -> Kannala-Brandt (``cv2.fisheye``).
+
+    Anything else (another model, another number of coefficients) is refused, naming the topic, the model
+    and the coefficient count. ``R`` (the stereo rectification) and ``P`` (the projection of the
+    rectified image) are ignored: they describe ``image_rect``, not the raw image; to import rectified
+    images, give a pinhole calibration file built from ``P`` instead (``--calibration NAME=FILE``).
+    """
     K = [float(v) for v in _field(msg, "k", "K")]
     D = [float(v) for v in _field(msg, "d", "D")]
     model = str(msg.distortion_model)
@@ -125,22 +149,30 @@ def camera_from_info(msg, topic: str) -> CameraModel:
             f"{topic}: the CameraInfo's K is all zeros (an uncalibrated camera); give the camera's "
             "calibration file instead (--calibration NAME=FILE)"
         )
+    if K[1] != 0:
+        log.warning("%s: the CameraInfo's K has a skew of %g, which is ignored (no camera model has one)",
+                    topic, K[1])  # fmt: skip
     intrinsics = {"fx": K[0], "fy": K[4], "cx": K[2], "cy": K[5]}
+    if model in ("plumb_bob", "rational_polynomial", "") and not any(D):
+        data = {"model": "pinhole", **size, **intrinsics}
+    elif model in CAMERA_INFO_MODELS and len(D) == len(CAMERA_INFO_MODELS[model][1]):
+        ours, fields = CAMERA_INFO_MODELS[model]
+        data = {"model": ours, **size, **intrinsics, **dict(zip(fields, D, strict=True))}
+    else:
+        expected = "; ".join(
+            f"{name} with {len(fields)} ({' '.join(fields)})"
+            for name, (_, fields) in CAMERA_INFO_MODELS.items()
+        )
+        raise RosbagError(
+            f"{topic}: distortion model {model!r} with {len(D)} coefficients {D} is not supported (expected "
+            f"{expected}, or no distortion); give the camera's calibration file instead "
+            "(--calibration NAME=FILE)"
+        )
     try:
-        if model == "equidistant":
-            if len(D) != 4:
-                raise RosbagError(f"{topic}: 'equidistant' needs 4 coefficients, got {len(D)}")
-            return KannalaBrandtCamera(**size, **intrinsics, k1=D[0], k2=D[1], k3=D[2], k4=D[3])
-        if model in ("plumb_bob", "rational_polynomial", "") and not any(D):
-            return PinholeCamera(**size, **intrinsics)
-    except RosbagError:
-        raise
+        return CameraModel.from_dict(data)
     except ValueError as err:  # an impossible parameter: a zero size, a negative focal length
-        raise RosbagError(f"{topic}: CameraInfo {size['width']}x{size['height']}, K {K}: {err}") from None
-    raise RosbagError(
-        f"{topic}: distortion model {model!r} with coefficients {D} is not supported (equidistant, or "
-        "none); give the camera's calibration file instead (--calibration NAME=FILE)"
-    )
+        shape = f"{size['width']}x{size['height']}"
+        raise RosbagError(f"{topic}: CameraInfo {shape}, distortion {model!r}, K {K}, D {D}: {err}") from None
 
 
 def _transform(t) -> np.ndarray:

@@ -12,7 +12,8 @@ In the indoor scene the same cameras look the same ways from a compact hand-held
 LiDAR within ``indoor.RIG_RADIUS`` of the body's origin, and no vehicle body in view.
 
 ``random_cameras=True`` draws each camera anew from ``seed`` (:func:`random_camera`): its model family
-(Mei, Kannala-Brandt, double sphere or Fisheye624), focal length (from a field of view), principal point
+(Mei, Kannala-Brandt, double sphere, Fisheye624, UCM, EUCM, FOV, or a wide-angle pinhole with OpenCV's
+rational distortion), focal length (from a field of view), principal point
 (a small offset), distortion within the family's usual range, and its mounting height and tilt; every
 drawn camera is checked to project monotonically over its field of view (:func:`camera_is_valid`).
 """
@@ -28,15 +29,32 @@ import torch
 from ...cameras import (
     CameraModel,
     DoubleSphereCamera,
+    ExtendedUnifiedCamera,
     Fisheye624Camera,
+    FovCamera,
     KannalaBrandtCamera,
     MeiCamera,
+    OpenCVCamera,
+    UnifiedCamera,
 )
 from ...geometry import make_pose, pose_from_3x4
 from ..kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
 
 RIGS = ("kitti360", "surround4")
-FAMILIES = ("mei", "kannala_brandt", "double_sphere", "fisheye624")
+FAMILIES = ("mei", "kannala_brandt", "double_sphere", "fisheye624", "ucm", "eucm", "fov", "opencv")
+# Incidence of the ray at the image's left and right edges (degrees): fisheyes of 150-200 degrees; the
+# pinhole with OpenCV's distortion is a wide-angle lens of 100-124 degrees (it cannot reach 90 degrees).
+EDGE_INCIDENCE = {"opencv": (50.0, 62.0)}
+FISHEYE_EDGE = (75.0, 100.0)
+MODEL_CLASSES = {
+    "kannala_brandt": KannalaBrandtCamera,
+    "double_sphere": DoubleSphereCamera,
+    "fisheye624": Fisheye624Camera,
+    "ucm": UnifiedCamera,
+    "eucm": ExtendedUnifiedCamera,
+    "fov": FovCamera,
+    "opencv": OpenCVCamera,
+}
 
 # The ego vehicle's body as boxes in the pose frame (z down; the ground is at z = +0.73): a cabin with
 # the roof 0.37 m below the side fisheyes, and a lower body (bonnet, boot, flanks). The lower part of the
@@ -142,10 +160,7 @@ def _unit_radius(family: str, params: dict, theta: float) -> float:
 def _camera(family: str, params: dict, fx: float, fy: float, cx: float, cy: float, size: int) -> CameraModel:
     if family == "mei":
         return MeiCamera(width=size, height=size, gamma1=fx, gamma2=fy, u0=cx, v0=cy, **params)
-    cls = {"kannala_brandt": KannalaBrandtCamera, "double_sphere": DoubleSphereCamera}.get(
-        family, Fisheye624Camera
-    )
-    return cls(width=size, height=size, fx=fx, fy=fy, cx=cx, cy=cy, **params)
+    return MODEL_CLASSES[family](width=size, height=size, fx=fx, fy=fy, cx=cx, cy=cy, **params)
 
 
 def _distortion(rng: np.random.Generator, family: str, edge: float) -> dict:
@@ -161,6 +176,17 @@ def _distortion(rng: np.random.Generator, family: str, edge: float) -> dict:
         return {"k1": u(-0.03, 0.03), "k2": u(-0.01, 0.01), "k3": u(-0.003, 0.003), "k4": u(-5e-4, 5e-4)}
     if family == "double_sphere":
         return {"xi": u(-0.3, 0.15), "alpha": u(0.45, 0.65)}
+    if family == "ucm":
+        return {"alpha": u(0.5, 0.7)}
+    if family == "eucm":
+        return {"alpha": u(0.5, 0.7), "beta": u(0.8, 1.3)}
+    if family == "fov":
+        return {"w": u(0.8, 1.1)}
+    if family == "opencv":  # a wide-angle lens's barrel distortion, rational terms of either sign
+        return {
+            "k1": u(-0.3, -0.05), "k2": u(0.0, 0.08), "p1": u(-1e-3, 1e-3), "p2": u(-1e-3, 1e-3),
+            "k3": u(-0.01, 0.0), "k4": u(-0.05, 0.05), "k5": u(-0.01, 0.01), "k6": u(-0.002, 0.002),
+        }  # fmt: skip
     return {
         "k0": u(-0.03, 0.03), "k1": u(-0.01, 0.01), "k2": u(-0.003, 0.003), "k3": u(-3e-4, 3e-4),
         "k4": u(-3e-5, 3e-5), "k5": u(-3e-6, 3e-6), "p0": u(-5e-4, 5e-4), "p1": u(-5e-4, 5e-4),
@@ -208,12 +234,13 @@ def camera_is_valid(camera: CameraModel, azimuths: int = 16, steps: int = 200) -
 
 def random_camera(rng: np.random.Generator, family: str, size: int) -> CameraModel:
     """A valid camera of ``family`` for ``size`` x ``size`` images: the ray at the image's left and right
-    edges has an incidence of 75-100 degrees (a 150-200 degree horizontal field of view), the focal
-    differs by up to 1 % between the axes, the principal point is up to 2 % of the size off the centre."""
+    edges has an incidence of 75-100 degrees (a 150-200 degree horizontal field of view; 50-62 degrees
+    for ``opencv``'s pinhole), the focal differs by up to 1 % between the axes, the principal point is up
+    to 2 % of the size off the centre."""
     if family not in FAMILIES:
         raise ValueError(f"unknown camera family {family!r}; one of {FAMILIES}")
     for _ in range(200):
-        edge = math.radians(rng.uniform(75.0, 100.0))
+        edge = math.radians(rng.uniform(*EDGE_INCIDENCE.get(family, FISHEYE_EDGE)))
         params = _distortion(rng, family, edge)
         aspect, offset = rng.uniform(-0.01, 0.01), rng.uniform(-0.02, 0.02, 2) * size
         radius = _unit_radius(family, params, edge)
