@@ -16,10 +16,14 @@ import yaml
 
 from fisheyedepth.cameras import (
     DoubleSphereCamera,
+    ExtendedUnifiedCamera,
     Fisheye624Camera,
+    FovCamera,
     KannalaBrandtCamera,
     MeiCamera,
+    OpenCVCamera,
     PinholeCamera,
+    UnifiedCamera,
 )
 from fisheyedepth.cameras.presets import tumvi_double_sphere, tumvi_kannala_brandt
 from fisheyedepth.data.kitti360 import KITTI360_MEI, kitti360_camera
@@ -110,7 +114,29 @@ def all_cameras() -> dict[str, object]:
             width=400, height=300, fx=150.0, fy=151.0, cx=200.2, cy=149.7, xi=0.3, alpha=0.4
         ),
         "pinhole": PinholeCamera(width=320, height=240, fx=200.0, fy=201.0, cx=159.5, cy=120.25),
-    }
+        # a 195-degree fisheye (the left and right image edges at 97 degrees); the corners are past the rim
+        "ucm_fisheye_640": UnifiedCamera(
+            width=640, height=480, fx=184.5, fy=184.2, cx=319.6, cy=240.3, alpha=0.62
+        ),
+        # a 200-degree fisheye (the left and right image edges at 100 degrees)
+        "eucm_fisheye_640": ExtendedUnifiedCamera(
+            width=640, height=480, fx=197.5, fy=197.2, cx=320.4, cy=239.1, alpha=0.64, beta=1.1
+        ),
+        # a 165-degree wide lens; the image corners see 107 degrees
+        "fov_wide_640": FovCamera(width=640, height=480, fx=230.0, fy=229.6, cx=321.2, cy=238.9, w=1.05),
+        # ROS plumb_bob, a USB camera with moderate barrel distortion (D = k1 k2 p1 p2 k3): its radial
+        # map folds at 60.8 degrees, well outside the image (its corners at 37 degrees)
+        "opencv_plumb_bob_usb": OpenCVCamera(
+            width=640, height=480, fx=612.3, fy=611.8, cx=318.2, cy=242.7,
+            k1=-0.2924, k2=0.0899, p1=0.0011, p2=-0.0007, k3=-0.0122,
+        ),
+        # ROS rational_polynomial, a 120-degree wide-angle lens (an equidistant fit out to 70 degrees):
+        # its radial map folds at 78.7 degrees (p1/p2 fold it at 78.0), beyond the corners' 71 degrees
+        "opencv_rational_120": OpenCVCamera(
+            width=640, height=400, fx=305.6, fy=305.9, cx=321.7, cy=198.4,
+            k1=0.5746, k2=0.03616, p1=-0.0004, p2=0.0003, k3=-0.0002, k4=0.9069, k5=0.1427, k6=0.001078,
+        ),
+    }  # fmt: skip
 
 
 @pytest.fixture(params=list(all_cameras()))
@@ -267,3 +293,14 @@ def copy_tiny_world(tiny_world: Path, data_dir: Path) -> Path:
     data_dir.mkdir(parents=True, exist_ok=True)
     shutil.copytree(tiny_world, data_dir / tiny_world.name)
     return data_dir
+
+
+def load_cfg(name: str, **values):
+    """A command's config (``conf/<name>.yaml``) as Hydra would compose it (its own keys), without
+    Hydra's runtime: for running a command's function in-process."""
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(ROOT / "conf" / f"{name}.yaml")
+    for hydra_only in ("defaults", "hydra"):
+        cfg.pop(hydra_only, None)
+    return OmegaConf.merge(cfg, {k: str(v) if isinstance(v, Path) else v for k, v in values.items()})

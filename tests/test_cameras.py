@@ -12,13 +12,9 @@ import torch
 from fisheyedepth.cameras import (
     CameraModel,
     DoubleSphereCamera,
-    ExtendedUnifiedCamera,
-    FovCamera,
     KannalaBrandtCamera,
     MeiCamera,
-    OpenCVCamera,
     PinholeCamera,
-    UnifiedCamera,
     load_camera,
     pinhole_like,
     pixel_grid,
@@ -26,44 +22,6 @@ from fisheyedepth.cameras import (
 )
 
 from conftest import KITTI_02, all_cameras, kitti02, kitti03
-
-
-def new_model_cameras() -> dict[str, CameraModel]:
-    """One realistic camera per model added beside the fixtures of conftest.py (unified, FOV, OpenCV)."""
-    return {
-        # a 195-degree fisheye (the left and right image edges at 97 degrees); the corners are past the rim
-        "ucm_fisheye_640": UnifiedCamera(
-            width=640, height=480, fx=184.5, fy=184.2, cx=319.6, cy=240.3, alpha=0.62
-        ),
-        # a 200-degree fisheye (the left and right image edges at 100 degrees)
-        "eucm_fisheye_640": ExtendedUnifiedCamera(
-            width=640, height=480, fx=197.5, fy=197.2, cx=320.4, cy=239.1, alpha=0.64, beta=1.1
-        ),
-        # a 165-degree wide lens; the image corners see 107 degrees
-        "fov_wide_640": FovCamera(width=640, height=480, fx=230.0, fy=229.6, cx=321.2, cy=238.9, w=1.05),
-        # ROS plumb_bob, a USB camera with moderate barrel distortion (D = k1 k2 p1 p2 k3): its radial
-        # map folds at 60.8 degrees, well outside the image (its corners at 37 degrees)
-        "opencv_plumb_bob_usb": OpenCVCamera(
-            width=640, height=480, fx=612.3, fy=611.8, cx=318.2, cy=242.7,
-            k1=-0.2924, k2=0.0899, p1=0.0011, p2=-0.0007, k3=-0.0122,
-        ),
-        # ROS rational_polynomial, a 120-degree wide-angle lens (an equidistant fit out to 70 degrees):
-        # its radial map folds at 78.7 degrees (p1/p2 fold it at 78.0), beyond the corners' 71 degrees
-        "opencv_rational_120": OpenCVCamera(
-            width=640, height=400, fx=305.6, fy=305.9, cx=321.7, cy=198.4,
-            k1=0.5746, k2=0.03616, p1=-0.0004, p2=0.0003, k3=-0.0002, k4=0.9069, k5=0.1427, k6=0.001078,
-        ),
-    }  # fmt: skip
-
-
-def every_camera() -> dict[str, CameraModel]:
-    return {**all_cameras(), **new_model_cameras()}
-
-
-@pytest.fixture(params=list(every_camera()))
-def camera(request):
-    """Every model (conftest's cameras and :func:`new_model_cameras`); overrides conftest's ``camera``."""
-    return every_camera()[request.param]
 
 
 def directions(theta_max: float, n: int = 20000, dtype=torch.float64, seed: int = 0) -> torch.Tensor:
@@ -142,7 +100,7 @@ def test_unproject_project_directions_over_whole_domain(camera, dtype, tol):
 
 
 def test_round_trip_float64_beyond_90_degrees_is_exact():
-    for name, cam in every_camera().items():
+    for name, cam in all_cameras().items():
         if cam.max_incidence <= math.pi / 2:
             continue
         d = directions(cam.max_incidence)
