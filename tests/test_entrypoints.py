@@ -21,7 +21,7 @@ from omegaconf import OmegaConf
 
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.checkpoints import read_checkpoint
-from fisheyedepth.cli.evaluate import experiment_of
+from fisheyedepth.cli.evaluate import eval_checkpoint, experiment_of
 from fisheyedepth.cli.train import selected_checkpoint
 from fisheyedepth.config import resolve_base_focal, resolve_precision
 
@@ -35,6 +35,10 @@ TABLE_EXPERIMENTS = [e for e in EXPERIMENTS if e.startswith(("ablation_", "table
 def compose_train(overrides):
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+
+
+def command_paths(workdir, out):
+    return [f"paths.root_dir={ROOT}", f"paths.data_dir={workdir}/data", f"paths.output_dir={out}"]
 
 
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
@@ -296,13 +300,18 @@ def test_train_eval_resume_tables(workdir):
     focals = [min(load_camera(calib / f"image_0{i}.yaml").paraxial_focal()) for i in (2, 3)]
     assert hparams["net"]["base_focal"] == pytest.approx(sum(focals) / 2)  # auto, at the 64 px of TINY
 
+    # eval.py's function in-process, on Hydra's composition of its config (heldout.py below runs eval.py)
+    tiny_data = [o for o in TINY if o.startswith("data.") or o.startswith("eval.")]
     evaluated = workdir / "eval1"
-    run(
-        "eval.py",
-        f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
-        f"paths.data_dir={workdir}/data",
-        f"hydra.run.dir={evaluated}",
-        *[o for o in TINY if o.startswith("data.") or o.startswith("eval.")],
+    eval_checkpoint(
+        compose_command(
+            "eval",
+            [
+                f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
+                *command_paths(workdir, evaluated),
+                *tiny_data,
+            ],
+        )
     )
     again = json.loads((evaluated / "results.json").read_text())
     assert again["checkpoint"].endswith("last.ckpt") and again["results"]["full"]["none"]["images"] > 0
@@ -311,14 +320,17 @@ def test_train_eval_resume_tables(workdir):
     assert again["results"]["full"]["none"]["images"] == 2 * len(test_frames)  # every frame: its ends too
     assert again["experiment"] == "ablation_full"  # from the checkpoint's run: make_tables finds its row
     on_val = workdir / "eval_val"
-    run(
-        "eval.py",
-        f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
-        f"paths.data_dir={workdir}/data",
-        f"hydra.run.dir={on_val}",
-        "split=val",
-        *[o for o in TINY if o.startswith("data.") or o.startswith("eval.")],
-        "data.datamodule.size=[32,32]",  # the data config's size: the checkpoint's wins
+    eval_checkpoint(
+        compose_command(
+            "eval",
+            [
+                f"ckpt_path={first / 'checkpoints' / 'last.ckpt'}",
+                *command_paths(workdir, on_val),
+                "split=val",
+                *tiny_data,
+                "data.datamodule.size=[32,32]",  # the data config's size: the checkpoint's wins
+            ],
+        )
     )
     val = json.loads((on_val / "results.json").read_text())
     assert val["split"] == "val" and val["train_size"] == [64, 64]
@@ -372,7 +384,6 @@ def test_train_eval_resume_tables(workdir):
     assert len(list((workdir / "reproduce").glob("*_runs/curves.png"))) == 1
 
     # last: its results.json files inside run1 would be collected by the table scripts above
-    tiny_data = [o for o in TINY if o.startswith("data.") or o.startswith("eval.")]
     heldout = printed(
         "heldout", [str(first), "--seeds", "5", "--set", f"paths.data_dir={workdir}/data", *tiny_data]
     )

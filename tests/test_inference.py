@@ -18,12 +18,13 @@ from torch.nn import functional as F
 
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.cli.export import export
+from fisheyedepth.cli.predict import predict
 from fisheyedepth.data import collate
 from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud, read_ply, write_ply
 from fisheyedepth.models import upsample_inverse
 from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ
+from conftest import TRAIN_SEQ, load_cfg
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -91,9 +92,16 @@ def test_predict_writes_every_promised_file(kitti_data, checkpoint, tmp_path):
         assert (colour[:, :256][~has_ray] == 0).all()  # no ray: black
         points, rgb = read_ply(out / f"{stem}.ply")
         assert len(points) == has_ray.sum() and np.isfinite(points).all() and rgb.dtype == np.uint8
-    again = run("predict.py", *args)
-    assert again.returncode != 0 and "overwrite=true" in again.stdout + again.stderr
-    assert run("predict.py", *args, "overwrite=true").returncode == 0
+    cfg = load_cfg(  # the same command in-process: nothing is replaced without overwrite=true
+        "predict", ckpt_path=checkpoint, input=images, camera=calib, output=out, z_depth=True,
+        point_cloud=True, batch_size=2,
+    )  # fmt: skip
+    before = (out / "summary.json").read_bytes()
+    with pytest.raises(FileExistsError, match="overwrite=true"):
+        predict(cfg)
+    assert (out / "summary.json").read_bytes() == before
+    cfg.overwrite = True
+    assert predict(cfg)["frames"] == 3
 
 
 def test_predict_reads_videos_and_other_sizes(kitti_data, checkpoint, tmp_path):

@@ -25,17 +25,9 @@ from fisheyedepth.images import FrameSource, ImageError, is_live
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, flip_averaged
 
-from conftest import TRAIN_SEQ, kitti02, kitti03
+from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_cfg(name: str, **values):
-    """A command's config as Hydra would compose it (its own keys), without Hydra's runtime."""
-    cfg = OmegaConf.load(ROOT / "conf" / f"{name}.yaml")
-    for hydra_only in ("defaults", "hydra"):
-        cfg.pop(hydra_only, None)
-    return OmegaConf.merge(cfg, {k: str(v) if isinstance(v, Path) else v for k, v in values.items()})
 
 
 def export_file(checkpoint, tmp_path, name="m.onnx", **values):
@@ -325,8 +317,7 @@ def test_predict_runs_an_exported_file_like_its_checkpoint(onnx_files, checkpoin
     assert json.loads((tmp_path / "e" / "results.json").read_text())["model"]["file"] == fp32["path"]
     with pytest.raises(ValueError, match="model: runtime=onnx needs the exported file"):
         predict(load_cfg("predict", runtime="onnx", output=tmp_path / "m", **common))
-    with pytest.raises(ValueError, match="ckpt_path: required with runtime=torch"):
-        predict(load_cfg("predict", output=tmp_path / "n", **common))
+    # without ckpt_path, runtime=torch runs the released weights: tests/test_released_weights.py
 
 
 class FakeCamera:
@@ -393,20 +384,21 @@ def test_a_live_camera_is_written_frame_by_frame_and_ctrl_c_keeps_them(
         FrameSource("0", max_frames=0)
 
 
+@pytest.mark.filterwarnings("ignore")  # torch.onnx's and the tracer's, printed by the script run alone too
 def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint, kitti_data, tmp_path):
     """The benchmark behind BENCHMARKS.md "Inference", tiny: every row is measured, and the accuracy
     table scores the four paths of the checkpoint on the split (float32 ONNX equal to PyTorch)."""
     pytest.importorskip("onnxruntime")
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "bench_inference.py"), "--size", "64", "--rounds", "1",
-         "--threads", "1", "--ckpt", str(checkpoint), "--data", str(kitti_data),
-         "--calibration", str(kitti_data / "data_2d_raw"), "--no-write"],
-        capture_output=True, text=True, timeout=600, cwd=ROOT,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    rows = {
-        line.split(" | ")[0].strip("| "): line for line in proc.stdout.splitlines() if line.startswith("| ")
-    }
+    threads = torch.get_num_threads()
+    try:  # in-process: the benchmark sets torch's threads
+        stdout = printed(
+            "bench_inference",
+            ["--size", "64", "--rounds", "1", "--threads", "1", "--ckpt", str(checkpoint), "--data",
+             str(kitti_data), "--calibration", str(kitti_data / "data_2d_raw"), "--no-write"],
+        )  # fmt: skip
+    finally:
+        torch.set_num_threads(threads)
+    rows = {line.split(" | ")[0].strip("| "): line for line in stdout.splitlines() if line.startswith("| ")}
     for name in (
         "PyTorch eager, before (NCHW, softmax expectation)",
         "PyTorch eager, + bf16 autocast",
@@ -417,13 +409,13 @@ def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint,
     ):
         fps = float(rows[name].split(" | ")[3])
         assert fps > 0, rows[name]
-    ratio = re.search(r"int8 export against the full model's, side by side: \*\*([\d.]+)x\*\*", proc.stdout)
+    ratio = re.search(r"int8 export against the full model's, side by side: \*\*([\d.]+)x\*\*", stdout)
     ms = {name: float(rows[name].split(" | ")[2]) for name in ("ONNX Runtime int8 (QDQ, head float32)",
                                                                "mobile: ONNX Runtime int8")}  # fmt: skip
     assert ratio and float(ratio[1]) == pytest.approx(
         ms["ONNX Runtime int8 (QDQ, head float32)"] / ms["mobile: ONNX Runtime int8"], rel=0.1
     )
-    scored = [line.split(" | ") for line in proc.stdout.splitlines() if line.startswith("| full | ")]
+    scored = [line.split(" | ") for line in stdout.splitlines() if line.startswith("| full | ")]
     assert [r[1] for r in scored] == [
         "PyTorch float32",
         "PyTorch bf16",
