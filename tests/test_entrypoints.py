@@ -57,6 +57,7 @@ def test_every_experiment_composes(experiment):
         "table1_fsnet_rs": (False, True, True),
         "cpu_30min": (True, True, True),  # the full model, at a larger size for longer
         "gpu_10min": (True, True, True),  # cpu_30min on a GPU for longer
+        "release_mobile": (True, True, True),  # the released weights: the mobile model, the mixed world
     }[experiment]
     assert (m.objective.fisheye_projection, m.objective.real_scale, m.net.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
@@ -68,6 +69,10 @@ def test_every_experiment_composes(experiment):
         assert list(cfg.data.datamodule.size) == [256, 256] != list(default.data.datamodule.size)
         assert cfg.model.scheduler.step_size < cfg.trainer.max_epochs
         assert cfg.model.objective.loss_resolution == "native"
+    if experiment == "release_mobile":
+        assert cfg.model.net.encoder == "efficientnet_lite0" and cfg.model.net.decoder_width == 0.25
+        assert len(cfg.data.datamodule.root) == 4 and cfg.data.generate.random_cameras is True
+        assert cfg.model.scheduler.step_size == cfg.trainer.max_epochs - 1  # the decay in the last fifth
 
 
 def flat(tree, prefix=""):

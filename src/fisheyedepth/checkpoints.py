@@ -14,6 +14,7 @@ what killed writers left.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import pickle
 import re
@@ -57,6 +58,69 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(ckpt, dict):
         raise CheckpointError(path, f"holds a {type(ckpt).__name__}, not a checkpoint dictionary")
     return ckpt
+
+
+# The released weights (weights/README.md): a source checkout has them; predict.py, eval.py and export.py
+# use them when no ckpt_path is given.
+WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "weights"
+RELEASED = "fisheyedepth_mobile_mixed.ckpt"
+CHECKSUMS = "SHA256SUMS"
+# What a released checkpoint keeps: the weights (float16) and what builds the network around them.
+RELEASE_KEYS = ("state_dict", "hyper_parameters", "epoch", "global_step", "pytorch-lightning_version")
+
+
+def sha256(path: str | os.PathLike) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_checksums(path: str | os.PathLike) -> dict[str, str]:
+    """``sha256sum``'s format: ``<64 hex digits>  <file name>`` per line."""
+    sums = {}
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        parts = line.split()
+        if len(parts) != 2 or not re.fullmatch(r"[0-9a-f]{64}", parts[0]):
+            raise CheckpointError(path, f"line {n}: not '<sha256>  <file>': {line!r}")
+        sums[parts[1].lstrip("*")] = parts[0]
+    return sums
+
+
+def released_checkpoint(folder: str | os.PathLike = WEIGHTS_DIR, name: str = RELEASED) -> Path:
+    """The released weights, checked against ``SHA256SUMS`` beside them: a damaged copy or a Git LFS
+    pointer raises :class:`CheckpointError` naming the file instead of loading wrong weights."""
+    folder = Path(folder)
+    path, sums = folder / name, folder / CHECKSUMS
+    if not path.is_file():
+        raise CheckpointError(
+            path, "the released weights are not here (they ship with a source checkout); pass ckpt_path=FILE"
+        )
+    if not sums.is_file():
+        raise CheckpointError(sums, f"checksum file not found; it lists {name}")
+    expected = read_checksums(sums).get(name)
+    if expected is None:
+        raise CheckpointError(sums, f"has no checksum for {name}")
+    actual = sha256(path)
+    if actual != expected:
+        raise CheckpointError(
+            path, f"sha256 {actual[:16]}... is not {expected[:16]}... of {CHECKSUMS} (a damaged copy?)"
+        )
+    return path
+
+
+def release_checkpoint(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """A training checkpoint slimmed for release: its weights in float16 (loaded back into float32; the
+    released network's real-world abs_rel moves by at most 0.002, weights/README.md) and its
+    hyper-parameters; no optimiser, scheduler or loop state, so it loads for inference, not to resume."""
+    slim = {k: ckpt[k] for k in RELEASE_KEYS if k in ckpt}
+    slim["state_dict"] = {
+        k: (v.half() if v.is_floating_point() else v) for k, v in ckpt["state_dict"].items()
+    }
+    return slim
 
 
 # 2026-11-23: clipping is the trainer's gradient_clip_val only; 2026-11-24: the distance search (a

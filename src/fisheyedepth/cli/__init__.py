@@ -13,6 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from ..checkpoints import released_checkpoint
 from ..data.synthetic import ensure_datasets
 from ..module import FisheyeDepthModule
 from ..runtimes import OnnxRuntime, TorchRuntime
@@ -85,6 +86,16 @@ def free_path(path: Path) -> Path:
     return candidate
 
 
+def checkpoint_path(cfg: DictConfig) -> str:
+    """``ckpt_path``, or the released weights (``weights/``, checked against their checksum) when none
+    is given: metric distance from a calibrated camera without training."""
+    if cfg.get("ckpt_path"):
+        return str(cfg.ckpt_path)
+    path = released_checkpoint()
+    log.info("no ckpt_path: the released weights %s (weights/README.md)", path)
+    return str(path)
+
+
 def load_runtime(cfg: DictConfig):
     """The network ``predict.py`` and ``eval.py`` run: ``runtime=torch`` (``ckpt_path``, ``precision``,
     ``device``, ``upsample``, ``size``) or ``runtime=onnx`` (``model_file``, typed ``model=FILE.onnx``:
@@ -107,9 +118,7 @@ def load_runtime(cfg: DictConfig):
         raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
     if cfg.get("model_file"):
         raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-    if not cfg.get("ckpt_path"):
-        raise ValueError("ckpt_path: required with runtime=torch (or runtime=onnx model=FILE.onnx)")
-    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
+    module = FisheyeDepthModule.from_checkpoint(checkpoint_path(cfg))
     if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
         module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     size = tuple(size) if size else None

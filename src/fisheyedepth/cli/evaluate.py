@@ -17,7 +17,7 @@ from rich.table import Table
 from ..evaluation import evaluate
 from ..runtimes import OnnxRuntime, as_runtime
 from ..utils import atomic_write_text, run_config
-from . import free_path, load_runtime, prepare_data
+from . import checkpoint_path, free_path, load_runtime, prepare_data
 
 
 def _git_commit() -> str | None:
@@ -121,7 +121,8 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     if isinstance(model, OnnxRuntime):
         experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model_file).stem, None
     else:
-        experiment, ckpt = cfg.get("experiment_name") or experiment_of(cfg.ckpt_path), str(cfg.ckpt_path)
+        ckpt = checkpoint_path(cfg)
+        experiment = cfg.get("experiment_name") or experiment_of(ckpt) or Path(ckpt).stem
     return run_evaluation(
         cfg, model, datamodule, out_dir, ckpt, {"experiment": experiment}, str(cfg.get("split", "test"))
     )

@@ -22,6 +22,7 @@ from ..models.depth_net import check_input_size
 from ..module import FisheyeDepthModule
 from ..runtimes import calibration_images, onnx_export, onnx_session
 from ..utils import atomic_write_bytes, atomic_write_text
+from . import checkpoint_path
 
 EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
 QUANTIZE = ("int8",)
@@ -39,13 +40,14 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         raise ValueError(f"quantize: {quantize!r}; only quantize=int8 with format=onnx (or null)")
     if quantize and not cfg.get("calibration"):
         raise ValueError("calibration: quantize=int8 needs a folder of training images, calibration=DIR")
-    module = FisheyeDepthModule.from_checkpoint(cfg.ckpt_path)
+    ckpt_path = checkpoint_path(cfg)
+    module = FisheyeDepthModule.from_checkpoint(ckpt_path)
     size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
     if len(size) != 2:
         raise ValueError(
             "export needs a fixed input size: size=[W,H] (or a checkpoint that stores input_size)"
         )
-    size = check_input_size(size, "size" if cfg.get("size") else f"{cfg.ckpt_path}: input_size")
+    size = check_input_size(size, "size" if cfg.get("size") else f"{ckpt_path}: input_size")
     if cfg.get("camera"):
         camera = load_camera(cfg.camera)
     else:  # no camera: depth_scale 1, i.e. a camera with the base focal (the training cameras' mean)
@@ -95,7 +97,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         "size": list(size),
         "depth_scale": net.depth_scale,
         "base_focal": module.depth_net.base_focal,
-        "checkpoint": str(cfg.ckpt_path),
+        "checkpoint": ckpt_path,
     }
     if quantize:
         record["calibration"] = {"folder": str(cfg.calibration), "frames": len(calibration)}
