@@ -22,7 +22,8 @@ from fisheyedepth.cameras import (
     UnifiedCamera,
 )
 
-from test_cameras import angle_between, directions, new_model_cameras
+from conftest import all_cameras
+from test_cameras import angle_between, directions
 
 F64 = torch.float64
 
@@ -57,7 +58,7 @@ def cv_project(cam: OpenCVCamera, points: torch.Tensor) -> tuple[np.ndarray, np.
     return uv[:, 0], dxy
 
 
-OPENCV_CAMERAS = {name: cam for name, cam in new_model_cameras().items() if isinstance(cam, OpenCVCamera)}
+OPENCV_CAMERAS = {name: cam for name, cam in all_cameras().items() if isinstance(cam, OpenCVCamera)}
 # without p1/p2 the domain is exactly the disc r < r_max, which the rim samples below test point by point
 OPENCV_RADIAL = {name: dataclasses.replace(cam, p1=0.0, p2=0.0) for name, cam in OPENCV_CAMERAS.items()}
 
@@ -368,15 +369,15 @@ def fov_paper_unproject(uv: np.ndarray, fx, fy, cx, cy, w) -> np.ndarray:
 
 UNIFIED_CASES = {
     # the shared fixtures, and one more regime each: UCM and EUCM with alpha < 0.5, a narrow FOV lens
-    "ucm_fisheye_640": new_model_cameras()["ucm_fisheye_640"],
+    "ucm_fisheye_640": all_cameras()["ucm_fisheye_640"],
     "ucm_alpha_below_half": UnifiedCamera(
         width=400, height=300, fx=150.0, fy=151.0, cx=200.2, cy=149.7, alpha=0.4
     ),
-    "eucm_fisheye_640": new_model_cameras()["eucm_fisheye_640"],
+    "eucm_fisheye_640": all_cameras()["eucm_fisheye_640"],
     "eucm_flat_ellipsoid": ExtendedUnifiedCamera(
         width=400, height=300, fx=160.0, fy=160.5, cx=199.1, cy=150.2, alpha=0.45, beta=0.6
     ),
-    "fov_wide_640": new_model_cameras()["fov_wide_640"],
+    "fov_wide_640": all_cameras()["fov_wide_640"],
     "fov_narrow": FovCamera(width=752, height=480, fx=379.0, fy=379.0, cx=376.2, cy=240.1, w=0.9259),
 }
 
