@@ -269,46 +269,56 @@ def theta_poly_rays(
 def solve_odd_poly(
     target: Tensor, coeffs: tuple[float, ...], r_max: float, max_iter: int = 60
 ) -> tuple[Tensor, Tensor]:
-    """Solve ``g(r) = target`` for ``r`` in ``[0, r_max]`` (g increasing there); returns ``(r, ok)``.
+    """Solve ``g(r) = target`` for ``r`` in ``[0, r_max]`` (:func:`odd_poly`, increasing there); returns
+    ``(r, ok)`` (:func:`solve_increasing`)."""
+    if not coeffs or all(c == 0.0 for c in coeffs):
+        r = target.clone()
+        return r, r <= r_max
+    return solve_increasing(target, lambda r: odd_poly(r, coeffs), r_max, max_iter)
+
+
+def solve_increasing(
+    target: Tensor, g, r_max: float, max_iter: int = 60, ulps: int = 4, doublings: int = 64
+) -> tuple[Tensor, Tensor]:
+    """Solve ``g(r) = target`` for ``r`` in ``[0, r_max]``, where ``g(r) -> (value, derivative)`` is
+    increasing with ``g(0) = 0``; returns ``(r, ok)``.
 
     Newton-Raphson with the analytic derivative, safeguarded by bisection: every step keeps a bracket
     ``[lo, hi]`` around the root and falls back to its midpoint when Newton would leave it, so it
     converges for every ``target`` in ``[0, g(r_max)]``. ``ok`` is False for targets beyond ``g(r_max)``.
-    Where ``r_max`` is infinite the upper bracket is found by doubling.
+    Where ``r_max`` is infinite the upper bracket is found by doubling (at most ``doublings`` times). It
+    stops when every step, or every bracket, is within ``ulps`` units in the last place of ``r``.
     """
-    dtype = target.dtype
-    eps = torch.finfo(dtype).eps
-    if not coeffs or all(c == 0.0 for c in coeffs):
-        r = target.clone()
-        return r, r <= r_max
+    eps = torch.finfo(target.dtype).eps
     target = target.detach()
     lo = torch.zeros_like(target)
     if math.isfinite(r_max):
         hi = torch.full_like(target, r_max)
-        g_hi, _ = odd_poly(hi, coeffs)
+        g_hi, _ = g(hi)
         ok = target <= g_hi * (1 + 16 * eps)
         target = torch.minimum(target, g_hi)
     else:
         hi = target.clone().clamp_min(1.0)
         ok = torch.ones_like(target, dtype=torch.bool)
-        for _ in range(64):
-            g_hi, _ = odd_poly(hi, coeffs)
+        for _ in range(doublings):
+            g_hi, _ = g(hi)
             short = g_hi < target
             if not bool(short.any()):
                 break
             hi = torch.where(short, hi * 2, hi)
     r = torch.minimum(target, hi)
     for _ in range(max_iter):
-        g, dg = odd_poly(r, coeffs)
-        f = g - target
+        value, dg = g(r)
+        f = value - target
         lo = torch.where(f < 0, r, lo)
         hi = torch.where(f > 0, r, hi)
         step = f / torch.where(dg > 0, dg, torch.ones_like(dg))
         r_new = r - step
-        outside = (r_new < lo) | (r_new > hi) | (dg <= 0)
+        outside = (r_new < lo) | (r_new > hi) | ~(dg > 0) | ~torch.isfinite(r_new)
         r_new = torch.where(outside, 0.5 * (lo + hi), r_new)
-        delta = (r_new - r).abs()
+        tol = ulps * eps * r_new.abs().clamp_min(1.0)
+        done = ((r_new - r).abs() <= tol) | (hi - lo <= tol)
         r = r_new
-        if bool((delta <= 4 * eps * r.abs().clamp_min(1.0)).all()):
+        if bool(done.all()):
             break
     return r, ok

@@ -39,6 +39,7 @@ from .base import (
     finite_where,
     register_model,
     safe_norm,
+    solve_increasing,
     split_uv,
     split_xyz,
 )
@@ -297,48 +298,12 @@ class OpenCVCamera(CameraModel):
         return j11 * j22 - j12 * j12
 
     # -------------------------------------------------------------- inverse distortion
-    def _solve_radial(self, target: Tensor, max_iter: int = 80) -> tuple[Tensor, Tensor]:
-        """``r`` in ``[0, r_max]`` with ``g(r) = target``, and whether there is one.
-
-        Newton's method inside a bracket ``[lo, hi]`` that every step shrinks, falling back to the
-        bracket's midpoint when Newton would leave it (as :func:`~fisheyedepth.cameras.base.solve_odd_poly`
-        does for the odd polynomials)."""
+    def _solve_radial(self, target: Tensor) -> tuple[Tensor, Tensor]:
+        """``r`` in ``[0, r_max]`` with ``g(r) = target``, and whether there is one."""
         if self._num == (0.0, 0.0, 0.0) and self._den == (0.0, 0.0, 0.0):
             return target.clone(), torch.ones_like(target, dtype=torch.bool)
-        eps = torch.finfo(target.dtype).eps
-        target = target.detach()
-        lo = torch.zeros_like(target)
-        if math.isfinite(self._r_max):
-            hi = torch.full_like(target, self._r_max)
-            g_hi, _ = self._g(hi)
-            ok = target <= g_hi * (1 + 16 * eps)
-            target = torch.minimum(target, g_hi)
-        else:
-            hi = target.clone().clamp_min(1.0)
-            ok = torch.ones_like(target, dtype=torch.bool)
-            for _ in range(1100):  # double until g(hi) >= target (g is unbounded, increasing)
-                g_hi, _ = self._g(hi)
-                short = g_hi < target
-                if not bool(short.any()):
-                    break
-                hi = torch.where(short, hi * 2, hi)
-        r = torch.minimum(target, hi)
-        for _ in range(max_iter):
-            g, dg = self._g(r)
-            f = g - target
-            lo = torch.where(f < 0, r, lo)
-            hi = torch.where(f > 0, r, hi)
-            step = f / torch.where(dg > 0, dg, torch.ones_like(dg))
-            r_new = r - step
-            outside = (r_new < lo) | (r_new > hi) | ~(dg > 0) | ~torch.isfinite(r_new)
-            r_new = torch.where(outside, 0.5 * (lo + hi), r_new)
-            # converged: the step, or the bracket, is down to the rounding noise of g (a few ulps)
-            tol = 16 * eps * r_new.abs().clamp_min(1.0)
-            done = ((r_new - r).abs() <= tol) | (hi - lo <= tol)
-            r = r_new
-            if bool(done.all()):
-                break
-        return r, ok
+        # g is unbounded where r_max is infinite: doubling finds the upper bracket of any target
+        return solve_increasing(target, self._g, self._r_max, max_iter=80, ulps=16, doublings=1100)
 
     def _undistort(self, xd: Tensor, yd: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``(x, y)`` with ``_distort(x, y) = (x_d, y_d)`` inside the domain, and whether there is one."""
