@@ -33,7 +33,8 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.utils import atomic_write_bytes, atomic_write_text
 
 
-def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False) -> Path:
+def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False) -> tuple[Path, str]:
+    """The released file and its sha256."""
     target = out / name
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass --overwrite to replace it")
@@ -45,9 +46,9 @@ def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False
     FisheyeDepthModule.from_checkpoint(target)  # it loads as the commands will load it
     sums_path = out / CHECKSUMS
     sums = read_checksums(sums_path) if sums_path.is_file() else {}
-    sums[name] = sha256(target)
-    atomic_write_text(sums_path, "".join(f"{digest}  {file}\n" for file, digest in sorted(sums.items())))
-    return target
+    sums[name] = digest = sha256(target)
+    atomic_write_text(sums_path, "".join(f"{d}  {file}\n" for file, d in sorted(sums.items())))
+    return target, digest
 
 
 def main(argv=None) -> int:
@@ -60,11 +61,11 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing file")
     args = parser.parse_args(argv)
     try:
-        target = release(args.ckpt, args.out, args.name, args.overwrite)
+        target, digest = release(args.ckpt, args.out, args.name, args.overwrite)
     except (CheckpointError, FileExistsError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{target}: {target.stat().st_size / 2**20:.1f} MiB, sha256 {sha256(target)}")
+    print(f"{target}: {target.stat().st_size / 2**20:.1f} MiB, sha256 {digest}")
     return 0
 
 

@@ -138,14 +138,21 @@ def _rigid(value, path, key: str) -> np.ndarray:
         raise CalibrationError(path, key, f"expected a 4x4 matrix, got {value!r}")
     if not np.isfinite(m).all():
         raise CalibrationError(path, key, "the matrix holds a non-finite value")
-    if not np.allclose(m[3], (0, 0, 0, 1)):
-        raise CalibrationError(path, key, f"the last row of a 4x4 transform must be 0 0 0 1, got {m[3]}")
-    R = m[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
     out = np.eye(4)
     out[:3] = m[:3]
-    return out
+    return checked_rigid(out, path, key, last_row=m[3])
+
+
+def checked_rigid(T: np.ndarray, path, key: str, last_row: np.ndarray | None = None) -> np.ndarray:
+    """``T`` (4x4) if it is a rigid transform: finite, its rotation orthonormal with det +1, and the last
+    row of the matrix it was read from (``last_row``, when one was given) 0 0 0 1; otherwise
+    :class:`CalibrationError` naming ``path`` and ``key``."""
+    if last_row is not None and not np.allclose(last_row, (0, 0, 0, 1)):
+        raise CalibrationError(path, key, f"the last row of a 4x4 transform must be 0 0 0 1, got {last_row}")
+    R = T[:3, :3]
+    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
+        raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
+    return T
 
 
 def inverse(T: np.ndarray) -> np.ndarray:

@@ -96,10 +96,11 @@ def checkpoint_path(cfg: DictConfig) -> str:
     return str(path)
 
 
-def load_runtime(cfg: DictConfig):
+def load_runtime(cfg: DictConfig, ckpt_path: str | None = None):
     """The network ``predict.py`` and ``eval.py`` run: ``runtime=torch`` (``ckpt_path``, ``precision``,
     ``device``, ``upsample``, ``size``) or ``runtime=onnx`` (``model_file``, typed ``model=FILE.onnx``:
-    an ``export.py`` file, which fixes the input size; ``threads``); either with ``post_process``."""
+    an ``export.py`` file, which fixes the input size; ``threads``); either with ``post_process``.
+    ``ckpt_path``: the checkpoint :func:`checkpoint_path` already chose for ``cfg``, if a caller did."""
     runtime, size = str(cfg.get("runtime", "torch")), cfg.get("size")
     if runtime == "onnx":
         if not cfg.get("model_file"):
@@ -118,7 +119,7 @@ def load_runtime(cfg: DictConfig):
         raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
     if cfg.get("model_file"):
         raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-    module = FisheyeDepthModule.from_checkpoint(checkpoint_path(cfg))
+    module = FisheyeDepthModule.from_checkpoint(ckpt_path or checkpoint_path(cfg))
     if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
         module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     size = tuple(size) if size else None

@@ -117,11 +117,12 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     out_dir = Path(cfg.paths.output_dir)
     prepare_data(cfg)
     datamodule = instantiate(cfg.data.datamodule)
-    model = load_runtime(cfg)
+    torch_ckpt = str(cfg.get("runtime", "torch")) == "torch" and not cfg.get("model_file")
+    ckpt = checkpoint_path(cfg) if torch_ckpt else None  # resolved (and checksummed) once
+    model = load_runtime(cfg, ckpt)
     if isinstance(model, OnnxRuntime):
-        experiment, ckpt = cfg.get("experiment_name") or Path(cfg.model_file).stem, None
+        experiment = cfg.get("experiment_name") or Path(cfg.model_file).stem
     else:
-        ckpt = checkpoint_path(cfg)
         experiment = cfg.get("experiment_name") or experiment_of(ckpt) or Path(ckpt).stem
     return run_evaluation(
         cfg, model, datamodule, out_dir, ckpt, {"experiment": experiment}, str(cfg.get("split", "test"))

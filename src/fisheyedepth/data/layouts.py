@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
-from ..cameras.calibration_files import CalibratedCamera, find_camera, read_calibration
+from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_camera, read_calibration
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
 
 log = logging.getLogger(__name__)
@@ -344,12 +344,8 @@ def _transform(value, path: Path, key: str) -> np.ndarray:
         raise CalibrationError(
             path, key, "expected a 3x4/4x4 matrix or {translation, quaternion_xyzw}"
         ) from None
-    if not isinstance(value, dict) and m.shape == (4, 4) and not np.allclose(m[3], (0, 0, 0, 1)):
-        raise CalibrationError(path, key, f"the last row of a 4x4 transform must be 0 0 0 1, got {m[3]}")
-    R = T[:3, :3]
-    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
-    return T
+    last_row = m[3] if not isinstance(value, dict) and m.shape == (4, 4) else None
+    return checked_rigid(T, path, key, last_row)
 
 
 def _positive_seconds(value) -> bool:

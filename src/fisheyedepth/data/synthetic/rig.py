@@ -26,17 +26,7 @@ import math
 import numpy as np
 import torch
 
-from ...cameras import (
-    CameraModel,
-    DoubleSphereCamera,
-    ExtendedUnifiedCamera,
-    Fisheye624Camera,
-    FovCamera,
-    KannalaBrandtCamera,
-    MeiCamera,
-    OpenCVCamera,
-    UnifiedCamera,
-)
+from ...cameras import CAMERA_MODELS, CameraModel, KannalaBrandtCamera, MeiCamera
 from ...geometry import make_pose, pose_from_3x4
 from ..kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
 
@@ -46,15 +36,6 @@ FAMILIES = ("mei", "kannala_brandt", "double_sphere", "fisheye624", "ucm", "eucm
 # pinhole with OpenCV's distortion is a wide-angle lens of 100-124 degrees (it cannot reach 90 degrees).
 EDGE_INCIDENCE = {"opencv": (50.0, 62.0)}
 FISHEYE_EDGE = (75.0, 100.0)
-MODEL_CLASSES = {
-    "kannala_brandt": KannalaBrandtCamera,
-    "double_sphere": DoubleSphereCamera,
-    "fisheye624": Fisheye624Camera,
-    "ucm": UnifiedCamera,
-    "eucm": ExtendedUnifiedCamera,
-    "fov": FovCamera,
-    "opencv": OpenCVCamera,
-}
 
 # The ego vehicle's body as boxes in the pose frame (z down; the ground is at z = +0.73): a cabin with
 # the roof 0.37 m below the side fisheyes, and a lower body (bonnet, boot, flanks). The lower part of the
@@ -160,7 +141,7 @@ def _unit_radius(family: str, params: dict, theta: float) -> float:
 def _camera(family: str, params: dict, fx: float, fy: float, cx: float, cy: float, size: int) -> CameraModel:
     if family == "mei":
         return MeiCamera(width=size, height=size, gamma1=fx, gamma2=fy, u0=cx, v0=cy, **params)
-    return MODEL_CLASSES[family](width=size, height=size, fx=fx, fy=fy, cx=cx, cy=cy, **params)
+    return CAMERA_MODELS[family](width=size, height=size, fx=fx, fy=fy, cx=cx, cy=cy, **params)
 
 
 def _distortion(rng: np.random.Generator, family: str, edge: float) -> dict:
