@@ -37,6 +37,7 @@ import yaml
 from tqdm import tqdm
 
 from ..cameras import CameraModel, load_camera, save_camera
+from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
 from ..utils import move_into_place, staged_folder
@@ -118,8 +119,7 @@ def scale_bit_depth(image: np.ndarray, bits: int) -> np.ndarray:
 
 # distortion_model -> (our model, our field for each coefficient of D, in order)
 CAMERA_INFO_MODELS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "plumb_bob": ("opencv", ("k1", "k2", "p1", "p2", "k3")),
-    "rational_polynomial": ("opencv", ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
+    **{name: ("opencv", fields) for name, fields in ROS_MODELS.items()},  # plumb_bob, rational_polynomial
     "equidistant": ("kannala_brandt", ("k1", "k2", "k3", "k4")),
 }
 
