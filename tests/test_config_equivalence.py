@@ -25,7 +25,11 @@ CONFIGS = BEFORE["configs"]
 COSINE = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
 # Options added after the fixture was recorded, each with the value that reproduces the recorded
 # behaviour (a config setting another value is a new experiment, not one of the recorded ones)
-ADDED_SINCE_RECORDING = {"net.encoder": "resnet"}  # the EfficientNet-Lite0 encoder came later
+ADDED_SINCE_RECORDING = {
+    "net.encoder": "resnet",  # the EfficientNet-Lite0 encoder came later
+    "objective.brightness": "none",  # the levers for traffic and auto-exposure came later still
+    "objective.outliers": 0.0,
+}
 
 
 def plain(value):

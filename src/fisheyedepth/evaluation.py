@@ -5,7 +5,9 @@ at its training resolution (the image and camera model resized alike); its dista
 ground truth's resolution in inverse-distance space, as the reference does. Metrics
 are reported unscaled (real scale), per-image median-scaled, and optionally with DNet-style scale
 recovery from the known camera height. The breakdown by angle of incidence (0-30, 30-60, 60-90, beyond
-90 degrees) shows where fisheye geometry matters.
+90 degrees) shows where fisheye geometry matters; the one by motion scores the pixels that see a moving
+object (where the ground truth says so: the synthetic world's traffic) apart from the static rest, so a
+method that is right on the road and wrong on cars cannot hide.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from .viz import panel
 log = logging.getLogger(__name__)
 
 ANGLE_BINS = ((0, 30), (30, 60), (60, 90), (90, 180))
+MOTION = ("static", "moving")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,6 +113,7 @@ class Evaluator:
         self.metrics = {s: DepthMetrics(protocol.cap) for s in self.scalings}
         self.by_angle = {(s, b): DepthMetrics(protocol.cap) for s in self.scalings for b in ANGLE_BINS}
         self.by_camera: dict[tuple[str, str], DepthMetrics] = {}  # (scaling, camera name), when named
+        self.by_motion = {(s, m): DepthMetrics(protocol.cap) for s in self.scalings for m in MOTION}
         self.ratios: dict[str, list[float]] = {s: [] for s in self.scalings}
         self.rays = rays if rays is not None else RayCache()
         # images fed, and the smallest positive and the largest ground truth on their usable pixels
@@ -125,8 +129,10 @@ class Evaluator:
         name: str | None = None,
         source: str | None = None,
         frame: str | None = None,
+        moving: Tensor | None = None,
     ) -> None:
         """One image: ``pred``/``gt`` ``[H, W]`` distances at the GT resolution, ``mask`` usable pixels;
+        ``moving``: ``[H, W]`` bool, the pixels whose ground truth is a moving object (None: none is);
         ``name``: the rig's camera it came from, for the per-camera breakdown (mixed rigs); ``source``:
         "lidar" for a projected scan (the protocol's occlusion filter applies), "lidar_filtered" for
         one filtered already (refused by a protocol without the filter), else a dense map; ``frame``:
@@ -172,6 +178,9 @@ class Evaluator:
                 self.by_angle[(scaling, (lo, hi))].update(
                     q[None], g[None], (keep & (angle >= lo) & (angle < hi))[None]
                 )
+            moves = torch.zeros_like(keep) if moving is None else moving.bool()
+            self.by_motion[(scaling, "static")].update(q[None], g[None], (keep & ~moves)[None])
+            self.by_motion[(scaling, "moving")].update(q[None], g[None], (keep & moves)[None])
 
     def _keep(self, gt: Tensor, gt_z: Tensor, mask: Tensor, valid: Tensor, source: str | None) -> Tensor:
         """The pixels with ground truth the protocol keeps, before its cap (see :meth:`update`)."""
@@ -201,7 +210,8 @@ class Evaluator:
 
     def _follow(self, device: torch.device) -> None:
         """Keep every metric's state on the device of the images it is fed (``eval.py device=cuda``)."""
-        for metric in (*self.metrics.values(), *self.by_angle.values(), *self.by_camera.values()):
+        groups = (self.metrics, self.by_angle, self.by_camera, self.by_motion)
+        for metric in (m for group in groups for m in group.values()):
             if metric.device != device:
                 metric.to(device)
 
@@ -237,6 +247,7 @@ class Evaluator:
             out[f"{scaling}_by_angle"] = {
                 f"{lo}-{hi}": _summary(self.by_angle[(scaling, (lo, hi))]) for lo, hi in ANGLE_BINS
             }
+            out[f"{scaling}_by_motion"] = {m: _summary(self.by_motion[(scaling, m)]) for m in MOTION}
             cameras = sorted(n for s, n in self.by_camera if s == scaling)
             if cameras:
                 out[f"{scaling}_by_camera"] = {n: _summary(self.by_camera[(scaling, n)]) for n in cameras}
@@ -282,9 +293,11 @@ def evaluate(
         names = batch.camera_name or [None] * len(batch)
         sources = batch.distance_source or [None] * len(batch)
         frames = batch.frame or [None] * len(batch)
+        moving = batch.moving.to(pred.device) > 0.5 if batch.moving is not None else [None] * len(batch)
         for i, cam in enumerate(batch.camera):
+            moves = None if moving[i] is None else moving[i][0]
             for ev in evaluators.values():
-                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i], frames[i])
+                ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i], frames[i], moves)
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body

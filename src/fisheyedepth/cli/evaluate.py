@@ -34,11 +34,12 @@ def _git_commit() -> str | None:
 
 
 def print_table(results: dict[str, Any], title: str) -> None:
-    """The headline rows, then one row per camera when the split has more than one (mixed rigs); a line
-    below for each protocol that left images unscored (no ground truth in its range)."""
+    """The headline rows, then one row per camera when the split has more than one (mixed rigs), then
+    the static and the moving pixels apart when the split has moving objects (synthetic traffic); a
+    line below for each protocol that left images unscored (no ground truth in its range)."""
     keys = ("abs_rel", "sq_rel", "rmse", "rmse_log", "a1", "a2", "a3")
     table = Table(title=title)
-    for col in ("protocol", "scaling", "camera", *keys, "images"):
+    for col in ("protocol", "scaling", "pixels", *keys, "images"):
         table.add_column(col, justify="right")
     for name, res in results.items():
         for scaling in (k for k in res if k in ("none", "median", "dnet")):
@@ -46,6 +47,9 @@ def print_table(results: dict[str, Any], title: str) -> None:
             per_camera = res.get(f"{scaling}_by_camera", {})
             if len(per_camera) > 1:
                 rows |= per_camera
+            motion = res.get(f"{scaling}_by_motion", {})
+            if motion.get("moving", {}).get("images"):
+                rows |= {"static pixels": motion["static"], "moving pixels": motion["moving"]}
             for camera, m in rows.items():
                 cells = ("-" if m[k] is None else f"{m[k]:.3f}" for k in keys)
                 table.add_row(name, scaling, camera, *cells, str(m["images"]))

@@ -83,7 +83,7 @@ def flip_sample(sample: dict[str, Any]) -> dict[str, Any]:
     (``u0 -> W - 1 - u0``, and what the model needs), relative poses mirror (``M T M``) and the
     camera-to-body extrinsic becomes ``E M``, so ``(E M)^-1 T_body (E M)`` is the mirrored pose."""
     out = dict(sample)
-    for key in ("image", "image_aug", "sources", "sources_aug", "mask", "source_mask", "distance"):
+    for key in ("image", "image_aug", "sources", "sources_aug", "mask", "source_mask", "distance", "moving"):
         if key in out:
             out[key] = out[key].flip(-1)
     out["camera"] = sample["camera"].flip()

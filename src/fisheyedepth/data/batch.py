@@ -14,6 +14,7 @@ A sample (what ``FisheyeDataset`` returns) is a dict:
 | ``source_mask`` | ``[S, 1, H, W]`` | optional: sources' body masks (default: ``mask``, same camera) |
 | ``distance`` | ``[1, H, W]`` float | optional ground-truth distance in metres, 0 = unknown |
 | ``distance_source`` | ``str`` | with ``distance``: "rendered", "lidar", "lidar_filtered" or "none" |
+| ``moving`` | ``[1, H, W]`` float | optional, with ``distance``: 1 where the pixel sees a moving object |
 | ``camera`` | a ``CameraModel`` | the target camera |
 | ``source_camera`` | list of ``S`` cameras | optional: sources' cameras (default: ``camera``) |
 | ``camera_name`` | ``str`` | optional: the rig's name for the target camera (e.g. ``image_02``) |
@@ -45,6 +46,7 @@ OPTIONAL = (
     "source_mask",
     "distance",
     "distance_source",
+    "moving",
     "source_camera",
     "camera_name",
     "frame",
@@ -66,6 +68,7 @@ class Batch:
     source_camera: list[list[CameraModel]]  # B lists of S source cameras
     cam_to_body: Tensor | None = None  # [B, 4, 4] camera-to-body extrinsics, when the layout has them
     distance: Tensor | None = None  # [B, 1, H, W] ground truth in metres (0 = unknown), when known
+    moving: Tensor | None = None  # [B, 1, H, W] 1 = the ground truth is a moving object, when known
     skipped_frames: list[str] = dataclasses.field(default_factory=list)  # reasons, skip_bad_frames
     camera_name: list[str] | None = None  # B rig names of the target cameras, when the dataset gives them
     distance_source: list[str] | None = None  # B "rendered", "lidar", "lidar_filtered" or "none"
@@ -144,6 +147,7 @@ def collate(samples: list[dict[str, Any]]) -> Batch | SkippedBatch:
         else [[c] * S for c in cameras],
         cam_to_body=stack("cam_to_body").float() if "cam_to_body" in keys else None,
         distance=stack("distance") if "distance" in keys else None,
+        moving=stack("moving") if "moving" in keys else None,
         skipped_frames=skipped,
         camera_name=[str(s["camera_name"]) for s in samples] if "camera_name" in keys else None,
         distance_source=[str(s["distance_source"]) for s in samples] if "distance_source" in keys else None,

@@ -316,6 +316,10 @@ class FisheyeDataset(Dataset):
             )
         self._posesets: dict[tuple[str, str], list[Frame]] = {}
         self._probe_grayscale()
+        # a dataset whose first frame has a moving-object mask has one for every frame (synthetic traffic)
+        self._has_moving = (
+            bool(self.items) and ground_truth != "none" and bool(self._moving_path(self.items[0]))
+        )
 
     def _probe_grayscale(self) -> None:
         """Read one image per (sequence, camera) now, so a grayscale camera is reported even when every
@@ -461,9 +465,38 @@ class FisheyeDataset(Dataset):
         gt = self._ground_truth(item, camera, target)
         if gt is not None:
             sample["distance"], sample["distance_source"] = gt
+            if self._has_moving:
+                sample["moving"] = self._moving(item, camera, target)
         if not all(torch.isfinite(v).all() for v in sample.values() if isinstance(v, torch.Tensor)):
             raise ValueError(f"{path}: sample has non-finite values")
         return sample
+
+    def _moving_path(self, item: Item, frame: Frame | None = None) -> Path | None:
+        find = getattr(self.layout, "moving", None)
+        if find is None:
+            return None
+        frame = frame or self.layout.frames(item.sequence, item.camera)[item.row]
+        return find(item.sequence, item.camera, frame)
+
+    def _moving(self, item: Item, camera, frame: Frame) -> torch.Tensor:
+        """``[1, H, W]`` float: 1 where the ground truth sees a moving object (the mask at its native
+        size, resized like the distance map). Missing for one frame of a dataset that has them: an error."""
+        path = self._moving_path(item, frame)
+        if path is None:
+            raise FileNotFoundError(
+                f"no moving-object mask for {item.sequence}/{item.camera}/{frame.key}, though the "
+                "dataset's first frame has one"
+            )
+        mask = cv2.cvtColor(read_image(path).bgr, cv2.COLOR_BGR2GRAY)
+        native = self.layout.cameras[item.camera].camera
+        if mask.shape != (native.height, native.width):
+            raise ValueError(
+                f"{path}: moving-object mask of {mask.shape[1]}x{mask.shape[0]} pixels, but its image is "
+                f"{native.width}x{native.height}"
+            )
+        if mask.shape[1::-1] != (camera.width, camera.height):
+            mask = cv2.resize(mask, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+        return torch.from_numpy((mask > 127).astype(np.float32))[None]
 
     def _mask(self, spec, camera) -> torch.Tensor:
         """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used. Decoded once

@@ -248,6 +248,11 @@ class RigLayout:
         path = self.root / sequence / "distance" / camera / f"{frame.key}.npy"
         return path if path.is_file() else None
 
+    def moving(self, sequence: str, camera: str, frame: Frame) -> Path | None:
+        """The frame's mask of pixels that see a moving object (a PNG, nonzero = moving), if any."""
+        path = self.root / sequence / "moving" / camera / f"{frame.key}.png"
+        return path if path.is_file() else None
+
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
     """Spherical linear interpolation of unit quaternions (shortest arc)."""

@@ -51,6 +51,11 @@ class SelfSupervisedObjective(nn.Module):
     both heads (it acts on the same [0, 1] disparity), so that the head switch changes the head alone.
     ``loss_resolution``: "full" (Monodepth2: every scale's distance upsampled and warped at the input
     size) or "native" (each scale warped at its own size: a speed lever).
+    ``brightness``: "none" (the paper's), or "affine": each source's brightness matched to the target's
+    (mean and spread per channel) before the photometric error, for cameras whose exposure and white
+    balance change from frame to frame.
+    ``outliers``: the fraction of each target's pixels with the largest error left out of the loss (0:
+    none, the paper's): what no warp of a static world explains, moving objects first.
     ``pose_net``: the PoseNet of a ``real_scale=False`` objective. It is borrowed, not owned: its weights
     belong to the caller (a LightningModule optimises and saves them as ``pose_net.*``).
     """
@@ -68,6 +73,8 @@ class SelfSupervisedObjective(nn.Module):
         rim_margin: int | None = None,
         smoothness: float = 1e-3,
         loss_resolution: str = "full",
+        brightness: str = "none",
+        outliers: float = 0.0,
         pose_net: nn.Module | None = None,
     ):
         super().__init__()
@@ -90,7 +97,7 @@ class SelfSupervisedObjective(nn.Module):
         self.fisheye_projection, self.pinhole_focal = fisheye_projection, pinhole_focal
         self.rim_margin, self.smoothness, self.loss_resolution = rim_margin, smoothness, loss_resolution
         object.__setattr__(self, "pose_net", pose_net)  # borrowed: not a submodule, see the docstring
-        self.reprojection = ReprojectionLoss(automask=automask)
+        self.reprojection = ReprojectionLoss(automask=automask, brightness=brightness, trim=outliers)
         self.rays = RayCache()
 
     # ------------------------------------------------------------------------------- geometry
@@ -200,8 +207,8 @@ class SelfSupervisedObjective(nn.Module):
         level = self.level(batch, None)
         poses = self.relative_poses(batch) if poses is None else poses
         warped, valid = self.warp_sources(level, distance, poses.to(batch.image.dtype))
-        errors = self.reprojection.photometric(warped, level.target)
         valid = valid & level.mask[:, None]
+        errors = self.reprojection.photometric(warped, level.target, valid)
         error, used = min_reprojection(errors, valid, level.identity, self.reprojection.automask, noise=0.0)
         return error, used & level.mask, level.mask
 

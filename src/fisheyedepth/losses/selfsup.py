@@ -1,4 +1,6 @@
-"""Minimum reprojection with auto-masking (Monodepth2), over fisheye warps, and edge-aware smoothness."""
+"""Minimum reprojection with auto-masking (Monodepth2), over fisheye warps, and edge-aware smoothness;
+two levers for what a still world under fixed light does not have: a per-image brightness correction
+(auto-exposure, white balance) and trimming of the pixels no warp explains (moving objects)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from torch import Tensor
 
 from .photometric import photometric_error
 
+BRIGHTNESS = ("none", "affine")
 INVALID_WARP_ERROR = 1.0
 """What a source costs at a pixel its warp cannot reach (outside the source image, no ray, body) when
 its unwarped error is not given: the largest photometric error (0.85 + 0.15 for images in [0, 1])."""
@@ -58,6 +61,37 @@ def automasked_error(reprojection: Tensor, valid: Tensor, unwarped: Tensor | Non
     return best[mask].mean() if bool(mask.any()) else best.new_zeros(())
 
 
+def match_brightness(images: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
+    """``images [B, S, 3, H, W]`` with each channel of each image mapped affinely onto the ``target
+    [B, 3, H, W]``'s brightness: mean and standard deviation matched over the pixels of ``valid [B, S,
+    H, W]`` (all without it). An exposure or white-balance change between two frames is such a map; the
+    gain and offset carry no gradient (constants of the step, as a camera's exposure is), and the gain is
+    kept within [0.5, 2] (a warp that shows something else must not be rescaled into agreement)."""
+    w = torch.ones_like(images[:, :, :1]) if valid is None else valid[:, :, None].to(images.dtype)
+    n = w.sum((-2, -1), keepdim=True).clamp_min(1.0)
+    t = target[:, None]
+    with torch.no_grad():
+        mean_i, mean_t = (images * w).sum((-2, -1), keepdim=True) / n, (t * w).sum((-2, -1), keepdim=True) / n
+        std_i = (((images - mean_i) ** 2 * w).sum((-2, -1), keepdim=True) / n).sqrt()
+        std_t = (((t - mean_t) ** 2 * w).sum((-2, -1), keepdim=True) / n).sqrt()
+        gain = (std_t / std_i.clamp_min(1e-4)).clamp(0.5, 2.0)
+        offset = mean_t - gain * mean_i
+    return images * gain + offset
+
+
+def trimmed(error: Tensor, mask: Tensor, fraction: float) -> Tensor:
+    """``[B, H, W]`` bool: the pixels of ``mask`` whose ``error`` is not among the worst ``fraction`` of
+    their image's (a trimmed mean's pixels; pixels no warp explains, like a moving car's, are the worst)."""
+    keep = mask.clone()
+    if fraction <= 0:
+        return keep
+    for b in range(error.shape[0]):
+        values = error[b][mask[b]].detach()
+        if values.numel() > 1:
+            keep[b] &= error[b].detach() <= torch.quantile(values.float(), 1.0 - fraction).to(error.dtype)
+    return keep
+
+
 def edge_aware_smoothness(disp: Tensor, image: Tensor) -> Tensor:
     """Mean of ``|d disp*| exp(-|d I|)`` over x and y, with ``disp* = disp / mean(disp)`` per sample."""
     disp = disp / (disp.mean((2, 3), keepdim=True) + 1e-7)
@@ -74,11 +108,22 @@ class ReprojectionLoss:
 
     automask: bool = True
     alpha: float = 0.85
+    brightness: str = "none"  # "affine": match_brightness before the error (warped and unwarped sources)
+    trim: float = 0.0  # the worst fraction of each image's pixels left out of the loss (trimmed)
     # (images, targets, alpha) -> per-pixel error; training may swap in a torch.compile'd one
     error_fn: Callable[[Tensor, Tensor, float], Tensor] = photometric_error
 
-    def photometric(self, images: Tensor, target: Tensor) -> Tensor:
-        """``[B, S, 3, H, W]`` images against the ``[B, 3, H, W]`` target: ``[B, S, H, W]`` errors."""
+    def __post_init__(self) -> None:
+        if self.brightness not in BRIGHTNESS:
+            raise ValueError(f"brightness: {self.brightness!r} is not one of {', '.join(BRIGHTNESS)}")
+        if not 0.0 <= self.trim < 1.0:
+            raise ValueError(f"outliers: {self.trim!r} is not a fraction in [0, 1)")
+
+    def photometric(self, images: Tensor, target: Tensor, valid: Tensor | None = None) -> Tensor:
+        """``[B, S, 3, H, W]`` images against the ``[B, 3, H, W]`` target: ``[B, S, H, W]`` errors
+        (``valid [B, S, H, W]``: the pixels a brightness correction is fitted on)."""
+        if self.brightness == "affine":
+            images = match_brightness(images, target, valid)
         B, S = images.shape[:2]
         flat = images.reshape(B * S, *images.shape[2:])
         rep = target[:, None].expand(B, S, *target.shape[1:]).reshape(B * S, *target.shape[1:])
@@ -113,8 +158,8 @@ class ReprojectionLoss:
         the automasked error (:func:`automasked_error`, no gradient) is what validation compares
         across epochs; None without ``measure`` (the training step does not need it).
         """
-        errors = self.photometric(warped, target)
         valid = valid & mask[:, None]
+        errors = self.photometric(warped, target, valid)
         best, used = min_reprojection(errors, valid, identity, self.automask)
         used = used & mask
         n = mask.sum().clamp_min(1)
@@ -122,4 +167,5 @@ class ReprojectionLoss:
         if measure:
             with torch.no_grad():
                 measured = automasked_error(errors, valid, identity, mask)
-        return (best * mask).sum() / n, used.sum() / n, measured
+        scored = trimmed(best, mask, self.trim)
+        return (best * scored).sum() / scored.sum().clamp_min(1), (used & scored).sum() / n, measured

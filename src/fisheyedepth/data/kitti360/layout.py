@@ -108,6 +108,11 @@ class Kitti360Layout:
         path = self.root / "data_2d_distance" / sequence / camera / f"{frame.key:010d}.npy"
         return path if path.is_file() else None
 
+    def moving(self, sequence: str, camera: str, frame: Frame) -> Path | None:
+        """The frame's mask of pixels that see a moving object (a PNG, nonzero = moving), if any."""
+        path = self.root / "data_2d_moving" / sequence / camera / f"{frame.key:010d}.png"
+        return path if path.is_file() else None
+
     def velo_to_camera(self, camera: str) -> np.ndarray:
         """``inv(E_cam) @ E_00 @ inv(T_cam0_to_velo)``: the Velodyne frame to ``camera``'s frame, from the
         extrinsics parsed at construction and ``calib_cam_to_velo.txt`` (read once, on first use)."""

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .rig import RIGS
+from .sensor import EFFECTS
 from .world import SCENES
 from .writer import Terminated, generate, made_by_generator
 
@@ -44,6 +45,17 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="draw every camera (model family, intrinsics, mounting height and tilt) from --seed",
     )
+    p.add_argument(
+        "--traffic", type=float, default=0.0, help="density of moving cars and pedestrians (0: none; 1: busy)"
+    )
+    p.add_argument(
+        "--effects",
+        nargs="*",
+        default=[],
+        choices=EFFECTS,
+        metavar="EFFECT",
+        help=f"camera effects, any of: {', '.join(EFFECTS)}",
+    )
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
@@ -64,6 +76,8 @@ def main(argv: list[str] | None = None) -> int:
             lane=a.lane,
             scene=a.scene,
             random_cameras=a.random_cameras,
+            traffic=a.traffic,
+            effects=a.effects,
         )
     except (OSError, ValueError) as exc:  # a full disk: writer.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)

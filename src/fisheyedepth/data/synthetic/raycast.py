@@ -79,6 +79,72 @@ class Hit(NamedTuple):
     material: Tensor  # [R] int64
     normal: Tensor  # [R, 3] world-frame unit normal
     tint: Tensor  # [R, 3]
+    # with movers only: where the texture is looked up minus the hit point ([R, 3]; 0 on the static
+    # world, so a mover's texture travels with it), and the mover hit ([R] int64; -1 none)
+    offset: Tensor | None = None
+    agent: Tensor | None = None
+
+
+@dataclasses.dataclass
+class Movers:
+    """Boxes turned about the vertical, at one instant (the traffic's): ``lo``/``hi [P, 3]`` corners in
+    each box's own frame, placed at ``(x, y)`` with heading ``yaw`` (``cos``/``sin [P]``); ``owner [P]``
+    the agent of each box."""
+
+    lo: Tensor
+    hi: Tensor
+    xy: Tensor
+    cos: Tensor
+    sin: Tensor
+    owner: Tensor
+    material: Tensor
+    tint: Tensor
+    bounds: tuple[Tensor, Tensor, Tensor, Tensor]
+
+    @classmethod
+    def from_boxes(cls, boxes: dict, device="cpu") -> Movers:
+        """From :meth:`fisheyedepth.data.synthetic.traffic.Traffic.boxes_at`'s arrays."""
+        f = dict(dtype=torch.float32, device=device)
+        lo, hi = torch.as_tensor(boxes["lo"], **f), torch.as_tensor(boxes["hi"], **f)
+        xy = torch.stack((torch.as_tensor(boxes["x"], **f), torch.as_tensor(boxes["y"], **f)), -1)
+        yaw = torch.as_tensor(boxes["yaw"], dtype=torch.float64, device=device)
+        cos, sin = torch.cos(yaw).float(), torch.sin(yaw).float()
+        mid = 0.5 * (lo + hi)
+        centre = torch.stack(
+            (
+                xy[:, 0] + cos * mid[:, 0] - sin * mid[:, 1],
+                xy[:, 1] + sin * mid[:, 0] + cos * mid[:, 1],
+                mid[:, 2],
+            ),
+            -1,
+        )
+        half = 0.5 * (hi - lo)
+        bounds = (centre, half.norm(dim=-1), hi[:, 2], half[:, :2].norm(dim=-1))
+        return cls(
+            lo,
+            hi,
+            xy,
+            cos,
+            sin,
+            torch.as_tensor(boxes["owner"], dtype=torch.int64, device=device),
+            torch.as_tensor(boxes["material"], dtype=torch.int64, device=device),
+            torch.as_tensor(boxes["tint"], **f),
+            bounds,
+        )
+
+    def to_local(self, points: Tensor, index: Tensor, direction: bool = False) -> Tensor:
+        """World points (or directions) ``[N, 3]`` in the frames of the boxes ``index [N]``."""
+        c, s = self.cos[index], self.sin[index]
+        x, y, z = points.unbind(-1)
+        if not direction:
+            x, y = x - self.xy[index, 0], y - self.xy[index, 1]
+        return torch.stack((c * x + s * y, -s * x + c * y, z), -1)
+
+    def to_world(self, vectors: Tensor, index: Tensor) -> Tensor:
+        """Directions ``[N, 3]`` in the boxes' frames turned into the world's."""
+        c, s = self.cos[index], self.sin[index]
+        x, y, z = vectors.unbind(-1)
+        return torch.stack((c * x - s * y, s * x + c * y, z), -1)
 
 
 def tile_grid(grid: Tensor, th: int, tw: int) -> Tensor:
@@ -183,8 +249,11 @@ def first_per_ray(rays: Tensor, objs: Tensor) -> tuple[Tensor, Tensor]:
     return ray[first], obj[first]
 
 
-def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 120.0) -> Hit:
-    """Nearest hit for tiled unit rays ``dirs [T, K, 3]`` from ``origin [3]`` (world frame)."""
+def cast(
+    scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 120.0, movers: Movers | None = None
+) -> Hit:
+    """Nearest hit for tiled unit rays ``dirs [T, K, 3]`` from ``origin [3]`` (world frame); ``movers``:
+    the traffic's boxes at this instant (the hit then says which agent it met and where its texture is)."""
     T, K, _ = dirs.shape
     flat = dirs.reshape(-1, 3)
     n_rays = flat.shape[0]
@@ -206,6 +275,10 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
         for kind in ("box", "cylinder", "sphere")
         if scene.bounds[kind][0].shape[0]
     }
+    if movers is not None and movers.lo.shape[0]:
+        pairs["mover"] = _overlapping_pairs(
+            origin, cone_dir, (cos_a, sin_a), tile_min_dz, movers.bounds, max_range
+        )
 
     t_best = t_ground.clone()
     candidates = []  # (kind, ray ids [N], object ids [N], t [N])
@@ -225,6 +298,9 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
                 t, _ = box_intersect(origin, d, scene.box_lo[ob], scene.box_hi[ob])
             elif kind == "cylinder":
                 t = _cylinder_intersect(origin, d, scene.cylinders[ob])
+            elif kind == "mover":
+                o_local = movers.to_local(origin.expand(len(ob), 3), ob)
+                t, _ = box_intersect(o_local, movers.to_local(d, ob, True), movers.lo[ob], movers.hi[ob])
             else:
                 t = _sphere_intersect(origin, d, scene.spheres[ob])
             t = torch.where(t <= max_range, t, torch.full_like(t, inf))
@@ -234,6 +310,10 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
     material = torch.full((n_rays,), SKY, dtype=torch.int64, device=dirs.device)
     normal = torch.zeros(n_rays, 3, device=dirs.device)
     tint = torch.ones(n_rays, 3, device=dirs.device)
+    offset = agent = None
+    if movers is not None:
+        offset = torch.zeros(n_rays, 3, device=dirs.device)
+        agent = torch.full((n_rays,), -1, dtype=torch.int64, device=dirs.device)
     ground = torch.isfinite(t_ground) & (t_ground == t_best)
     material[ground] = GROUND
     normal[ground] = torch.tensor([0.0, 0.0, 1.0], device=dirs.device)
@@ -257,8 +337,22 @@ def cast(scene: SceneTensors, origin: Tensor, dirs: Tensor, max_range: float = 1
             )
             n = torch.nn.functional.normalize(n, dim=-1)
             mat, tn = scene.cylinder_material[obj], scene.cylinder_tint[obj]
+        elif kind == "mover":
+            lo, hi = movers.lo[obj], movers.hi[obj]
+            local = movers.to_local(point, obj)
+            rel = (local - 0.5 * (lo + hi)) / (0.5 * (hi - lo)).clamp_min(1e-6)
+            axis = rel.abs().argmax(-1)
+            n = torch.zeros_like(point)
+            n[torch.arange(len(axis)), axis] = torch.sign(rel[torch.arange(len(axis)), axis])
+            n = movers.to_world(n, obj)
+            mat, tn = movers.material[obj], movers.tint[obj]
+            owner = movers.owner[obj]
+            # each agent's texture is its own, fixed to its body: looked up in its frame, moved apart
+            apart = torch.stack((owner * 37.0, owner * 23.0, torch.zeros_like(owner)), -1).to(local)
+            offset[rays] = local + apart - point
+            agent[rays] = owner
         else:
             n = torch.nn.functional.normalize(point - scene.spheres[obj, :3], dim=-1)
             mat, tn = scene.sphere_material[obj], scene.sphere_tint[obj]
         material[rays], normal[rays], tint[rays] = mat, n, tn
-    return Hit(t_best, material, normal, tint)
+    return Hit(t_best, material, normal, tint, offset, agent)

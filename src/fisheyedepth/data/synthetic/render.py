@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ...cameras import CameraModel, compute_rays
 from . import world as W
-from .raycast import Hit, SceneTensors, box_intersect, cast, tile_grid, untile_grid
+from .raycast import Hit, Movers, SceneTensors, box_intersect, cast, tile_grid, untile_grid
 from .rig import EGO_BODY
 from .shading import shade
 
@@ -55,19 +55,27 @@ class _Rays:
     def untile(self, values: Tensor) -> Tensor:
         return untile_grid(values, self.H, self.W, self.th, self.tw)
 
-    def cast(self, scene: SceneTensors, pose: np.ndarray) -> tuple[Tensor, Tensor, Hit]:
-        """World-frame origin, ray directions [R, 3] and nearest hits (ego body included) at ``pose``."""
+    def cast(
+        self, scene: SceneTensors, pose: np.ndarray, movers: Movers | None = None
+    ) -> tuple[Tensor, Tensor, Hit]:
+        """World-frame origin, ray directions [R, 3] and nearest hits (ego body included) at ``pose``,
+        with the traffic's ``movers`` of that instant."""
         T = torch.as_tensor(pose, dtype=torch.float32) @ self.sensor_to_pose
         origin = T[:3, 3]
         dirs = self.rays @ T[:3, :3].T
-        hit = cast(scene, origin, dirs, MAX_RANGE)
+        hit = cast(scene, origin, dirs, MAX_RANGE, movers)
         ego = self.t_ego < hit.t
         R_body = torch.as_tensor(pose[:3, :3], dtype=torch.float32)
+        agent = (
+            hit.agent if hit.agent is None else torch.where(ego, torch.full_like(hit.agent, -1), hit.agent)
+        )
         hit = Hit(
             torch.where(ego, self.t_ego, hit.t),
             torch.where(ego, torch.full_like(hit.material, W.EGO), hit.material),
             torch.where(ego[:, None], self.n_ego_body @ R_body.T, hit.normal),
             hit.tint,
+            hit.offset,
+            agent,
         )
         return origin, dirs.reshape(-1, 3), hit
 
@@ -75,6 +83,12 @@ class _Rays:
 class CameraFrame(NamedTuple):
     image: np.ndarray  # [H, W, 3] uint8 RGB
     distance: np.ndarray  # [H, W] float32 metres along the ray; 0 = sky or no ray
+    moving: np.ndarray | None = None  # [H, W] bool: a moving agent (with traffic only)
+
+
+def quantise(colour: Tensor) -> np.ndarray:
+    """``[H, W, 3]`` colour in [0, 1] as 8-bit RGB."""
+    return (colour.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
 
 
 class CameraRenderer:
@@ -98,18 +112,48 @@ class CameraRenderer:
         tile = _tile_size(camera.height, camera.width)
         return _Rays(rays, valid, cam_to_pose, (tile, tile), ego)
 
-    def render(self, scene: SceneTensors, world: W.World, pose: np.ndarray) -> CameraFrame:
-        origin, dirs, hit = self.fine.cast(scene, pose)
+    def colour(
+        self, scene: SceneTensors, world: W.World, pose: np.ndarray, movers: Movers | None = None
+    ) -> Tensor:
+        """``[H, W, 3]`` colour (the supersamples' mean, not yet clamped) at ``pose``."""
+        origin, dirs, hit = self.fine.cast(scene, pose, movers)
         colour = shade(world, hit, origin, dirs, self.pixel_angle)
         colour = torch.where(self.fine.valid[:, None], colour, torch.zeros_like(colour))
         img = self.fine.untile(colour)  # [sH, sW, 3]
         s = self.ss
-        img = img.reshape(self.camera.height, s, self.camera.width, s, 3).mean(dim=(1, 3))
-        image = (img.clamp(0, 1) * 255 + 0.5).to(torch.uint8).numpy()
-        _, _, centre = self.centre.cast(scene, pose)
+        return img.reshape(self.camera.height, s, self.camera.width, s, 3).mean(dim=(1, 3))
+
+    def truth(
+        self,
+        scene: SceneTensors,
+        pose: np.ndarray,
+        movers: Movers | None = None,
+        moving: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The exact distance ``[H, W]`` at ``pose`` (0: sky, no ray) and, with ``movers``, the pixels
+        that see an agent whose entry of ``moving [A]`` (bool) is set."""
+        _, _, centre = self.centre.cast(scene, pose, movers)
         keep = self.centre.valid & torch.isfinite(centre.t) & (centre.material != W.SKY)
         distance = self.centre.untile(torch.where(keep, centre.t, torch.zeros_like(centre.t)))
-        return CameraFrame(image, distance.numpy().astype(np.float32))
+        mask = None
+        if centre.agent is not None:
+            flags = torch.as_tensor(np.asarray(moving, dtype=bool)) if moving is not None else None
+            hit = centre.agent >= 0
+            if flags is not None and flags.numel():
+                hit = hit & flags[centre.agent.clamp_min(0)]
+            mask = self.centre.untile((hit & keep)[:, None])[..., 0].numpy()
+        return distance.numpy().astype(np.float32), mask
+
+    def render(
+        self,
+        scene: SceneTensors,
+        world: W.World,
+        pose: np.ndarray,
+        movers: Movers | None = None,
+        moving: np.ndarray | None = None,
+    ) -> CameraFrame:
+        image = quantise(self.colour(scene, world, pose, movers))
+        return CameraFrame(image, *self.truth(scene, pose, movers, moving))
 
 
 def hdl64_directions(columns: int = 900) -> tuple[Tensor, Tensor]:
@@ -129,11 +173,14 @@ class LidarRenderer:
         self.rays = _Rays(grid, valid, velo_to_pose, (8, tw), ego)
         self.pixel_angle = 2 * math.pi / columns
 
-    def render(self, scene: SceneTensors, world: W.World, pose: np.ndarray) -> np.ndarray:
+    def render(
+        self, scene: SceneTensors, world: W.World, pose: np.ndarray, movers: Movers | None = None
+    ) -> np.ndarray:
         """``[N, 4]`` float32 points (x, y, z in the Velodyne frame, reflectance in [0, 1])."""
-        origin, dirs, hit = self.rays.cast(scene, pose)
+        origin, dirs, hit = self.rays.cast(scene, pose, movers)
         keep = torch.isfinite(hit.t) & (hit.material != W.EGO) & (hit.material != W.SKY)
         local = self.rays.rays.reshape(-1, 3)[keep] * hit.t[keep, None]
-        colour = shade(world, Hit(*(x[keep] for x in hit)), origin, dirs[keep], self.pixel_angle)
+        kept = Hit(*(x if x is None else x[keep] for x in hit))
+        colour = shade(world, kept, origin, dirs[keep], self.pixel_angle)
         reflectance = colour.mean(-1, keepdim=True)
         return torch.cat((local, reflectance), -1).numpy().astype(np.float32)

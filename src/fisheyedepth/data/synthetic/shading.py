@@ -195,10 +195,11 @@ def shade(world: W.World, hit: Hit, origin: Tensor, dirs: Tensor, pixel_angle: f
     slant = (hit.normal * dirs).sum(-1).abs().clamp_min(0.15)
     footprint = (t * pixel_angle / slant).clamp_min(1e-4)
     sun = torch.as_tensor(world.sun, dtype=dirs.dtype, device=dirs.device)
+    texture = points if hit.offset is None else points + hit.offset  # a mover's texture moves with it
     if world.scene == "indoor":
-        return _indoor(world, hit, points, albedo(world, hit, points, footprint), sun)
+        return _indoor(world, hit, points, albedo(world, hit, texture, footprint), sun)
     light = 0.45 + 0.55 * (hit.normal @ sun).clamp_min(0)
-    colour = albedo(world, hit, points, footprint) * light[:, None]
+    colour = albedo(world, hit, texture, footprint) * light[:, None]
     return torch.where((hit.material == W.SKY)[:, None], sky(dirs), colour)
 
 

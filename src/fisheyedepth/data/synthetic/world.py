@@ -312,6 +312,20 @@ def wobbling_speed(n_frames: int, mean: float, slow, fast, phases) -> np.ndarray
     )
 
 
+@dataclasses.dataclass
+class Drive:
+    """A drive through the street world: the body poses and the paths they follow (what traffic needs)."""
+
+    poses: np.ndarray  # [F, 4, 4] body-to-world
+    s: np.ndarray  # [F] arc length along ``lane`` of each frame (metres)
+    route: np.ndarray  # [N, 2] the grid nodes driven through (metres)
+    centre: np.ndarray  # [M, 2] the street centreline, filleted, every 5 cm
+    lane: np.ndarray  # [L, 2] the driven lane, every 5 cm
+    s_lane: np.ndarray  # [L] arc length of each lane point
+    heading: np.ndarray  # [L] unwrapped yaw of the lane (radians)
+    lane_offset: float  # metres right of the centreline
+
+
 def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float = 1.75) -> np.ndarray:
     """``[n_frames, 4, 4]`` body-to-world poses of a car driving ``lane_offset`` metres to the right of
     the street's centreline (1.75: the right lane; negative: the left lane), with turns.
@@ -319,6 +333,11 @@ def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float =
     Speeds vary smoothly between 0.3 and 1.5 m per frame and drop in turns; pitch and roll wobble by a
     few tenths of a degree.
     """
+    return make_drive(world, n_frames, seed, lane_offset).poses
+
+
+def make_drive(world: World, n_frames: int, seed: int, lane_offset: float = 1.75) -> Drive:
+    """:func:`make_trajectory`'s poses with the paths behind them."""
     rng = np.random.default_rng([seed, 7])
     phases = rng.uniform(0, 2 * math.pi, 4)
     speed = wobbling_speed(n_frames, 0.9, (0.35, 90), (0.15, 31), phases)
@@ -349,4 +368,4 @@ def make_trajectory(world: World, n_frames: int, seed: int, lane_offset: float =
         poses[i, :3, :3] = body_rotation(yaw[i], pitch, roll)
         poses[i, :3, 3] = (x[i], y[i], BODY_HEIGHT)
         poses[i, 3, 3] = 1.0
-    return poses
+    return Drive(poses, s, route, centre, lane, s_lane, heading, lane_offset)

@@ -20,6 +20,7 @@ import ctypes
 import errno
 import io
 import json
+import math
 import os
 import shutil
 import signal
@@ -44,10 +45,12 @@ from ... import __version__
 from ...cameras import CameraModel, opencv_yaml
 from ...utils import pid_alive
 from .indoor import make_indoor_trajectory, make_indoor_world
-from .raycast import scene_tensors
-from .render import CameraRenderer, LidarRenderer
+from .raycast import Movers, scene_tensors
+from .render import CameraRenderer, LidarRenderer, quantise
 from .rig import RIGS, Rig, make_rig
-from .world import SCENES, World, make_trajectory, make_world
+from .sensor import Sensor, blur_times, check_effects
+from .traffic import Traffic, make_traffic, no_traffic
+from .world import SCENES, World, make_drive, make_world
 
 SPLITS = ("train", "val", "test")
 SEQUENCES = {split: f"2013_05_28_drive_{i:04d}_sync" for i, split in enumerate(SPLITS)}
@@ -59,10 +62,21 @@ MARKER_TEXT = (
 )
 OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written
 # must match a finished dataset's synthetic.json (a key it lacks, from an older version, is not checked)
-CHECKED = ("rig", "frames", "size", "seed", "supersample", "lane", "scene", "random_cameras")
+CHECKED = (
+    "rig",
+    "frames",
+    "size",
+    "seed",
+    "supersample",
+    "lane",
+    "scene",
+    "random_cameras",
+    "traffic",
+    "effects",
+)
 # parameters a street dataset with fixed cameras does not write into synthetic.json (its files stay those
 # of the versions before them): a finished dataset without the key was rendered with this value
-UNWRITTEN = {"scene": "street", "random_cameras": False}
+UNWRITTEN = {"scene": "street", "random_cameras": False, "traffic": 0, "effects": []}
 LANES = {"right": 1.75, "left": -1.75}  # the car's offset from the street's centreline, metres to its right
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
@@ -101,6 +115,7 @@ class Job:
     sequence: str
     frame: int
     pose: np.ndarray
+    index: int = 0  # the frame's place on the whole trajectory (traffic, exposure and noise follow it)
 
 
 def _row(T: np.ndarray) -> str:
@@ -147,9 +162,41 @@ def make_scene_world(scene: str, seed: int) -> World:
 
 def make_scene_trajectory(world: World, frames: int, seed: int, lane: str = "right") -> np.ndarray:
     """``[frames, 4, 4]`` body poses through ``world``: the car in ``lane``, or the walk around the room."""
+    return make_scene_motion(world, frames, seed, lane)[0]
+
+
+def make_scene_motion(
+    world: World, frames: int, seed: int, lane: str = "right", traffic: float = 0.0
+) -> tuple[np.ndarray, Traffic]:
+    """The body poses of :func:`make_scene_trajectory` and the traffic at density ``traffic`` (streets
+    only; 0 leaves the world as it was)."""
     if world.scene == "indoor":
-        return make_indoor_trajectory(world, frames, seed)
-    return make_trajectory(world, frames, seed, LANES[lane])
+        if traffic:
+            raise ValueError(f"traffic: {traffic} asked for, but the indoor scene has no streets (use 0)")
+        return make_indoor_trajectory(world, frames, seed), no_traffic(frames)
+    drive = make_drive(world, frames, seed, LANES[lane])
+    return drive.poses, make_traffic(world, drive, traffic, seed)
+
+
+def pose_at(poses: np.ndarray, time: float) -> np.ndarray:
+    """The ``[4, 4]`` pose at a fractional trajectory frame: positions interpolated linearly, rotations
+    along the shortest arc between the two frames around it (extrapolated past either end)."""
+    k = int(np.clip(np.floor(time), 0, len(poses) - 2))
+    u = time - k
+    a, b = poses[k], poses[k + 1]
+    step = a[:3, :3].T @ b[:3, :3]
+    angle = float(np.arccos(np.clip((np.trace(step) - 1) / 2, -1.0, 1.0)))
+    out = np.eye(4)
+    out[:3, 3] = (1 - u) * a[:3, 3] + u * b[:3, 3]
+    if angle < 1e-12:
+        out[:3, :3] = a[:3, :3]
+        return out
+    axis = np.array([step[2, 1] - step[1, 2], step[0, 2] - step[2, 0], step[1, 0] - step[0, 1]])
+    axis /= 2 * math.sin(angle)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    theta = u * angle
+    out[:3, :3] = a[:3, :3] @ (np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K)
+    return out
 
 
 class _Worker:
@@ -165,9 +212,17 @@ class _Worker:
         lidar: bool,
         scene: str = "street",
         random_cameras: bool = False,
+        traffic: float = 0.0,
+        effects: tuple[str, ...] = (),
+        lane: str = "right",
+        frames: int = 0,
     ):
         self.root, self.world = root, make_scene_world(scene, seed)
         self.rig = make_rig(rig_name, size, scene, random_cameras, seed)
+        self.effects = check_effects(effects)
+        self.poses, self.traffic = None, None
+        if traffic or "motion_blur" in self.effects:  # the motion around each frame is needed
+            self.poses, self.traffic = make_scene_motion(self.world, frames, seed, lane, traffic)
         # the street with its own cameras keeps the ground truth it has always had (SceneTensors)
         self.scene = scene_tensors(self.world, legacy_culling=scene == "street" and not random_cameras)
         self.cameras = {
@@ -175,17 +230,48 @@ class _Worker:
             for name, cam in self.rig.cameras.items()
         }
         self.lidar = LidarRenderer(self.rig.velo_to_pose, ego=self.rig.ego) if lidar else None
+        self.sensors = {}
+        if self.effects:
+            for i, (name, renderer) in enumerate(self.cameras.items()):
+                valid = renderer.centre.untile(renderer.centre.valid[:, None])[..., 0].numpy()
+                self.sensors[name] = Sensor(self.effects, seed, i, valid)
+
+    def movers(self, time: float, pose: np.ndarray) -> Movers | None:
+        """The traffic's boxes at a (fractional) trajectory frame; None without traffic."""
+        if self.traffic is None or not self.traffic.n_agents:
+            return None
+        return Movers.from_boxes(self.traffic.boxes_at(time, pose[:2, 3]))
 
     def __call__(self, job: Job) -> None:
         stem = f"{job.frame:010d}"
+        movers = self.movers(job.index, job.pose)
+        moving = self.traffic.moving(job.index) if movers is not None else None
         for name, renderer in self.cameras.items():
-            frame = renderer.render(self.scene, self.world, job.pose)
+            sensor = self.sensors.get(name)
+            if sensor is not None and sensor.blurred:
+                shots = [pose_at(self.poses, t) for t in blur_times(job.index)]
+                times = blur_times(job.index)
+                colour = sum(
+                    renderer.colour(self.scene, self.world, p, self.movers(t, p))
+                    for p, t in zip(shots, times, strict=True)
+                ) / len(shots)
+            else:
+                colour = renderer.colour(self.scene, self.world, job.pose, movers)
+            if sensor is not None:
+                colour = sensor(colour, job.index)
+            distance, moving_mask = renderer.truth(self.scene, job.pose, movers, moving)
             image = self.root / "data_2d_raw" / job.sequence / name / "data_rgb" / f"{stem}.png"
-            _write(image, _png(frame.image[..., ::-1]))
-            distance = self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy"
-            _write(distance, _npy(frame.distance))
+            _write(image, _png(quantise(colour)[..., ::-1]))
+            path = self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy"
+            _write(path, _npy(distance))
+            if self.traffic is not None and self.traffic.n_agents:
+                path = self.root / "data_2d_moving" / job.sequence / name / f"{stem}.png"
+                mask = (
+                    np.zeros(distance.shape, np.uint8) if moving_mask is None else moving_mask * np.uint8(255)
+                )
+                _write(path, _png(mask))
         if self.lidar is not None:
-            points = self.lidar.render(self.scene, self.world, job.pose)
+            points = self.lidar.render(self.scene, self.world, job.pose, movers)
             scan = self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin"
             _write(scan, np.ascontiguousarray(points).tobytes())
 
@@ -228,7 +314,12 @@ def calibration_text(camera: CameraModel, name: str) -> str:
 
 
 def _write_layout(
-    root: Path, rig: Rig, body_masks: dict[str, np.ndarray], jobs: list[Job], lidar: bool
+    root: Path,
+    rig: Rig,
+    body_masks: dict[str, np.ndarray],
+    jobs: list[Job],
+    lidar: bool,
+    moving: bool = False,
 ) -> None:
     calib = root / "calibration"
     calib.mkdir(parents=True)
@@ -243,6 +334,8 @@ def _write_layout(
         for name in rig.cameras:
             (root / "data_2d_raw" / seq / name / "data_rgb").mkdir(parents=True)
             (root / "data_2d_distance" / seq / name).mkdir(parents=True)
+            if moving:
+                (root / "data_2d_moving" / seq / name).mkdir(parents=True)
         if lidar:
             (root / "data_3d_raw" / seq / "velodyne_points" / "data").mkdir(parents=True)
         (root / "data_poses" / seq).mkdir(parents=True)
@@ -351,7 +444,9 @@ def _move_into_place(tmp: Path, out: Path) -> None:
         old.unlink(missing_ok=True)
 
 
-def _metadata(rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict, lidar: bool) -> dict:
+def _metadata(
+    rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict, lidar: bool, agents: Traffic
+) -> dict:
     """``synthetic.json``: ``params`` are the generation parameters (seed, rig, size, supersample, frames;
     scene and random_cameras where they differ from the street with fixed cameras)."""
     params = {k: v for k, v in params.items() if k not in UNWRITTEN or v != UNWRITTEN[k]}
@@ -366,6 +461,8 @@ def _metadata(rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict,
         }
     else:
         described = {"pitch": world.pitch, "sun": world.sun.tolist(), **counts}
+        if agents.n_agents:
+            described["agents"] = {k: agents.kind.count(k) for k in sorted(set(agents.kind))}
     return {
         "generator": f"fisheyedepth {__version__}",
         **params,
@@ -392,6 +489,8 @@ def generate(
     lane: str = "right",
     scene: str = "street",
     random_cameras: bool = False,
+    traffic: float = 0.0,
+    effects=(),
 ) -> Path:
     """Render ``frames`` frames of every camera of ``rig`` (plus LiDAR) into ``out``. Returns ``out``.
 
@@ -400,6 +499,10 @@ def generate(
     ``scene``: "street" (the city and the car) or "indoor" (a furnished room, a hand-held rig walking
     through it; ``lane`` does not apply). ``random_cameras``: every camera's model family, intrinsics,
     mounting height and tilt drawn from ``seed`` instead of the rig's own (``rig.random_camera``).
+    ``traffic``: the density of moving cars and pedestrians (:mod:`.traffic`; 0: none, the world as
+    before, bit for bit); with traffic, ``data_2d_moving`` holds each frame's mask of pixels that see a
+    moving agent. ``effects``: names of :data:`.sensor.EFFECTS` (auto-exposure, white balance,
+    vignetting, noise, motion blur), each a switch; none by default.
 
     ``overwrite`` replaces whatever ``out`` holds once the new dataset is complete (the CLI's explicit
     ``--overwrite``); ``ensure_dataset`` is the careful variant that replaces only what this generator made.
@@ -416,10 +519,14 @@ def generate(
         raise ValueError(f"scene must be one of {SCENES}, got {scene!r}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
+    effects = check_effects(effects)
+    if not (isinstance(traffic, int | float) and math.isfinite(traffic) and traffic >= 0):
+        raise ValueError(f"traffic must be a density >= 0 (0: no traffic), got {traffic!r}")
     ranges = split_frames(frames)
+    n_trajectory = ranges["test"][1]
     world = make_scene_world(scene, seed)
-    poses = make_scene_trajectory(world, ranges["test"][1], seed, lane)
-    jobs = [Job(SEQUENCES[s], i - a, poses[i]) for s, (a, b) in ranges.items() for i in range(a, b)]
+    poses, agents = make_scene_motion(world, n_trajectory, seed, lane, traffic)
+    jobs = [Job(SEQUENCES[s], i - a, poses[i], i) for s, (a, b) in ranges.items() for i in range(a, b)]
 
     out.parent.mkdir(parents=True, exist_ok=True)
     _remove_stale(out)
@@ -431,11 +538,14 @@ def generate(
             tmp.mkdir()
             (tmp / MARKER).write_text(MARKER_TEXT)
             (tmp / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
-            worker = _Worker(tmp, seed, rig, size, supersample, lidar, scene, random_cameras)
+            initargs = (
+                *(tmp, seed, rig, size, supersample, lidar, scene, random_cameras),
+                *(traffic, effects, lane, n_trajectory),
+            )
+            worker = _Worker(*initargs)
             masks = {name: r.body_mask for name, r in worker.cameras.items()}
-            _write_layout(tmp, worker.rig, masks, jobs, lidar)
+            _write_layout(tmp, worker.rig, masks, jobs, lidar, agents.n_agents > 0)
             desc = f"rendering {rig} {size}px" if scene == "street" else f"rendering {scene} {rig} {size}px"
-            initargs = (tmp, seed, rig, size, supersample, lidar, scene, random_cameras)
             with tqdm(total=len(jobs), desc=desc, unit="frame", disable=not progress) as bar:
                 _render(jobs, worker, workers, initargs, bar)
             params = {
@@ -447,8 +557,10 @@ def generate(
                 "lane": lane,
                 "scene": scene,
                 "random_cameras": random_cameras,
+                "traffic": traffic,
+                "effects": list(effects),
             }
-            meta = _metadata(worker.rig, world, ranges, params, lidar)
+            meta = _metadata(worker.rig, world, ranges, params, lidar, agents)
             (tmp / OWNER).unlink()
             (tmp / "synthetic.json").write_text(json.dumps(meta, indent=2) + "\n")
             _move_into_place(tmp, out)
@@ -526,14 +638,16 @@ def ensure_dataset(
     lane: str = "right",
     scene: str = "street",
     random_cameras: bool = False,
+    traffic: float = 0.0,
+    effects=(),
 ) -> Path:
     """The synthetic dataset at ``root``, rendered on first use (what ``train.py`` calls). Returns ``root``.
 
     A finished dataset is used as it is, if it was rendered with the same rig, frames, size, seed,
-    supersample, lane, scene and camera randomisation (``DatasetMismatch`` otherwise). An absent or
-    empty ``root`` is rendered; a folder that this generator started but that has no ``synthetic.json``
-    is rendered again. Anything else raises ``NotASyntheticDataset`` (a ``FileExistsError``) and is left
-    untouched.
+    supersample, lane, scene, camera randomisation, traffic and effects (``DatasetMismatch``
+    otherwise). An absent or empty ``root`` is rendered; a folder that this generator started but that
+    has no ``synthetic.json`` is rendered again. Anything else raises ``NotASyntheticDataset`` (a
+    ``FileExistsError``) and is left untouched.
     """
     root = Path(root)
     asked = {
@@ -545,6 +659,8 @@ def ensure_dataset(
         "lane": lane,
         "scene": scene,
         "random_cameras": random_cameras,
+        "traffic": traffic,
+        "effects": list(check_effects(effects)),
     }
     if is_complete(root):
         _check_parameters(root, asked)
@@ -565,6 +681,8 @@ def ensure_dataset(
         lane=lane,
         scene=scene,
         random_cameras=random_cameras,
+        traffic=traffic,
+        effects=effects,
     )
 
 
