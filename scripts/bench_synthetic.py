@@ -4,7 +4,9 @@
 Camera-frames per second at 256x256 with 2x2 supersampling on 2 CPU cores (target >= 5, stretch 20):
 1. rendering alone, in this process with 2 threads (colour, exact distance, body mask; no files);
 2. the whole generator (`generate`: rendering, LiDAR, PNG/NPY/BIN files), in one process with 2 threads
-   and with 2 worker processes of 1 thread each.
+   and with 2 worker processes of 1 thread each;
+3. the same with traffic (density 1), and with traffic and every camera effect (motion blur renders
+   each frame's colour 5 times), beside the still street in the same run, with each dataset's size.
 
 Usage: python scripts/bench_synthetic.py [--frames 24] [--size 256] [--no-write] [--quick]
 """
@@ -40,11 +42,13 @@ def render_only(frames: int, size: int, supersample: int) -> float:
     return frames * len(renderers) / seconds
 
 
-def end_to_end(frames: int, size: int, supersample: int, workers: int) -> float:
+def end_to_end(frames: int, size: int, supersample: int, workers: int, **world) -> tuple[float, float]:
+    """Camera-frames per second of ``generate``, and the dataset's megabytes per 100 camera-frames."""
     with tempfile.TemporaryDirectory() as tmp:
         options = {"frames": frames, "size": size, "supersample": supersample, "workers": workers}
-        seconds = timed(lambda: generate(Path(tmp) / "d", "kitti360", progress=False, **options))
-        return frames * 2 / seconds
+        seconds = timed(lambda: generate(Path(tmp) / "d", "kitti360", progress=False, **options, **world))
+        size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "d").rglob("*") if f.is_file())
+        return frames * 2 / seconds, size_bytes / 2**20 / (frames * 2) * 100
 
 
 def main(argv=None) -> int:
@@ -54,12 +58,16 @@ def main(argv=None) -> int:
     parser.add_argument("--supersample", type=int, default=2)
     args = parse_args(parser, argv, quick={"frames": 9, "size": 64, "supersample": 1})
     torch.set_num_threads(2)
+    shape = (args.frames, args.size, args.supersample)
+    everything = ["exposure", "white_balance", "vignetting", "noise", "motion_blur"]
     rows = [
-        ("rendering only, 1 process x 2 threads", render_only(args.frames, args.size, args.supersample)),
-        ("generate(), 1 process x 2 threads", end_to_end(args.frames, args.size, args.supersample, 0)),
+        ("rendering only, 1 process x 2 threads", (render_only(*shape), None)),
+        ("generate(), 1 process x 2 threads", end_to_end(*shape, 0)),
+        ("generate(), 2 worker processes x 1 thread", end_to_end(*shape, 2)),
+        ("generate(), 2 workers, traffic 1", end_to_end(*shape, 2, traffic=1.0)),
         (
-            "generate(), 2 worker processes x 1 thread",
-            end_to_end(args.frames, args.size, args.supersample, 2),
+            "generate(), 2 workers, traffic 1 and every effect",
+            end_to_end(*shape, 2, traffic=1.0, effects=everything),
         ),
     ]
     lines = [
@@ -72,13 +80,13 @@ def main(argv=None) -> int:
         f"{time.strftime('%Y-%m-%d')}. kitti360 rig (2 Mei cameras), {args.size}x{args.size}, "
         f"{args.supersample}x{args.supersample} supersampling; end-to-end runs include LiDAR and files.",
         "",
-        "| mode | camera-frames / s | target >= 5 | stretch >= 20 |",
-        "|---|---|---|---|",
+        "| mode | camera-frames / s | target >= 5 | stretch >= 20 | MB per 100 camera-frames |",
+        "|---|---|---|---|---|",
     ]
-    for name, fps in rows:
-        lines.append(
-            f"| {name} | {fps:.2f} | {'yes' if fps >= 5 else 'NO'} | {'yes' if fps >= 20 else 'no'} |"
-        )
+    for name, (fps, mb) in rows:
+        size = "-" if mb is None else f"{mb:.1f}"
+        met = f"{'yes' if fps >= 5 else 'NO'} | {'yes' if fps >= 20 else 'no'}"
+        lines.append(f"| {name} | {fps:.2f} | {met} | {size} |")
     lines.append(END)
     section = "\n".join(lines) + "\n"
     publish(section, args.output, START, END, write=not args.no_write)

@@ -16,12 +16,14 @@ rendered on first use), into ``RUN/heldout_<rig>_seed<S>/results.json`` (``..._f
 the near kerb for the far side of the street. ``--set`` passes more Hydra overrides to ``eval.py``
 (e.g. ``paths.data_dir=...``). ``--traffic`` scores the worlds of ``data=synthetic_traffic`` (moving
 cars and pedestrians, camera effects; scored into ``..._traffic``) and prints full-range abs_rel on the
-static pixels, then on the moving ones. Numbers otherwise: full-range abs_rel and a1, then
-kitti360-protocol abs_rel, all unscaled (real scale). ``--from-records`` prints the same rows from
-kept run records (``docs/records/**/*.json``, their ``results`` and ``heldout`` scores) and scores
-nothing: a world a record was not scored on reads ``(not scored)``. Choose the held-out seeds before
-training, and never train or tune on them: the seed of the world the run trained on (its
-``.hydra/config.yaml``, ``data.generate``) is refused for its rig, in either lane.
+static pixels, then on the moving ones; ``--curves`` (with ``--from-records``) adds the first and the
+last validation photometric error and abs_rel of each record's curves (that the run learned). Numbers
+otherwise: full-range abs_rel and a1, then kitti360-protocol abs_rel, all unscaled (real scale).
+``--from-records`` prints the same rows from kept run records (``docs/records/**/*.json``, their
+``results`` and ``heldout`` scores) and scores nothing: a world a record was not scored on reads ``(not
+scored)``. Choose the held-out seeds before training, and never train or tune on them: the seed of the
+world the run trained on (its ``.hydra/config.yaml``, ``data.generate``) is refused for its rig, in
+either lane.
 """
 
 from __future__ import annotations
@@ -72,7 +74,15 @@ def folder_name(
     return f"heldout_{rig}_seed{seed}{suffix}"
 
 
-def record_rows(paths: list[Path], seeds: list[int], *where) -> list[list[str]]:
+def learned(curves: dict) -> list[str]:
+    """``first -> last`` of a record's validation photometric error and abs_rel."""
+    return [
+        f"{curves[k][0]:.4f} -> {curves[k][-1]:.4f}" if curves.get(k) else "-"
+        for k in ("val/photometric", "val/abs_rel")
+    ]
+
+
+def record_rows(paths: list[Path], seeds: list[int], *where, curves: bool = False) -> list[list[str]]:
     """The table's rows from run records (``docs/records``): nothing is scored."""
     from make_tables import records_under
 
@@ -85,7 +95,7 @@ def record_rows(paths: list[Path], seeds: list[int], *where) -> list[list[str]]:
         for seed in seeds:
             held = record["heldout"].get(folder_name(where[0], seed, *where[1:]))
             cells.append(show(held["results"]) if held else "(not scored)")
-        rows.append(cells)
+        rows.append(cells + (learned(record["curves"] or {}) if curves else []))
     return rows
 
 
@@ -158,6 +168,9 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--traffic", action="store_true", help="worlds with traffic; abs_rel on static / moving pixels"
     )
+    parser.add_argument(
+        "--curves", action="store_true", help="with --from-records: first and last validation scores"
+    )
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="more eval.py overrides")
     parser.add_argument(
         "--from-records", action="store_true", help="RUNs are run records or folders of them: score nothing"
@@ -165,11 +178,15 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     lane = (", left lane" if args.lane == "left" else "") + (", traffic" if args.traffic else "")
     header = ["run", "own test", *(f"world {s} (held out{lane})" for s in args.seeds)]
+    if args.curves:
+        if not args.from_records:
+            parser.error("--curves reads the records' curves: use it with --from-records")
+        header += ["val photometric first -> last", "val abs_rel first -> last"]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     if args.from_records:
         where = (args.rig, args.upsample, args.post_process, args.lane, args.traffic)
-        for cells in record_rows(args.runs, args.seeds, *where):
+        for cells in record_rows(args.runs, args.seeds, *where, curves=args.curves):
             print("| " + " | ".join(cells) + " |")
         return 0
     for run in args.runs:

@@ -58,6 +58,7 @@ def test_every_experiment_composes(experiment):
         "cpu_30min": (True, True, True),  # the full model, at a larger size for longer
         "gpu_10min": (True, True, True),  # cpu_30min on a GPU for longer
         "release_mobile": (True, True, True),  # the released weights: the mobile model, the mixed world
+        "traffic_levers": (True, True, True),  # the levers' base row: the full method on traffic
     }[experiment]
     assert (m.objective.fisheye_projection, m.objective.real_scale, m.net.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
@@ -69,6 +70,10 @@ def test_every_experiment_composes(experiment):
         assert list(cfg.data.datamodule.size) == [256, 256] != list(default.data.datamodule.size)
         assert cfg.model.scheduler.step_size < cfg.trainer.max_epochs
         assert cfg.model.objective.loss_resolution == "native"
+    if experiment == "traffic_levers":  # the paper's objective; each other row adds one switch
+        assert cfg.data.generate.traffic == 1.0 and len(cfg.data.generate.effects) == 5
+        assert "/synthetic_traffic_" in OmegaConf.to_container(cfg.data.datamodule)["root"]
+        assert (m.objective.automask, m.objective.outliers, m.objective.brightness) == (True, 0.0, "none")
     if experiment == "release_mobile":
         assert cfg.model.net.encoder == "efficientnet_lite0" and cfg.model.net.decoder_width == 0.25
         assert len(cfg.data.datamodule.root) == 4 and cfg.data.generate.random_cameras is True
@@ -204,9 +209,14 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
     heldout.score_heldout(tmp_path, 2001, "surround4", None, [])  # the right lane's is reused
     assert len(commands) == 4
     # from the command line
-    monkeypatch.setattr(heldout, "scores", lambda path: "-")
+    monkeypatch.setattr(heldout, "scores", lambda path, traffic=False: "-")
     assert heldout.main([str(tmp_path), "--rig", "surround4", "--lane", "left", "--seeds", "2002"]) == 0
     assert "++data.generate.lane=left" in commands[4] and "data.generate.seed=2002" in commands[4]
+    # worlds with traffic: their own data config and their own results folder
+    assert heldout.main([str(tmp_path), "--traffic", "--seeds", "2003"]) == 0
+    assert "data=synthetic_traffic" in commands[5]
+    assert f"hydra.run.dir={tmp_path / 'heldout_kitti360_seed2003_traffic'}" in commands[5]
+    assert "data=synthetic_traffic" not in commands[4]
 
 
 def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):

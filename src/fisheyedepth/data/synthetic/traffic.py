@@ -181,9 +181,9 @@ def _wait_for(obstacles: np.ndarray, start: np.ndarray, step: np.ndarray, n: int
 def make_traffic(world: World, drive: Drive, density: float, seed: int) -> Traffic:
     """The agents a drive meets at ``density`` (0: none; 1: a busy city street). Deterministic per seed."""
     n_frames = len(drive.s)
-    if not density > 0:
-        if density != 0 or not math.isfinite(density):
-            raise ValueError(f"traffic density must be a number >= 0, got {density!r}")
+    if not (math.isfinite(density) and density >= 0):
+        raise ValueError(f"traffic density must be a finite number >= 0, got {density!r}")
+    if density == 0:
         return no_traffic(n_frames)
     rng = np.random.default_rng([seed, 45])
     kinds, tracks, parts = [], [], []
