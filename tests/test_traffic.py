@@ -329,3 +329,18 @@ def test_outliers_leave_the_worst_pixels_of_each_image_out_of_the_loss():
     assert 0.6 <= float(used) <= 0.75  # the worst 40 % out (ties at the threshold stay in)
     with pytest.raises(ValueError, match="outliers"):
         ReprojectionLoss(trim=1.0)
+
+
+def test_the_command_line_takes_traffic_and_effects_and_refuses_bad_ones(tmp_path, capsys):
+    from fisheyedepth.data.synthetic.cli import main
+
+    out = tmp_path / "d"
+    assert main(["--out", str(out), "--traffic", "-1", "--quiet"]) == 2
+    assert "traffic must be a density >= 0" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit):
+        main(["--out", str(out), "--effects", "fog"])
+    assert "invalid choice: 'fog'" in capsys.readouterr().err
+    assert main(["--out", str(out), "--frames", "9", "--size", "16", "--supersample", "1", "--no-lidar",
+                 "--traffic", "0.5", "--effects", "noise", "vignetting", "--quiet"]) == 0  # fmt: skip
+    meta = json.loads((out / "synthetic.json").read_text())
+    assert meta["traffic"] == 0.5 and meta["effects"] == ["noise", "vignetting"]

@@ -248,13 +248,10 @@ class _Worker:
         moving = self.traffic.moving(job.index) if movers is not None else None
         for name, renderer in self.cameras.items():
             sensor = self.sensors.get(name)
-            if sensor is not None and sensor.blurred:
-                shots = [pose_at(self.poses, t) for t in blur_times(job.index)]
+            if sensor is not None and sensor.blurred:  # the open shutter: the car and the traffic move
                 times = blur_times(job.index)
-                colour = sum(
-                    renderer.colour(self.scene, self.world, p, self.movers(t, p))
-                    for p, t in zip(shots, times, strict=True)
-                ) / len(shots)
+                shots = [(pose := pose_at(self.poses, t), self.movers(t, pose)) for t in times]
+                colour = sum(renderer.colour(self.scene, self.world, *shot) for shot in shots) / len(shots)
             else:
                 colour = renderer.colour(self.scene, self.world, job.pose, movers)
             if sensor is not None:
