@@ -93,6 +93,23 @@ def read_checked(path: Path, expect: tuple[int, int]) -> np.ndarray:
     return image.bgr
 
 
+def binary_mask(
+    path: Path, size: tuple[int, int], native: tuple[int, int] | None = None, what: str = "mask"
+) -> torch.Tensor:
+    """``[1, H, W]`` float: 1 where the mask image at ``path`` is bright (above 127), at ``size`` (width,
+    height; nearest-neighbour resized). ``native``: the size the file must have (its image's), else the
+    file is refused by name, as a ``what``."""
+    mask = cv2.cvtColor(read_image(path).bgr, cv2.COLOR_BGR2GRAY)
+    if native is not None and mask.shape[1::-1] != tuple(native):
+        raise ValueError(
+            f"{path}: {what} of {mask.shape[1]}x{mask.shape[0]} pixels, but its image is "
+            f"{native[0]}x{native[1]}"
+        )
+    if mask.shape[1::-1] != tuple(size):
+        mask = cv2.resize(mask, tuple(size), interpolation=cv2.INTER_NEAREST)
+    return torch.from_numpy((mask > 127).astype(np.float32))[None]
+
+
 def read_distance(path: Path, native) -> np.ndarray:
     """A ground-truth distance map as float32 metres: an ``H x W`` float ``.npy`` at the size of its
     image (``native``, the camera at its calibrated size), finite, 0 where there is no ground truth and
@@ -487,16 +504,9 @@ class FisheyeDataset(Dataset):
                 f"no moving-object mask for {item.sequence}/{item.camera}/{frame.key}, though the "
                 "dataset's first frame has one"
             )
-        mask = cv2.cvtColor(read_image(path).bgr, cv2.COLOR_BGR2GRAY)
         native = self.layout.cameras[item.camera].camera
-        if mask.shape != (native.height, native.width):
-            raise ValueError(
-                f"{path}: moving-object mask of {mask.shape[1]}x{mask.shape[0]} pixels, but its image is "
-                f"{native.width}x{native.height}"
-            )
-        if mask.shape[1::-1] != (camera.width, camera.height):
-            mask = cv2.resize(mask, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
-        return torch.from_numpy((mask > 127).astype(np.float32))[None]
+        size, native_size = (camera.width, camera.height), (native.width, native.height)
+        return binary_mask(path, size, native_size, "moving-object mask")
 
     def _mask(self, spec, camera) -> torch.Tensor:
         """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used. Decoded once
@@ -506,10 +516,7 @@ class FisheyeDataset(Dataset):
             return torch.ones(1, camera.height, camera.width)
         key = (str(spec.mask), size)
         if key not in self._masks:
-            mask = cv2.cvtColor(read_image(spec.mask).bgr, cv2.COLOR_BGR2GRAY)
-            if mask.shape[1::-1] != size:
-                mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
-            self._masks[key] = torch.from_numpy((mask > 127).astype(np.float32))[None]
+            self._masks[key] = binary_mask(spec.mask, size)
         return self._masks[key].clone()
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:

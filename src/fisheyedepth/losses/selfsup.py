@@ -82,9 +82,9 @@ def match_brightness(images: Tensor, target: Tensor, valid: Tensor | None = None
 def trimmed(error: Tensor, mask: Tensor, fraction: float) -> Tensor:
     """``[B, H, W]`` bool: the pixels of ``mask`` whose ``error`` is not among the worst ``fraction`` of
     their image's (a trimmed mean's pixels; pixels no warp explains, like a moving car's, are the worst)."""
-    keep = mask.clone()
     if fraction <= 0:
-        return keep
+        return mask
+    keep = mask.clone()
     for b in range(error.shape[0]):
         values = error[b][mask[b]].detach()
         if values.numel() > 1:
@@ -167,5 +167,7 @@ class ReprojectionLoss:
         if measure:
             with torch.no_grad():
                 measured = automasked_error(errors, valid, identity, mask)
-        scored = trimmed(best, mask, self.trim)
-        return (best * scored).sum() / scored.sum().clamp_min(1), (used & scored).sum() / n, measured
+        if self.trim > 0:  # the worst pixels leave the mean, and the used fraction
+            scored = trimmed(best, mask, self.trim)
+            return (best * scored).sum() / scored.sum().clamp_min(1), (used & scored).sum() / n, measured
+        return (best * mask).sum() / n, used.sum() / n, measured

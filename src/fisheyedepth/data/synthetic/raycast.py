@@ -174,6 +174,17 @@ def box_intersect(origin: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> tuple
     return torch.where(hit, near, torch.full_like(near, float("inf"))), axis
 
 
+def box_normal(point: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """The outward unit normal ``[N, 3]`` of the face of each box (``lo``/``hi [N, 3]``) that ``point``
+    lies on (the axis along which it is farthest out, relative to the box's half size)."""
+    rel = (point - 0.5 * (lo + hi)) / (0.5 * (hi - lo)).clamp_min(1e-6)
+    axis = rel.abs().argmax(-1)
+    rows = torch.arange(len(axis))
+    n = torch.zeros_like(point)
+    n[rows, axis] = torch.sign(rel[rows, axis])
+    return n
+
+
 def _cylinder_intersect(origin: Tensor, dirs: Tensor, cyl: Tensor) -> Tensor:
     """Vertical cylinders ``cyl [..., 5]`` (cx, cy, radius, z0, z1), one per ray ``dirs [..., 3]``."""
     dx, dy, dz = dirs.unbind(-1)
@@ -324,11 +335,7 @@ def cast(
         rays, obj = first_per_ray(rays[win], objs[win])
         point = origin + flat[rays] * t_best[rays, None]
         if kind == "box":
-            lo, hi = scene.box_lo[obj], scene.box_hi[obj]
-            rel = (point - 0.5 * (lo + hi)) / (0.5 * (hi - lo)).clamp_min(1e-6)
-            axis = rel.abs().argmax(-1)
-            n = torch.zeros_like(point)
-            n[torch.arange(len(axis)), axis] = torch.sign(rel[torch.arange(len(axis)), axis])
+            n = box_normal(point, scene.box_lo[obj], scene.box_hi[obj])
             mat, tn = scene.box_material[obj], scene.box_tint[obj]
         elif kind == "cylinder":
             cyl = scene.cylinders[obj]
@@ -338,13 +345,8 @@ def cast(
             n = torch.nn.functional.normalize(n, dim=-1)
             mat, tn = scene.cylinder_material[obj], scene.cylinder_tint[obj]
         elif kind == "mover":
-            lo, hi = movers.lo[obj], movers.hi[obj]
             local = movers.to_local(point, obj)
-            rel = (local - 0.5 * (lo + hi)) / (0.5 * (hi - lo)).clamp_min(1e-6)
-            axis = rel.abs().argmax(-1)
-            n = torch.zeros_like(point)
-            n[torch.arange(len(axis)), axis] = torch.sign(rel[torch.arange(len(axis)), axis])
-            n = movers.to_world(n, obj)
+            n = movers.to_world(box_normal(local, movers.lo[obj], movers.hi[obj]), obj)
             mat, tn = movers.material[obj], movers.tint[obj]
             owner = movers.owner[obj]
             # each agent's texture is its own, fixed to its body: looked up in its frame, moved apart

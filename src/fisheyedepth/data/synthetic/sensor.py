@@ -76,10 +76,6 @@ class Sensor:
         u = np.clip(r / rim, 0.0, 1.0)
         self.vignette = torch.as_tensor(1.0 - strength * u**2 - 0.5 * strength * u**4, dtype=torch.float32)
 
-    @property
-    def blurred(self) -> bool:
-        return "motion_blur" in self.effects
-
     def gains(self, colour: Tensor, frame: int) -> Tensor:
         """``[3]`` the per-channel gain of ``frame`` (exposure and white balance) for ``colour``."""
         gain = torch.ones(3)

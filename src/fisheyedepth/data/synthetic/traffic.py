@@ -25,12 +25,11 @@ import math
 
 import numpy as np
 
-from .world import CAR, FABRIC, Drive, World, _tint
+from .world import CAR, CAR_COLOURS, FABRIC, Drive, World, _tint, path_heading, rightward
 
 KINDS = ("lead", "follower", "oncoming", "crossing", "pedestrian")
 MOVING = 0.01  # metres per frame: an agent faster than this at a frame is "moving" there
 CLEARANCE = 4.0  # metres between the ego body's origin and an agent's centre below which it is left out
-CAR_COLOURS = ([0.7, 0.1, 0.1], [0.15, 0.2, 0.6], [0.85, 0.85, 0.85], [0.2, 0.2, 0.22], [0.6, 0.6, 0.1])
 CLOTHES = ([0.2, 0.25, 0.5], [0.5, 0.15, 0.15], [0.3, 0.3, 0.3], [0.75, 0.7, 0.55], [0.15, 0.4, 0.25])
 
 
@@ -144,8 +143,7 @@ def _polyline(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A path's arc length and unwrapped heading at each of its points."""
     step = np.linalg.norm(np.diff(points, axis=0), axis=1)
     s = np.concatenate(([0.0], np.cumsum(step)))
-    heading = np.unwrap(np.arctan2(*np.gradient(points, axis=0).T[::-1]))
-    return points, s, heading
+    return points, s, path_heading(points)
 
 
 def _legs(route: np.ndarray, pitch: float) -> set[tuple[int, int]]:
@@ -208,10 +206,7 @@ def make_traffic(world: World, drive: Drive, density: float, seed: int) -> Traff
         gap = rng.uniform(6.0, 12.0) + length / 2 + 3.4  # its back is 3.4 m behind
         add("follower", _along(drive.lane, drive.s_lane, drive.heading, drive.s - gap), shapes)
     # oncoming, in the route's other lane
-    tangent = np.gradient(drive.centre, axis=0)
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    right = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-    other, s_other, heading_other = _polyline(drive.centre - drive.lane_offset * right)
+    other, s_other, heading_other = _polyline(drive.centre - drive.lane_offset * rightward(drive.centre))
     length_route = float(s_other[-1])
     for _ in range(int(rng.poisson(density * length_route / 25.0))):
         length, shapes = car(rng)

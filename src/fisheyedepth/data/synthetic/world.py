@@ -41,6 +41,7 @@ MATERIAL_NAMES = (
 EMISSIVE = (WINDOW, LAMP)  # their colour is their albedo, unlit (the outside seen through a window, a lamp)
 SCENES = ("street", "indoor")
 
+CAR_COLOURS = ([0.7, 0.1, 0.1], [0.15, 0.2, 0.6], [0.85, 0.85, 0.85], [0.2, 0.2, 0.22], [0.6, 0.6, 0.1])
 BODY_HEIGHT = 0.73  # the pose (IMU) frame origin above the ground; KITTI-360's cameras sit ~1.8 m high
 
 
@@ -108,7 +109,6 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
         [0.45, 0.4, 0.38],
         [0.7, 0.5, 0.35],
     )
-    car_colours = ([0.7, 0.1, 0.1], [0.15, 0.2, 0.6], [0.85, 0.85, 0.85], [0.2, 0.2, 0.22], [0.6, 0.6, 0.1])
 
     for i in range(n_blocks + 1):
         for j in range(n_blocks):
@@ -131,7 +131,7 @@ def make_world(seed: int, n_blocks: int = 7) -> World:
                         length = rng.uniform(3.8, 4.8)
                         if rng.random() < 0.55:
                             mid = c + side * rng.uniform(4.3, 4.6)
-                            tint = _tint(rng, car_colours[rng.integers(len(car_colours))], 0.08)
+                            tint = _tint(rng, CAR_COLOURS[rng.integers(len(CAR_COLOURS))], 0.08)
                             lo, hi = _oriented(axis, s, s + length, mid - 0.9, mid + 0.9, 0.3, 1.05)
                             b.box(lo, hi, CAR, tint)
                             cab = rng.uniform(0.2, 0.6)
@@ -291,6 +291,18 @@ def _resample(poly: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([np.interp(grid, s, poly[:, 0]), np.interp(grid, s, poly[:, 1])], 1), grid
 
 
+def rightward(path: np.ndarray) -> np.ndarray:
+    """``[N, 2]`` unit vectors to the right of a polyline's direction at each of its points."""
+    tangent = np.gradient(path, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    return np.stack([tangent[:, 1], -tangent[:, 0]], 1)
+
+
+def path_heading(path: np.ndarray) -> np.ndarray:
+    """``[N]`` the unwrapped yaw (radians) of a polyline's direction at each of its points."""
+    return np.unwrap(np.arctan2(*np.gradient(path, axis=0).T[::-1]))
+
+
 def body_rotation(yaw: float, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
     """Body (x forward, y right, z down, as KITTI-360's pose frame) to world (z up)."""
     cy, sy = math.cos(yaw), math.sin(yaw)
@@ -344,11 +356,8 @@ def make_drive(world: World, n_frames: int, seed: int, lane_offset: float = 1.75
     route = _route(world, rng, float(speed.sum()) * 1.2 + 20.0)
     centre = _fillet_path(route, radius=8.0)
     centre, _ = _resample(centre, 0.05)
-    tangent = np.gradient(centre, axis=0)
-    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
-    right = np.stack([tangent[:, 1], -tangent[:, 0]], 1)
-    lane, s_lane = _resample(centre + lane_offset * right, 0.05)
-    heading = np.unwrap(np.arctan2(*np.gradient(lane, axis=0).T[::-1]))
+    lane, s_lane = _resample(centre + lane_offset * rightward(centre), 0.05)
+    heading = path_heading(lane)
     curvature = np.abs(np.gradient(heading)) / 0.05
     s = np.empty(n_frames)
     s[0] = 10.0

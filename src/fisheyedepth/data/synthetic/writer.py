@@ -43,6 +43,7 @@ from tqdm import tqdm
 
 from ... import __version__
 from ...cameras import CameraModel, opencv_yaml
+from ...geometry import axis_angle_to_matrix, make_pose
 from ...utils import pid_alive
 from .indoor import make_indoor_trajectory, make_indoor_world
 from .raycast import Movers, scene_tensors
@@ -186,17 +187,10 @@ def pose_at(poses: np.ndarray, time: float) -> np.ndarray:
     a, b = poses[k], poses[k + 1]
     step = a[:3, :3].T @ b[:3, :3]
     angle = float(np.arccos(np.clip((np.trace(step) - 1) / 2, -1.0, 1.0)))
-    out = np.eye(4)
-    out[:3, 3] = (1 - u) * a[:3, 3] + u * b[:3, 3]
-    if angle < 1e-12:
-        out[:3, :3] = a[:3, :3]
-        return out
     axis = np.array([step[2, 1] - step[1, 2], step[0, 2] - step[2, 0], step[1, 0] - step[0, 1]])
-    axis /= 2 * math.sin(angle)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    theta = u * angle
-    out[:3, :3] = a[:3, :3] @ (np.eye(3) + math.sin(theta) * K + (1 - math.cos(theta)) * K @ K)
-    return out
+    axis *= 0.0 if angle < 1e-12 else angle / (2 * math.sin(angle))  # the rotation's log: axis x angle
+    R = a[:3, :3] @ axis_angle_to_matrix(torch.from_numpy(u * axis)).numpy()
+    return make_pose(R, (1 - u) * a[:3, 3] + u * b[:3, 3]).numpy()
 
 
 class _Worker:
@@ -246,14 +240,12 @@ class _Worker:
         stem = f"{job.frame:010d}"
         movers = self.movers(job.index, job.pose)
         moving = self.traffic.moving(job.index) if movers is not None else None
+        shots = [(job.pose, movers)]
+        if "motion_blur" in self.effects:  # the open shutter: the car and the traffic move
+            shots = [(pose := pose_at(self.poses, t), self.movers(t, pose)) for t in blur_times(job.index)]
         for name, renderer in self.cameras.items():
+            colour = sum(renderer.colour(self.scene, self.world, *shot) for shot in shots) / len(shots)
             sensor = self.sensors.get(name)
-            if sensor is not None and sensor.blurred:  # the open shutter: the car and the traffic move
-                times = blur_times(job.index)
-                shots = [(pose := pose_at(self.poses, t), self.movers(t, pose)) for t in times]
-                colour = sum(renderer.colour(self.scene, self.world, *shot) for shot in shots) / len(shots)
-            else:
-                colour = renderer.colour(self.scene, self.world, job.pose, movers)
             if sensor is not None:
                 colour = sensor(colour, job.index)
             distance, moving_mask = renderer.truth(self.scene, job.pose, movers, moving)
@@ -261,12 +253,9 @@ class _Worker:
             _write(image, _png(quantise(colour)[..., ::-1]))
             path = self.root / "data_2d_distance" / job.sequence / name / f"{stem}.npy"
             _write(path, _npy(distance))
-            if self.traffic is not None and self.traffic.n_agents:
+            if moving_mask is not None:  # with traffic
                 path = self.root / "data_2d_moving" / job.sequence / name / f"{stem}.png"
-                mask = (
-                    np.zeros(distance.shape, np.uint8) if moving_mask is None else moving_mask * np.uint8(255)
-                )
-                _write(path, _png(mask))
+                _write(path, _png(moving_mask * np.uint8(255)))
         if self.lidar is not None:
             points = self.lidar.render(self.scene, self.world, job.pose, movers)
             scan = self.root / "data_3d_raw" / job.sequence / "velodyne_points" / "data" / f"{stem}.bin"
