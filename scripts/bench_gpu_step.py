@@ -33,7 +33,7 @@ VARIANTS = {  # name: (bf16 autocast, compiled kernels)
 }
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> int:
     parser = bench_parser(__doc__, write=False)
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--rounds", type=int, default=5)
@@ -75,7 +75,8 @@ def main(argv=None) -> None:
     for name in names:
         ratio = statistics.median(a / b for a, b in zip(times[name], times[first], strict=True))
         print(f"| {name} | {warmup[name]:.1f} | {1000 * statistics.median(times[name]):.1f} | {ratio:.2f}x |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -34,6 +34,7 @@ def world(tmp_path_factory) -> tuple[Path, dict[str, np.ndarray]]:
         frames=30,
         size=128,
         seed=5,
+        supersample=1,  # one ray per pixel: body IoU 0.96-1.0 (0.96-0.99 with 2x2 rays), in 60 % of the time
         progress=False,
         lidar=False,
     )

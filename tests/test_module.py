@@ -23,7 +23,7 @@ from conftest import ROOT, tiny_batch, tiny_samples
 
 
 def photometric_after(module, batch, steps, lr):
-    opt = torch.optim.Adam(module.parameters(), lr)
+    opt = torch.optim.Adam(module.parameters(), lr, fused=True)
     history = []
     for _ in range(steps):
         loss, logs = module.objective(batch, module(batch.image, batch.camera))

@@ -57,6 +57,19 @@ def test_configs_become_objects_only_in_the_commands():
     assert shown.returncode == 0 and "task_name: predict" in shown.stdout, shown.stderr[-500:]
 
 
+def test_commands_that_train_nothing_start_without_lightning():
+    """Prediction, export, the synthetic generator (and its worker processes) import no Lightning:
+    importing it takes about 3 s of each such process's start on 2 cores."""
+    code = (
+        "import sys\n"
+        "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.data.synthetic.cli\n"
+        "from fisheyedepth.runtimes import TrainedDepthNet\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning')))\n"
+    )
+    shown = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert shown.returncode == 0 and shown.stdout.strip() == "[]", shown.stdout[-500:] + shown.stderr[-500:]
+
+
 def test_the_lightning_module_keeps_the_lifecycle_alone():
     """The objective (``losses/objective.py``), the step guard and the optimiser builders
     (``training.py``) and the option groups (``options.py``) live apart from the LightningModule."""

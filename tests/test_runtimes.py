@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
 import subprocess
 import sys
@@ -18,14 +17,15 @@ import torch
 from omegaconf import OmegaConf
 
 from fisheyedepth.cameras import load_camera
+from fisheyedepth.checkpoints import CheckpointError
 from fisheyedepth.cli.evaluate import eval_checkpoint
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.images import FrameSource, ImageError, is_live
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, flip_averaged
+from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet, flip_averaged
 
-from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed
+from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed, tiny_batch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -228,6 +228,50 @@ def test_flip_post_processing_in_both_runtimes_and_eval(onnx_files, checkpoint, 
         TorchRuntime(module, post_process="mean")
     with pytest.raises(ValueError, match="post_process: 'mean'"):
         OnnxRuntime(onnx_files[0]["path"], post_process="mean")
+
+
+@pytest.mark.parametrize("real_scale", [True, False])
+def test_the_network_read_without_its_training_parts_predicts_what_the_module_predicts(
+    checkpoint, kitti_data, tmp_path, real_scale
+):
+    """``TrainedDepthNet`` (what predict.py, eval.py and export.py load) holds the checkpoint's distance
+    network and options alone: the same distances as the whole module, also for a PoseNet row (whose
+    PoseNet weights it leaves); hyper-parameters or weights that do not fit are named as the module
+    names them."""
+    path = checkpoint
+    if not real_scale:
+        torch.manual_seed(1)
+        module = FisheyeDepthModule(
+            net={"scales": (0,)}, objective={"real_scale": False}, input_size=(64, 64)
+        )
+        path = tmp_path / "posenet.ckpt"
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+    batch = tiny_batch(kitti_data)
+    full, light = FisheyeDepthModule.from_checkpoint(path), TrainedDepthNet.from_checkpoint(path)
+    assert not hasattr(light, "pose_net") and dict(light.hparams) == dict(full.hparams)
+    assert torch.equal(
+        TorchRuntime(full).distance(batch.image, batch.camera),
+        TorchRuntime(light).distance(batch.image, batch.camera),
+    )
+    assert TorchRuntime(light).describe()["real_scale"] is real_scale
+    ckpt = torch.load(path, weights_only=True)
+    for group, key, value, match in (
+        ("objective", "hidden", 1, "objective.hidden"),
+        (None, "hidden", 1, "unexpected hidden"),
+        ("net", "n_bins", 32, "weights do not fit"),
+    ):
+        hparams = dict(ckpt["hyper_parameters"])
+        if group:
+            hparams[group] = {**hparams[group], key: value}
+        else:
+            hparams[key] = value
+        broken = {**ckpt, "hyper_parameters": hparams}
+        torch.save(broken, tmp_path / "broken.ckpt")
+        with pytest.raises(CheckpointError, match=match) as info:
+            TrainedDepthNet.from_checkpoint(tmp_path / "broken.ckpt")
+        assert str(info.value).startswith(str(tmp_path / "broken.ckpt"))
+        with pytest.raises(CheckpointError):
+            FisheyeDepthModule.from_checkpoint(tmp_path / "broken.ckpt")
 
 
 def test_onnx_files_without_metadata_or_unreadable_are_named(tmp_path, checkpoint):
@@ -477,15 +521,12 @@ def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summar
 def test_bench_gpu_step_times_its_variants_side_by_side():
     """scripts/bench_gpu_step.py (BENCHMARKS.md, "Time to accuracy"), tiny and on the CPU: every variant asked
     for gets a row with a positive step time; the first is the reference of the ratios."""
-    proc = subprocess.run(
-        [sys.executable, "bench_gpu_step.py", "--device", "cpu", "--size", "64", "--batch", "1",
-         "--steps", "1", "--rounds", "2", "--warmup", "1",
+    stdout = printed(
+        "bench_gpu_step",
+        ["--device", "cpu", "--size", "64", "--batch", "1", "--steps", "1", "--rounds", "2", "--warmup", "1",
          "--variants", "float32", "bf16 autocast (gpu_10min)"],
-        capture_output=True, text=True, timeout=600, cwd=ROOT / "scripts",
-        env={**os.environ, "PYTHONPATH": str(ROOT / "src")},
     )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    rows = [line.strip("|").split(" | ") for line in proc.stdout.splitlines() if line.startswith("| ")]
+    rows = [line.strip("|").split(" | ") for line in stdout.splitlines() if line.startswith("| ")]
     assert [r[0].strip() for r in rows[1:]] == ["float32", "bf16 autocast (gpu_10min)"]
     for name, warmup, ms, _ in rows[1:]:
         assert float(warmup) > 0 and float(ms) > 0, name

@@ -5,7 +5,8 @@ that is empty, truncated, random bytes, another project's checkpoint, or a Fishe
 incompatible shape raises :class:`CheckpointError` with the path and what is wrong with it, instead of
 ``PytorchStreamReader failed``, ``EOFError`` or a ``KeyError`` deep inside Lightning.
 
-Checkpoints are written by :func:`write_checkpoint` (in training through :class:`AtomicCheckpointIO`):
+Checkpoints are written by :func:`write_checkpoint` (in training through
+:class:`~fisheyedepth.training.AtomicCheckpointIO`):
 beside their target under a hidden name with the writer's pid, flushed to disk, then renamed over the
 target, so a kill at any moment leaves the previous file whole; :func:`remove_stale_temporaries` removes
 what killed writers left.
@@ -23,7 +24,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 
 from .utils import pid_alive
 
@@ -271,6 +271,24 @@ def weights_mismatch(model: dict[str, Any], found: dict[str, Any]) -> str:
     return "; ".join(parts)
 
 
+def load_weights(model: torch.nn.Module, path: str | os.PathLike, state: Any) -> None:
+    """``state`` (a checkpoint's ``state_dict``) into ``model``, or a :class:`CheckpointError` naming
+    ``path`` and the weights that do not fit."""
+    if not isinstance(state, dict):
+        raise CheckpointError(path, f"its state_dict is a {type(state).__name__}, not a dictionary")
+    mismatch = weights_mismatch(model.state_dict(), state)
+    if mismatch:
+        raise CheckpointError(path, f"weights do not fit the model its hyper_parameters describe: {mismatch}")
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+        detail = "; ".join(lines[1:3] or lines[:1])
+        raise CheckpointError(
+            path, f"weights do not fit the model its hyper_parameters describe ({detail[:300]})"
+        ) from None
+
+
 # ------------------------------------------------------------------ writing
 STALE = re.compile(r"\.(?P<name>.+\.ckpt)\.(?P<pid>\d+)\.tmp")  # write_checkpoint's temporaries
 
@@ -317,13 +335,3 @@ def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     for path in stale:
         path.unlink(missing_ok=True)
     return stale
-
-
-class AtomicCheckpointIO(TorchCheckpointIO):
-    """Lightning's checkpoint writer through :func:`write_checkpoint`. Lightning's own saves through an
-    fsspec transaction: a temporary file in the system temp folder, moved over the target at the end."""
-
-    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
-        if storage_options is not None:
-            raise TypeError(f"{type(self).__name__} takes no storage_options")
-        write_checkpoint(checkpoint, path)

@@ -22,7 +22,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from .checkpoints import CheckpointError, module_arguments, read_checkpoint, weights_mismatch
+from .checkpoints import CheckpointError, load_weights, module_arguments, read_checkpoint
 from .data.batch import Batch, SkippedBatch
 from .losses.objective import SelfSupervisedObjective
 from .losses.photometric import photometric_error
@@ -97,22 +97,7 @@ class FisheyeDepthModule(L.LightningModule):
             raise CheckpointError(
                 path, f"hyper_parameters do not fit {cls.__name__} ({exc}); another project's checkpoint?"
             ) from None
-        state = ckpt["state_dict"]
-        if not isinstance(state, dict):
-            raise CheckpointError(path, f"its state_dict is a {type(state).__name__}, not a dictionary")
-        mismatch = weights_mismatch(module.state_dict(), state)
-        if mismatch:
-            raise CheckpointError(
-                path, f"weights do not fit the model its hyper_parameters describe: {mismatch}"
-            )
-        try:
-            module.load_state_dict(state)
-        except (RuntimeError, TypeError, AttributeError) as exc:
-            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-            detail = "; ".join(lines[1:3] or lines[:1])
-            raise CheckpointError(
-                path, f"weights do not fit the model its hyper_parameters describe ({detail[:300]})"
-            ) from None
+        load_weights(module, path, ckpt["state_dict"])
         return module
 
     def forward(self, image: Tensor, cameras: list) -> dict[str, dict[int, Tensor]]:

@@ -54,7 +54,7 @@ from .cameras.io import field
 from .evaluation import PROTOCOLS, Evaluator, Protocol
 from .images import read_image
 from .metrics import DepthMetrics
-from .runtimes import OnnxRuntime, TorchRuntime
+from .runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from .utils import atomic_write_bytes, atomic_write_text
 from .viz import panel
 
@@ -417,8 +417,6 @@ def picture(frame: RealFrame, pred: Tensor, width: int = 350) -> np.ndarray:
 def load_model(path: Path, post_process: str = "none"):
     """A runtime for ``path``: an exported ``.onnx`` file (:class:`OnnxRuntime`), else a checkpoint
     (:class:`TorchRuntime`, float32 on the CPU, at the checkpoint's input size)."""
-    from .module import FisheyeDepthModule
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such checkpoint or exported file")
@@ -428,7 +426,7 @@ def load_model(path: Path, post_process: str = "none"):
         raise ValueError(
             f"{path}: a TorchScript file has no runtime here; score its checkpoint or an ONNX export"
         )
-    return TorchRuntime(FisheyeDepthModule.from_checkpoint(path), post_process=post_process)
+    return TorchRuntime(TrainedDepthNet.from_checkpoint(path), post_process=post_process)
 
 
 def model_names(paths: Sequence[Path]) -> list[str]:

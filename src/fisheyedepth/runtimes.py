@@ -1,7 +1,9 @@
 """Runtimes: what turns images of a calibrated camera into metric distance once the network is trained.
 
-- :class:`TorchRuntime`: a trained :class:`~fisheyedepth.module.FisheyeDepthModule` in PyTorch, float32 or
-  bf16 (autocast; fast only on CPUs with native bf16, such as AVX-512 BF16), channels_last.
+- :class:`TorchRuntime`: a trained network in PyTorch (:class:`TrainedDepthNet`, the distance network of
+  a checkpoint, read without the training parts or Lightning; or a
+  :class:`~fisheyedepth.module.FisheyeDepthModule`), float32 or bf16 (autocast; fast only on CPUs with
+  native bf16, such as AVX-512 BF16), channels_last.
 - :class:`OnnxRuntime`: a file written by ``export.py`` (float32, or int8 with ``quantize=int8``) in ONNX
   Runtime with every graph optimisation on.
 
@@ -29,9 +31,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .checkpoints import CheckpointError, load_weights, module_arguments, read_checkpoint
 from .images import IMAGE_SUFFIXES, read_image
-from .models import depth_scale, distance_at_size
+from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
+from .options import OBJECTIVE, check_numbers, model_options
 
 PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
@@ -138,6 +142,47 @@ def post_processed(run, images: Tensor, cameras, post_process: str) -> Tensor:
     return flip_averaged(run, images, cameras) if post_process == "flip" else run(images, cameras)
 
 
+class TrainedDepthNet(torch.nn.Module):
+    """The distance network of a training checkpoint and the options it was trained with
+    (``hparams``, as :class:`~fisheyedepth.module.FisheyeDepthModule` holds them), without the PoseNet,
+    the objective or Lightning: what prediction, evaluation and export need (and they start without
+    importing Lightning, about 3 s)."""
+
+    ARGUMENTS = ("net", "objective", "optimizer", "scheduler", "eval_cap", "log_images_every", "input_size")
+    ARGUMENTS += ("compile_kernels",)
+
+    def __init__(self, hparams: dict[str, Any]):
+        super().__init__()
+        self.hparams = hparams
+        net = hparams["net"]
+        self.depth_net = DepthNet(**net | {"scales": tuple(net["scales"])})
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike) -> TrainedDepthNet:
+        """The network of a Lightning checkpoint, read with ``weights_only=True``; a file that does not
+        hold one raises :class:`~fisheyedepth.checkpoints.CheckpointError` naming it (as
+        ``FisheyeDepthModule.from_checkpoint`` does)."""
+        ckpt = read_checkpoint(path)
+        arguments = module_arguments(path, ckpt)
+        unknown = [k for k in arguments if k not in cls.ARGUMENTS]
+        unknown += [f"objective.{k}" for k in arguments.get("objective") or {} if k not in OBJECTIVE]
+        try:
+            if unknown:
+                raise TypeError(f"unexpected {', '.join(unknown)}")
+            hparams = model_options(**arguments)
+            check_numbers(hparams)
+            model = cls(hparams)
+        except TypeError as exc:
+            raise CheckpointError(
+                path, f"hyper_parameters do not fit FisheyeDepthModule ({exc}); another project's checkpoint?"
+            ) from None
+        state = ckpt["state_dict"]
+        if isinstance(state, dict):  # the PoseNet of a PoseNet row is training's alone
+            state = {k: v for k, v in state.items() if not k.startswith("pose_net.")}
+        load_weights(model, path, state)
+        return model
+
+
 class TorchRuntime:
     """A trained module in PyTorch: ``precision`` fp32 or bf16 (autocast around the network; the bin
     expectation and everything after it stay float32), weights in channels_last (the same numbers,
@@ -165,7 +210,7 @@ class TorchRuntime:
 
     def describe(self) -> dict[str, Any]:
         """What results.json records of the model: its switches, upsampling, runtime and precision."""
-        net, objective = self.module.hparams.net, self.module.hparams.objective
+        net, objective = self.module.hparams["net"], self.module.hparams["objective"]
         out = {k: objective[k] for k in ("fisheye_projection", "real_scale")}
         out |= {k: net[k] for k in ("multi_channel", "attention")}
         return out | {

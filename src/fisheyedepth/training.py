@@ -2,7 +2,8 @@
 every rank together (:class:`StepGuard`, which also clips the gradients it has measured), and the
 optimiser and learning-rate schedule built from their configs (:func:`build_optimizer`,
 :func:`build_scheduler`: ``{"_target_": ..., "_partial_": true, **options}``, as in
-``conf/model/optimizer`` and ``conf/model/scheduler``)."""
+``conf/model/optimizer`` and ``conf/model/scheduler``), and checkpoints that a kill never leaves half
+written (:class:`AtomicCheckpointIO`)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,10 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import get_class
+from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from torch import Tensor
+
+from .checkpoints import write_checkpoint
 
 
 def any_rank(flag: bool, device: torch.device) -> bool:
@@ -138,4 +142,15 @@ def build_scheduler(config: dict[str, Any], optimizer: torch.optim.Optimizer):
     return _call(config, optimizer)
 
 
-__all__ = ["StepGuard", "any_rank", "build_optimizer", "build_scheduler"]
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning's checkpoint writer through :func:`~fisheyedepth.checkpoints.write_checkpoint`: beside
+    the target, then renamed over it. Lightning's own saves through an fsspec transaction: a temporary
+    file in the system temp folder, moved over the target at the end."""
+
+    def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Any | None = None) -> None:
+        if storage_options is not None:
+            raise TypeError(f"{type(self).__name__} takes no storage_options")
+        write_checkpoint(checkpoint, path)
+
+
+__all__ = ["AtomicCheckpointIO", "StepGuard", "any_rank", "build_optimizer", "build_scheduler"]

@@ -15,8 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from ..checkpoints import released_checkpoint
 from ..data.synthetic import ensure_datasets
-from ..module import FisheyeDepthModule
-from ..runtimes import OnnxRuntime, TorchRuntime
+from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from ..utils import keep_freed_memory
 
 log = logging.getLogger("fisheyedepth")
@@ -119,7 +118,7 @@ def load_runtime(cfg: DictConfig, ckpt_path: str | None = None):
         raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
     if cfg.get("model_file"):
         raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-    module = FisheyeDepthModule.from_checkpoint(ckpt_path or checkpoint_path(cfg))
+    module = TrainedDepthNet.from_checkpoint(ckpt_path or checkpoint_path(cfg))
     if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
         module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
     size = tuple(size) if size else None

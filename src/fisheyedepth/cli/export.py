@@ -19,8 +19,7 @@ from rich.console import Console
 from ..cameras import PinholeCamera, load_camera
 from ..inference import DistancePredictor
 from ..models.depth_net import check_input_size
-from ..module import FisheyeDepthModule
-from ..runtimes import calibration_images, onnx_export, onnx_session
+from ..runtimes import TrainedDepthNet, calibration_images, onnx_export, onnx_session
 from ..utils import atomic_write_bytes, atomic_write_text
 from . import checkpoint_path
 
@@ -41,7 +40,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     if quantize and not cfg.get("calibration"):
         raise ValueError("calibration: quantize=int8 needs a folder of training images, calibration=DIR")
     ckpt_path = checkpoint_path(cfg)
-    module = FisheyeDepthModule.from_checkpoint(ckpt_path)
+    module = TrainedDepthNet.from_checkpoint(ckpt_path)
     size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
     if len(size) != 2:
         raise ValueError(

@@ -16,7 +16,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
 from ..callbacks import run_folder
-from ..checkpoints import AtomicCheckpointIO, CheckpointError, check_resumable, weights_mismatch
+from ..checkpoints import CheckpointError, check_resumable, weights_mismatch
 from ..config import (
     check_sizes,
     configured_model,
@@ -27,6 +27,7 @@ from ..config import (
     source_offsets,
 )
 from ..module import FisheyeDepthModule
+from ..training import AtomicCheckpointIO
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
 from .evaluate import run_evaluation
 

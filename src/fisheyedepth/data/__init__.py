@@ -1,8 +1,11 @@
-"""Data: the synthetic fisheye world, dataset layouts (KITTI-360, robot rig), the dataset and DataModule."""
+"""Data: the synthetic fisheye world, dataset layouts (KITTI-360, robot rig), the dataset and DataModule.
+
+``FisheyeDataModule`` is imported on first use: it needs Lightning (about 3 s to import), which a
+process that only renders or reads data (the synthetic generator's worker processes, a converter) never
+does."""
 
 from .augment import Augment, PoseNoise, colour_jitter, flip_sample
 from .batch import Batch, SkippedBatch, collate
-from .datamodule import FisheyeDataModule
 from .dataset import FisheyeDataset, ImageCache
 from .kitti360 import Kitti360Layout
 from .layouts import CameraSpec, RigLayout
@@ -22,3 +25,11 @@ __all__ = [
     "collate",
     "flip_sample",
 ]
+
+
+def __getattr__(name: str):
+    if name == "FisheyeDataModule":
+        from .datamodule import FisheyeDataModule
+
+        return FisheyeDataModule
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
