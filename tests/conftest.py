@@ -211,14 +211,41 @@ def _overrides(tree, prefix=""):
 TINY = list(_overrides(yaml.safe_load((ROOT / "conf" / "debug" / "tiny.yaml").read_text())))
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """``path``, made by ``build(path)`` (a file or a folder) once for the whole test session: under
+    pytest-xdist the workers share one copy (the first to ask builds it while the others wait; none of
+    them writes into it afterwards), instead of each worker building its own."""
+    import fcntl
+
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        path = tmp_path_factory.mktemp(name) / name
+        build(path)
+        return path
+    shared = tmp_path_factory.getbasetemp().parent / "shared"  # the session's folder, above each worker's
+    shared.mkdir(exist_ok=True)
+    path, done = shared / name, shared / f"{name}.done"
+    with open(shared / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.is_file():
+            if path.is_dir():  # a worker that failed while building
+                import shutil
+
+                shutil.rmtree(path)
+            path.unlink(missing_ok=True)
+            build(path)
+            done.touch()
+    return path
+
+
 @pytest.fixture(scope="session")
 def kitti_data(tmp_path_factory):
     """A 256 x 256 kitti360 synthetic dataset (12 frames with LiDAR), rendered once per test session."""
     from fisheyedepth.data.synthetic import generate
 
-    return generate(
-        tmp_path_factory.mktemp("syn") / "kitti", "kitti360", frames=12, size=256, seed=3, progress=False
-    )
+    def render(path: Path) -> None:
+        generate(path, "kitti360", frames=12, size=256, seed=3, progress=False)
+
+    return built_once(tmp_path_factory, "kitti", render)
 
 
 def tiny_batch(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64, 64)):
@@ -250,20 +277,21 @@ def checkpoint(kitti_data, tmp_path_factory):
 
     from fisheyedepth.module import FisheyeDepthModule
 
-    torch.manual_seed(0)
-    module = FisheyeDepthModule(
-        net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64)
-    )  # as train.py's auto
-    batch = tiny_batch(kitti_data)
-    opt = torch.optim.Adam(module.parameters(), 1e-3)
-    for _ in range(3):
-        loss, _ = module.objective(batch, module(batch.image, batch.camera))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.ckpt"
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
-    return path
+    def train(path: Path) -> None:
+        torch.manual_seed(0)
+        module = FisheyeDepthModule(
+            net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64)
+        )  # as train.py's auto
+        batch = tiny_batch(kitti_data)
+        opt = torch.optim.Adam(module.parameters(), 1e-3)
+        for _ in range(3):
+            loss, _ = module.objective(batch, module(batch.image, batch.camera))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+
+    return built_once(tmp_path_factory, "tiny.ckpt", train)
 
 
 @pytest.fixture(scope="session")
@@ -276,11 +304,12 @@ def tiny_world(tmp_path_factory) -> Path:
 
     from fisheyedepth.cli import prepare_data
 
-    data_dir = tmp_path_factory.mktemp("tiny_world")
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose("train", [*TINY, f"paths.data_dir={data_dir}"])
-    prepare_data(cfg)
-    root = Path(cfg.data.datamodule.root)
+    def config(data_dir: Path):
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            return compose("train", [*TINY, f"paths.data_dir={data_dir}"])
+
+    data_dir = built_once(tmp_path_factory, "tiny_world", lambda path: prepare_data(config(path)))
+    root = Path(config(data_dir).data.datamodule.root)
     assert (root / "synthetic.json").is_file(), root
     return root
 

@@ -24,7 +24,7 @@ from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud,
 from fisheyedepth.models import upsample_inverse
 from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ, load_cfg
+from conftest import TRAIN_SEQ, load_cfg, printed
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -183,27 +183,8 @@ def test_predictor_and_png_units(checkpoint, kitti_data):
 
 
 def test_visualize_writes_panels_and_the_angle_plot(kitti_data, checkpoint, tmp_path):
-    proc = subprocess.run(
-        [
-            sys.executable,
-            str(ROOT / "scripts" / "visualize.py"),
-            "--ckpt",
-            str(checkpoint),
-            "--ckpt",
-            str(checkpoint),
-            "--data",
-            str(kitti_data),
-            "--out",
-            str(tmp_path / "viz"),
-            "--panels",
-            "2",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=ROOT,
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    args = ["--ckpt", str(checkpoint), "--ckpt", str(checkpoint), "--data", str(kitti_data)]
+    printed("visualize", [*args, "--out", str(tmp_path / "viz"), "--panels", "2"])
     plot = cv2.imread(str(tmp_path / "viz" / "abs_rel_by_angle.png"))
     assert plot is not None and plot.shape[0] > 200
     assert len(list((tmp_path / "viz").glob("panel_*.png"))) == 2

@@ -58,11 +58,13 @@ def test_configs_become_objects_only_in_the_commands():
 
 
 def test_commands_that_train_nothing_start_without_lightning():
-    """Prediction, export, the synthetic generator (and its worker processes) import no Lightning:
-    importing it takes about 3 s of each such process's start on 2 cores."""
+    """Prediction, export, the synthetic generator (and its worker processes) import no Lightning, and
+    train.py imports it only once its folder, checkpoint and data are found usable: importing it takes
+    about 3 s of each such process's start on 2 cores."""
     code = (
         "import sys\n"
         "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.data.synthetic.cli\n"
+        "import fisheyedepth.cli.train\n"
         "from fisheyedepth.runtimes import TrainedDepthNet\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning')))\n"
     )

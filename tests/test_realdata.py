@@ -225,22 +225,27 @@ def test_a_short_finetune_on_the_real_rig_lowers_its_photometric_loss(aria_rig):
     assert np.mean(losses[-5:]) < 0.98 * np.mean(losses[:5]), losses
 
 
-def test_train_py_trains_on_the_real_rig(aria_rig, tmp_path):
-    """``train.py data=rig`` on the converted Aria rig: its four cameras load and one step trains."""
-    import os
-    import subprocess
-    import sys
+def test_train_py_trains_on_the_real_rig(aria_rig, tmp_path, monkeypatch, caplog):
+    """``train.py data=rig`` (its function, on Hydra's composition of its config) on the converted Aria
+    rig: its four cameras load and one step trains."""
+    import logging
     from pathlib import Path
 
+    from hydra import compose, initialize_config_dir
+
+    from fisheyedepth.cli.train import train
+
     root = Path(__file__).resolve().parents[1]
-    proc = subprocess.run(
-        [sys.executable, str(root / "train.py"), "data=rig", "data.datamodule.min_translation=0.005",
-         "data.datamodule.size=[64,64]", "data.datamodule.num_workers=0", "data.datamodule.batch_size=4",
-         "trainer.fast_dev_run=true", "model.compile_kernels=false", "logger=none",
-         f"paths.data_dir={tmp_path}", f"hydra.run.dir={tmp_path / 'run'}"],
-        capture_output=True, text=True, timeout=600, cwd=root,
-        env={**os.environ, "RIG_ROOT": str(aria_rig[1])},
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "20 samples kept" in proc.stdout + proc.stderr  # 4 cameras x the 5 of 9 frames with +-2 neighbours
-    assert "`Trainer.fit` stopped: `max_steps=1` reached" in proc.stdout + proc.stderr
+    monkeypatch.setenv("RIG_ROOT", str(aria_rig[1]))
+    overrides = [
+        "data=rig", "data.datamodule.min_translation=0.005", "data.datamodule.size=[64,64]",
+        "data.datamodule.num_workers=0", "data.datamodule.batch_size=4", "trainer.fast_dev_run=true",
+        "model.compile_kernels=false", "logger=none", "callbacks.progress=null", f"paths.data_dir={tmp_path}",
+        f"paths.output_dir={tmp_path / 'run'}",
+    ]  # fmt: skip
+    with initialize_config_dir(config_dir=str(root / "conf"), version_base="1.3"):
+        cfg = compose("train", overrides)
+    caplog.set_level(logging.INFO)
+    train(cfg)
+    assert "20 samples kept" in caplog.text  # 4 cameras x the 5 of 9 frames with +-2 neighbours
+    assert "`Trainer.fit` stopped: `max_steps=1` reached" in caplog.text

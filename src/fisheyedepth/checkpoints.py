@@ -20,6 +20,7 @@ import os
 import pickle
 import re
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -205,15 +206,20 @@ def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str,
     return hparams
 
 
-def check_resumable(path: str | os.PathLike, model: dict[str, Any] | None = None) -> dict[str, Any]:
+def check_resumable(
+    path: str | os.PathLike, model: dict[str, Any] | Callable[[], dict[str, Any]] | None = None
+) -> dict[str, Any]:
     """Refuse, before training starts, a checkpoint Lightning cannot resume from; returns it. ``model``:
-    the configured constructor arguments, whose network must be the checkpoint's."""
+    the configured constructor arguments, whose network must be the checkpoint's (or what returns them,
+    called only for a checkpoint that can be resumed)."""
     ckpt = read_checkpoint(path)
     missing = [k for k in RESUME_KEYS if k not in ckpt]
     if missing:
         raise CheckpointError(
             path, f"cannot resume from it: no {', '.join(missing)} (not a Lightning training checkpoint)"
         )
+    if callable(model):
+        model = model()
     differing = network_differences(ckpt.get("hyper_parameters") or {}, model or {})
     if differing:
         raise CheckpointError(path, f"cannot resume it with another network: {'; '.join(differing)}")

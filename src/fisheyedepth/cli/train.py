@@ -8,11 +8,8 @@ import logging
 from pathlib import Path
 from typing import Any
 
-import lightning as L
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig
 
 from ..callbacks import run_folder
@@ -26,10 +23,7 @@ from ..config import (
     rig_offsets,
     source_offsets,
 )
-from ..module import FisheyeDepthModule
-from ..training import AtomicCheckpointIO
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
-from .evaluate import run_evaluation
 
 log = logging.getLogger("fisheyedepth")
 SELECT = ("last", "best")
@@ -73,7 +67,8 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
     check_sizes(cfg)
     ckpt_path = cfg.get("ckpt_path")
-    resumed = check_resumable(ckpt_path, configured_model(cfg)) if ckpt_path else None
+    # the model's class (and Lightning with it) is imported only for a checkpoint that can be resumed
+    resumed = check_resumable(ckpt_path, lambda: configured_model(cfg)) if ckpt_path else None
     with run_folder(out_dir, ckpt_path):  # one run per folder; before any checkpoint is touched
         return fit_and_test(cfg, out_dir, resumed)
 
@@ -81,8 +76,18 @@ def train(cfg: DictConfig) -> dict[str, Any] | None:
 def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None) -> dict[str, Any] | None:
     select = cfg.get("select", "last")
     prepare_process(cfg)
-    L.seed_everything(cfg.seed, workers=True)
     prepare_data(cfg)
+    # Lightning, the module and the metrics (about 4 s to import) only now: a refused folder, checkpoint
+    # or option above is answered at once
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    from ..module import FisheyeDepthModule
+    from ..training import AtomicCheckpointIO
+    from .evaluate import run_evaluation
+
+    L.seed_everything(cfg.seed, workers=True)
     offsets = {"offsets": source_offsets(cfg), "rig_offsets": rig_offsets(cfg)}
     datamodule = instantiate(cfg.data.datamodule, **offsets)
     resolved = {}
