@@ -4,6 +4,7 @@ eval.py and predict.py on an exported file, and live cameras (written as they co
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import json
 import re
 import subprocess
@@ -23,6 +24,7 @@ from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.images import FrameSource, ImageError, is_live
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.options import KEYWORDS
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet, flip_averaged
 
 from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed, tiny_batch
@@ -249,6 +251,8 @@ def test_the_network_read_without_its_training_parts_predicts_what_the_module_pr
     batch = tiny_batch(kitti_data)
     full, light = FisheyeDepthModule.from_checkpoint(path), TrainedDepthNet.from_checkpoint(path)
     assert not hasattr(light, "pose_net") and dict(light.hparams) == dict(full.hparams)
+    keywords = inspect.signature(FisheyeDepthModule.__init__).parameters
+    assert sorted(KEYWORDS) == sorted(k for k in keywords if k != "self")  # what a checkpoint may hold
     assert torch.equal(
         TorchRuntime(full).distance(batch.image, batch.camera),
         TorchRuntime(light).distance(batch.image, batch.camera),

@@ -47,13 +47,18 @@ def _group(defaults: dict[str, Any], given: dict[str, Any] | None) -> dict[str, 
     return defaults | given
 
 
+# the module's own options beside the groups, with their defaults
+TOP = {"eval_cap": (1e-3, 80.0), "log_images_every": 200, "input_size": None, "compile_kernels": False}
+# every keyword of the module (what a checkpoint's hyper_parameters may hold)
+KEYWORDS = ("net", "objective", "optimizer", "scheduler", *TOP)
+
+
 def model_options(*, net=None, objective=None, optimizer=None, scheduler=None, **rest: Any) -> dict[str, Any]:
     """The module's options with the defaults where ``net``, ``objective``, ``optimizer``, ``scheduler``
     and the other keywords are silent: what ``module.hparams`` holds."""
-    top = {"eval_cap": (1e-3, 80.0), "log_images_every": 200, "input_size": None, "compile_kernels": False}
     groups = {"net": (NET, net), "objective": (OBJECTIVE, objective), "optimizer": (OPTIMIZER, optimizer)}
     groups["scheduler"] = (SCHEDULER, scheduler)
-    return {k: _group(*v) for k, v in groups.items()} | top | rest
+    return {k: _group(*v) for k, v in groups.items()} | TOP | rest
 
 
 def check_numbers(options: dict[str, Any]) -> None:
@@ -73,4 +78,4 @@ def check_numbers(options: dict[str, Any]) -> None:
             )
 
 
-__all__ = ["INTEGERS", "OPTIONAL", "REALS", "check_numbers", "model_options"]
+__all__ = ["INTEGERS", "KEYWORDS", "OPTIONAL", "REALS", "check_numbers", "model_options"]

@@ -35,7 +35,7 @@ from .checkpoints import CheckpointError, load_weights, module_arguments, read_c
 from .images import IMAGE_SUFFIXES, read_image
 from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
-from .options import OBJECTIVE, check_numbers, model_options
+from .options import KEYWORDS, OBJECTIVE, check_numbers, model_options
 
 PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
@@ -148,9 +148,6 @@ class TrainedDepthNet(torch.nn.Module):
     the objective or Lightning: what prediction, evaluation and export need (and they start without
     importing Lightning, about 3 s)."""
 
-    ARGUMENTS = ("net", "objective", "optimizer", "scheduler", "eval_cap", "log_images_every", "input_size")
-    ARGUMENTS += ("compile_kernels",)
-
     def __init__(self, hparams: dict[str, Any]):
         super().__init__()
         self.hparams = hparams
@@ -164,7 +161,7 @@ class TrainedDepthNet(torch.nn.Module):
         ``FisheyeDepthModule.from_checkpoint`` does)."""
         ckpt = read_checkpoint(path)
         arguments = module_arguments(path, ckpt)
-        unknown = [k for k in arguments if k not in cls.ARGUMENTS]
+        unknown = [k for k in arguments if k not in KEYWORDS]
         unknown += [f"objective.{k}" for k in arguments.get("objective") or {} if k not in OBJECTIVE]
         try:
             if unknown:
