@@ -22,7 +22,7 @@ from omegaconf import OmegaConf
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.checkpoints import read_checkpoint
 from fisheyedepth.cli.evaluate import eval_checkpoint, experiment_of
-from fisheyedepth.cli.train import selected_checkpoint
+from fisheyedepth.cli.train import selected_checkpoint, train
 from fisheyedepth.config import resolve_base_focal, resolve_precision
 
 from conftest import TINY, load_script, printed
@@ -507,20 +507,16 @@ def test_two_job_sweep_gets_two_output_folders(workdir):
     assert "Warning" not in proc.stderr and "deprecated" not in proc.stderr, proc.stderr[-2000:]
 
 
-def test_wandb_offline_without_an_account(workdir):
+def test_wandb_offline_without_an_account(workdir, monkeypatch):
+    """``logger=wandb`` (train.py's function on its composed config): an offline run, no account."""
     out = workdir / "wandb_run"
-    run(
-        "train.py",
-        "logger=wandb",
-        "trainer.max_epochs=1",
-        "trainer.limit_train_batches=1",
-        "trainer.limit_val_batches=1",
-        "test=false",
-        f"paths.data_dir={workdir}/data",
-        f"hydra.run.dir={out}",
-        *TINY,
-        env={"WANDB_MODE": "offline", "WANDB_SILENT": "true"},
-    )  # (fast_dev_run would mute the logger)
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    overrides = ["logger=wandb", "trainer.max_epochs=1", "trainer.limit_train_batches=1"]
+    overrides += ["trainer.limit_val_batches=1", "test=false", "callbacks.progress=null", *TINY]
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose("train", [*overrides, *command_paths(workdir, out)])
+    train(cfg)  # (fast_dev_run would mute the logger)
     runs = list(out.rglob("offline-run-*"))
     assert runs and list(runs[0].rglob("*.wandb"))
 
