@@ -126,13 +126,14 @@ def speed(args) -> tuple[dict[str, float], dict[str, str]]:
     feed = {"image": x.numpy()}
     lite = ExportableNet(TorchRuntime(load(args.lite_ckpt, "lite")).module.depth_net).eval()
     mobile = ExportableNet(TorchRuntime(load(None, "mobile")).module.depth_net).eval()
+    fused_graph = onnx_export(net, size, focal)  # one file, two sessions
     sessions = {
         "ONNX Runtime float32, before (softmax graph)": (onnx_export(old, size, focal), "today's export"),
         "ONNX Runtime float32, fused graph, basic graph optimisations": (
-            onnx_export(net, size, focal),
+            fused_graph,
             "ORT's `ORT_ENABLE_BASIC` (no layout or conv-activation fusions)",
         ),
-        "ONNX Runtime float32, fused graph": (onnx_export(net, size, focal), "`export.py` + `runtime=onnx`"),
+        "ONNX Runtime float32, fused graph": (fused_graph, "`export.py` + `runtime=onnx`"),
         FULL_INT8: (
             onnx_export(net, size, focal, "int8", calibration),
             "`export.py quantize=int8` + `runtime=onnx`",
