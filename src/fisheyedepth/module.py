@@ -63,7 +63,7 @@ class FisheyeDepthModule(L.LightningModule):
         check_numbers(hp)
         self.save_hyperparameters(hp)
         net, objective = dict(hp["net"]), dict(hp["objective"])
-        self.depth_net = DepthNet(**net | {"scales": tuple(net["scales"])})
+        self.depth_net = DepthNet(**net)
         translation = objective.pop("pose_translation_scale")
         if translation is None:  # Monodepth2's first parallax for this head's first distance
             translation = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance

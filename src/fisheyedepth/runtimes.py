@@ -151,8 +151,7 @@ class TrainedDepthNet(torch.nn.Module):
     def __init__(self, hparams: dict[str, Any]):
         super().__init__()
         self.hparams = hparams
-        net = hparams["net"]
-        self.depth_net = DepthNet(**net | {"scales": tuple(net["scales"])})
+        self.depth_net = DepthNet(**hparams["net"])
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike) -> TrainedDepthNet:

@@ -143,8 +143,8 @@ class DepthNet(nn.Module):
         self.base_focal = None if base_focal is None else float(base_focal)
         self.encoder = make_encoder(encoder, 1, resnet, weights)
         widths = decoder_channels(decoder_width)
-        self.decoder = DepthDecoder(self.encoder.channels, scales, widths)
-        self.multi_channel, self.scales = multi_channel, tuple(scales)
+        self.multi_channel, self.scales = multi_channel, tuple(scales)  # a config's list too
+        self.decoder = DepthDecoder(self.encoder.channels, self.scales, widths)
         self.min_distance, self.max_distance = min_distance, max_distance
         bins = distance_bins(n_bins, min_distance, max_distance)
         # Both heads start at the same distance, the binned head's (equal logits: the bins' mean, 26 m
