@@ -29,6 +29,8 @@ ADDED_SINCE_RECORDING = {
     "net.encoder": "resnet",  # the EfficientNet-Lite0 encoder came later
     "objective.brightness": "none",  # the levers for traffic and auto-exposure came later still
     "objective.outliers": 0.0,
+    "objective.truth_weight": 0.0,  # the supervised ceiling probe came later again
+    "objective.photometric_weight": 1.0,
 }
 
 

@@ -32,7 +32,7 @@ SCHEDULER = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True, "
 REALS = (
     *("net.min_distance", "net.max_distance", "net.decoder_width", "objective.smoothness"),
     *("objective.pose_translation_scale", "optimizer.lr", "optimizer.weight_decay", "scheduler.gamma"),
-    "scheduler.eta_min",
+    *("scheduler.eta_min", "objective.truth_weight", "objective.photometric_weight"),
 )
 INTEGERS = ("net.resnet", "net.n_bins", "objective.rim_margin", "scheduler.step_size", "scheduler.T_max")
 INTEGERS += ("log_images_every",)

@@ -56,6 +56,12 @@ class SelfSupervisedObjective(nn.Module):
     balance change from frame to frame.
     ``outliers``: the fraction of each target's pixels with the largest error left out of the loss (0:
     none, the paper's): what no warp of a static world explains, moving objects first.
+    ``truth_weight``: weight of a supervised term, the mean absolute log ratio of the predicted to the
+    ground-truth distance over the pixels where the training batch has ground truth (a synthetic world's
+    exact maps), per scale as the photometric term. 0 (the paper's): self-supervised only. With
+    ``photometric_weight`` 0 as well it is the ceiling probe: what this network can learn from these
+    images when told the truth at every pixel. Validation still logs the photometric criterion.
+    ``photometric_weight``: the photometric and smoothness terms' weight in training (1: the paper's).
     ``pose_net``: the PoseNet of a ``real_scale=False`` objective. It is borrowed, not owned: its weights
     belong to the caller (a LightningModule optimises and saves them as ``pose_net.*``).
     """
@@ -75,6 +81,8 @@ class SelfSupervisedObjective(nn.Module):
         loss_resolution: str = "full",
         brightness: str = "none",
         outliers: float = 0.0,
+        truth_weight: float = 0.0,
+        photometric_weight: float = 1.0,
         pose_net: nn.Module | None = None,
     ):
         super().__init__()
@@ -91,11 +99,17 @@ class SelfSupervisedObjective(nn.Module):
             )
         if rim_margin is not None and rim_margin < 0:
             raise ValueError(f"rim_margin: {rim_margin} pixels is negative (null switches the rim mask off)")
+        if truth_weight < 0 or photometric_weight < 0 or truth_weight + photometric_weight <= 0:
+            raise ValueError(
+                f"truth_weight {truth_weight}, photometric_weight {photometric_weight}: the weights are "
+                "not negative and one of them is positive"
+            )
         if (pose_net is None) != real_scale:
             raise ValueError("pose_net: a PoseNet is needed without real_scale, and only then")
         self.scales, self.source_offsets = tuple(scales), tuple(source_offsets)
         self.fisheye_projection, self.pinhole_focal = fisheye_projection, pinhole_focal
         self.rim_margin, self.smoothness, self.loss_resolution = rim_margin, smoothness, loss_resolution
+        self.truth_weight, self.photometric_weight = float(truth_weight), float(photometric_weight)
         object.__setattr__(self, "pose_net", pose_net)  # borrowed: not a submodule, see the docstring
         self.reprojection = ReprojectionLoss(automask=automask, brightness=brightness, trim=outliers)
         self.rays = RayCache()
@@ -148,16 +162,46 @@ class SelfSupervisedObjective(nn.Module):
     def forward(
         self, batch: Batch, outputs: dict[str, dict[int, Tensor]]
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """The self-supervised loss, mean over scales, and its parts for logging. The warps and the loss
+        """The self-supervised loss, mean over scales (with ``truth_weight``, plus the supervised term:
+        ``truth`` in the parts), and its parts for logging. The warps and the loss
         run in the batch's precision (float32) even under bf16 autocast (``trainer.precision=bf16-mixed``
         speeds up the networks only); the PoseNet runs in the caller's precision. In eval mode the parts
         include ``automasked/<s>``, validation's criterion."""
-        poses = self.relative_poses(batch).to(batch.image.dtype)
         with torch.autocast(batch.image.device.type, enabled=False):
             outputs = {
                 k: {s: v.to(batch.image.dtype) for s, v in maps.items()} for k, maps in outputs.items()
             }
-            return self._losses(batch, outputs, poses)
+            logs: dict[str, Tensor] = {}
+            total = batch.image.new_zeros(())
+            if self.photometric_weight > 0 or not self.training:
+                poses = self.relative_poses(batch).to(batch.image.dtype)
+                photometric, logs = self._losses(batch, outputs, poses)
+                total = total + self.photometric_weight * photometric
+            if self.truth_weight > 0 and (self.training or batch.distance is not None):
+                truth = self.truth_loss(batch, outputs["distance"])
+                total, logs["truth"] = total + self.truth_weight * truth, truth
+            logs["loss"] = total
+            return total, logs
+
+    def truth_loss(self, batch: Batch, distances: dict[int, Tensor]) -> Tensor:
+        """Mean over scales of the mean ``|log(predicted / true)|`` over the pixels with ground truth
+        inside the body mask, each scale's distance upsampled to the ground truth's size."""
+        if batch.distance is None:
+            raise ValueError(
+                "objective.truth_weight: this batch has no ground-truth distance; the training split "
+                "needs it (data.datamodule.ground_truth_splits, a synthetic world)"
+            )
+        truth = batch.distance.to(batch.image.dtype)
+        known = (truth > 0) & (batch.mask > 0.5)
+        if not bool(known.any()):  # zero, but still a function of the network (a step can backpropagate)
+            return distances[self.scales[0]].sum() * 0.0
+        terms = []
+        for s in self.scales:
+            d = distances[s]
+            if d.shape[-2:] != truth.shape[-2:]:
+                d = F.interpolate(d, size=truth.shape[-2:], mode="bilinear", align_corners=False)
+            terms.append((d.clamp_min(1e-6).log() - truth.clamp_min(1e-6).log()).abs()[known].mean())
+        return torch.stack(terms).mean()
 
     def _losses(
         self, batch: Batch, outputs: dict[str, dict[int, Tensor]], poses: Tensor
@@ -191,9 +235,7 @@ class SelfSupervisedObjective(nn.Module):
             logs[f"photometric/{s}"], logs[f"smoothness/{s}"], logs[f"used_pixels/{s}"] = photo, smooth, used
             if measured is not None:  # validation's criterion; not computed in the training step
                 logs[f"automasked/{s}"] = measured
-        total = total / len(self.scales)
-        logs["loss"] = total
-        return total, logs
+        return total / len(self.scales), logs
 
     @torch.no_grad()
     def pixel_objective(
