@@ -151,6 +151,7 @@ FLAT_KEYS = {
 # Options added after checkpoints had been written, each with the value that those checkpoints were trained
 # with: a checkpoint without one loads as it was trained (net.encoder: every encoder was a ResNet)
 ADDED_HPARAMS = {"net.encoder": "resnet", "objective.brightness": "none", "objective.outliers": 0.0}
+ADDED_HPARAMS |= {"objective.truth_weight": 0.0, "objective.photometric_weight": 1.0}  # self-supervised
 ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
 STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
 COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
