@@ -59,6 +59,7 @@ def test_every_experiment_composes(experiment):
         "gpu_10min": (True, True, True),  # cpu_30min on a GPU for longer
         "release_mobile": (True, True, True),  # the released weights: the mobile model, the mixed world
         "traffic_levers": (True, True, True),  # the levers' base row: the full method on traffic
+        "truth_probe": (True, True, True),  # release_mobile told the truth (the next test)
     }[experiment]
     assert (m.objective.fisheye_projection, m.objective.real_scale, m.net.multi_channel) == expected
     if experiment.startswith("table1_fsnet"):
@@ -88,6 +89,20 @@ def flat(tree, prefix=""):
     for key, sub in tree.items():
         out.update(flat(sub, f"{prefix}.{key}" if prefix else key))
     return out
+
+
+def test_the_truth_probe_is_the_release_recipe_with_the_truth_instead_of_the_photometric_loss():
+    """truth_probe (BENCHMARKS.md, "Real photographs") is release_mobile in everything (model, data,
+    steps, schedule) but the objective's two weights."""
+    release = flat(OmegaConf.to_container(compose_train(["+experiment=release_mobile"])))
+    probe = flat(OmegaConf.to_container(compose_train(["+experiment=truth_probe"])))
+    keys = {k for k in release.keys() | probe.keys() if not k.startswith("hydra.")}
+    assert {k: (release.get(k), probe.get(k)) for k in keys if release.get(k) != probe.get(k)} == {
+        "experiment_name": ("release_mobile", "truth_probe"),
+        "model.objective.truth_weight": (0.0, 1.0),
+        "model.objective.photometric_weight": (1.0, 0.0),
+    }
+    assert "train" in probe["data.datamodule.ground_truth_splits"]  # the worlds' exact maps
 
 
 def test_gpu_recipe_is_cpu_30min_longer_on_a_gpu():
