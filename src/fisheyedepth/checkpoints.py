@@ -150,8 +150,9 @@ FLAT_KEYS = {
 }
 # Options added after checkpoints had been written, each with the value that those checkpoints were trained
 # with: a checkpoint without one loads as it was trained (net.encoder: every encoder was a ResNet)
+# (objective.truth_weight and photometric_weight: every checkpoint before them was self-supervised)
 ADDED_HPARAMS = {"net.encoder": "resnet", "objective.brightness": "none", "objective.outliers": 0.0}
-ADDED_HPARAMS |= {"objective.truth_weight": 0.0, "objective.photometric_weight": 1.0}  # self-supervised
+ADDED_HPARAMS |= {"objective.truth_weight": 0.0, "objective.photometric_weight": 1.0}
 ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
 STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
 COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
@@ -276,6 +277,27 @@ def weights_mismatch(model: dict[str, Any], found: dict[str, Any]) -> str:
     if unexpected:
         parts.append(f"{len(unexpected)} unexpected ({_listed(unexpected)})")
     return "; ".join(parts)
+
+
+def model_from_checkpoint(
+    path: str | os.PathLike, build: Callable[..., torch.nn.Module], skip: tuple[str, ...] = ()
+) -> torch.nn.Module:
+    """``build(**hyper_parameters)`` with the checkpoint's weights, read with ``weights_only=True``;
+    weights whose names start with one of ``skip`` are left out. A file that does not hold such a model
+    (hyper-parameters ``build`` refuses with a TypeError, weights that do not fit) raises
+    :class:`CheckpointError` naming it."""
+    ckpt = read_checkpoint(path)
+    try:
+        model = build(**module_arguments(path, ckpt))
+    except TypeError as exc:
+        raise CheckpointError(
+            path, f"hyper_parameters do not fit FisheyeDepthModule ({exc}); another project's checkpoint?"
+        ) from None
+    state = ckpt["state_dict"]
+    if skip and isinstance(state, dict):
+        state = {k: v for k, v in state.items() if not k.startswith(skip)}
+    load_weights(model, path, state)
+    return model
 
 
 def load_weights(model: torch.nn.Module, path: str | os.PathLike, state: Any) -> None:

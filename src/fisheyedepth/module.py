@@ -22,7 +22,7 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from .checkpoints import CheckpointError, load_weights, module_arguments, read_checkpoint
+from .checkpoints import model_from_checkpoint
 from .data.batch import Batch, SkippedBatch
 from .losses.objective import SelfSupervisedObjective
 from .losses.photometric import photometric_error
@@ -90,15 +90,7 @@ class FisheyeDepthModule(L.LightningModule):
         """A trained module from a Lightning checkpoint, read with ``weights_only=True``; a file that does
         not hold one raises :class:`~fisheyedepth.checkpoints.CheckpointError` naming it. Checkpoints
         whose hyper-parameters are flat (written before the option groups) load too."""
-        ckpt = read_checkpoint(path)
-        try:
-            module = cls(**module_arguments(path, ckpt))
-        except TypeError as exc:
-            raise CheckpointError(
-                path, f"hyper_parameters do not fit {cls.__name__} ({exc}); another project's checkpoint?"
-            ) from None
-        load_weights(module, path, ckpt["state_dict"])
-        return module
+        return model_from_checkpoint(path, cls)
 
     def forward(self, image: Tensor, cameras: list) -> dict[str, dict[int, Tensor]]:
         return self.depth_net.for_cameras(image, cameras)

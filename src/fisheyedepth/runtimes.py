@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .checkpoints import CheckpointError, load_weights, module_arguments, read_checkpoint
+from .checkpoints import model_from_checkpoint
 from .images import IMAGE_SUFFIXES, read_image
 from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
@@ -155,28 +155,22 @@ class TrainedDepthNet(torch.nn.Module):
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike) -> TrainedDepthNet:
-        """The network of a Lightning checkpoint, read with ``weights_only=True``; a file that does not
-        hold one raises :class:`~fisheyedepth.checkpoints.CheckpointError` naming it (as
-        ``FisheyeDepthModule.from_checkpoint`` does)."""
-        ckpt = read_checkpoint(path)
-        arguments = module_arguments(path, ckpt)
+        """The network of a Lightning checkpoint, read with ``weights_only=True`` and checked as
+        ``FisheyeDepthModule.from_checkpoint`` checks it (the PoseNet of a PoseNet row is left out: it
+        is training's alone); a file that does not hold one raises
+        :class:`~fisheyedepth.checkpoints.CheckpointError` naming it."""
+        return model_from_checkpoint(path, cls.from_arguments, skip=("pose_net.",))
+
+    @classmethod
+    def from_arguments(cls, **arguments: Any) -> TrainedDepthNet:
+        """From the module's keyword arguments; a TypeError for one it does not take, as the module's."""
         unknown = [k for k in arguments if k not in KEYWORDS]
         unknown += [f"objective.{k}" for k in arguments.get("objective") or {} if k not in OBJECTIVE]
-        try:
-            if unknown:
-                raise TypeError(f"unexpected {', '.join(unknown)}")
-            hparams = model_options(**arguments)
-            check_numbers(hparams)
-            model = cls(hparams)
-        except TypeError as exc:
-            raise CheckpointError(
-                path, f"hyper_parameters do not fit FisheyeDepthModule ({exc}); another project's checkpoint?"
-            ) from None
-        state = ckpt["state_dict"]
-        if isinstance(state, dict):  # the PoseNet of a PoseNet row is training's alone
-            state = {k: v for k, v in state.items() if not k.startswith("pose_net.")}
-        load_weights(model, path, state)
-        return model
+        if unknown:
+            raise TypeError(f"unexpected {', '.join(unknown)}")
+        hparams = model_options(**arguments)
+        check_numbers(hparams)
+        return cls(hparams)
 
 
 class TorchRuntime:

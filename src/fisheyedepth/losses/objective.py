@@ -195,12 +195,13 @@ class SelfSupervisedObjective(nn.Module):
         known = (truth > 0) & (batch.mask > 0.5)
         if not bool(known.any()):  # zero, but still a function of the network (a step can backpropagate)
             return distances[self.scales[0]].sum() * 0.0
+        log_truth = truth.clamp_min(1e-6).log()
         terms = []
         for s in self.scales:
             d = distances[s]
             if d.shape[-2:] != truth.shape[-2:]:
                 d = F.interpolate(d, size=truth.shape[-2:], mode="bilinear", align_corners=False)
-            terms.append((d.clamp_min(1e-6).log() - truth.clamp_min(1e-6).log()).abs()[known].mean())
+            terms.append((d.clamp_min(1e-6).log() - log_truth).abs()[known].mean())
         return torch.stack(terms).mean()
 
     def _losses(
