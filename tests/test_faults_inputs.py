@@ -3,8 +3,8 @@ summary, never a silent wrong answer, a silent loss, or an exhausted machine.
 
 A still video taken for a body mask, two Aria frames with one capture time, Aria calibrations that the rig
 layout would refuse once written (no pixel with a ray, a size of 512.7 pixels, a transform that is not
-rigid, two poses at one time), a decompression bomb, a full disk while rendering, and broken symbolic
-links among the images to predict on.
+rigid, two poses at one time), a decompression bomb, a full disk while rendering, broken symbolic
+links among the images to predict on, and an output folder that refuses writes.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 import errno
 import json
 import struct
+import tempfile
 import zlib
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import torch
 import yaml
 
 from fisheyedepth.cameras import CalibrationError, save_camera
+from fisheyedepth.cli import run_command
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.data.aria import CALIBRATION, POSES, aria_to_rig
 from fisheyedepth.data.body_mask import estimate_body_mask
@@ -33,7 +35,7 @@ from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, re
 from fisheyedepth.module import FisheyeDepthModule
 
 from conftest import aria_fisheye624, kitti02, load_script
-from test_faults_run import predict_cfg
+from test_faults_run import one_line_error, predict_cfg
 
 SIZE = 64
 
@@ -290,3 +292,50 @@ def test_broken_and_looping_links_are_counted_as_skipped(tmp_path):
     assert summary["unreadable"] == [str(gone), str(loop)]
     assert json.loads((out / "summary.json").read_text())["unreadable"] == summary["unreadable"]
     assert sorted(p.name for p in out.glob("*_distance.npy")) == ["a_good_distance.npy"]
+
+
+# ------------------------------------------------------------------ an output folder that refuses writes
+def read_only(monkeypatch, folder: Path) -> None:
+    """Writes into ``folder`` fail as on a read-only mount (root ignores permission bits, so the kernel's
+    answer is simulated where a file is created)."""
+    real = tempfile.NamedTemporaryFile
+
+    def refuse(*args, dir=None, **kwargs):
+        if dir is not None and Path(dir).resolve().is_relative_to(folder.resolve()):
+            raise OSError(errno.EROFS, "Read-only file system", str(Path(dir) / "x"))
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "NamedTemporaryFile", refuse)
+
+
+def test_predict_into_a_read_only_folder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    from fisheyedepth.cli import predict as predict_module
+
+    out = tmp_path / "ro"
+    read_only(monkeypatch, out)
+    monkeypatch.setattr(predict_module, "load_runtime", lambda cfg: pytest.fail("the network was loaded"))
+    cfg = predict_cfg(input=tmp_path / "in", camera=tmp_path / "cam.yaml", output=out)
+    line = one_line_error(predict, cfg, capsys)
+    assert line == f"error: output: {out}: cannot write there (Read-only file system)"
+
+
+@pytest.mark.parametrize(
+    ("code", "text"), [(errno.EROFS, "Read-only file system"), (errno.ENOSPC, "No space left on device")]
+)
+def test_a_refused_write_anywhere_in_a_command_is_one_line(code, text, tmp_path, capsys):
+    target = tmp_path / "out" / "frame_distance.npy"
+
+    def command(cfg):
+        raise OSError(code, text, str(target))
+
+    assert one_line_error(command, None, capsys) == f"error: {target}: cannot write there ({text})"
+
+
+def test_an_os_error_that_is_no_refused_write_keeps_its_traceback(tmp_path):
+    """An I/O error of the machine (EIO) is not the user's input: it is raised, not hidden in one line."""
+
+    def command(cfg):
+        raise OSError(errno.EIO, "Input/output error", str(tmp_path / "x"))
+
+    with pytest.raises(OSError, match="Input/output error"):
+        run_command(command, None)

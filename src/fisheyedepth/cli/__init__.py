@@ -5,9 +5,11 @@ synthetic data, and output paths that never replace an earlier run's file."""
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import sys
+import tempfile
 import warnings
 from pathlib import Path
 
@@ -24,6 +26,9 @@ EXIT_SIGTERM = 128 + 15  # the shell's status for a process ended by SIGTERM
 EXIT_USAGE = 2
 # Errors about the user's input (files, options): one line naming the file or option, no traceback.
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
+# Writes the machine refuses (a read-only or full filesystem, a folder without write permission): the
+# user's output option is at fault, not the program, so they end a command the same way.
+WRITE_ERRORS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT}
 
 
 def model_file_alias(argv: list[str]) -> list[str]:
@@ -57,12 +62,40 @@ def run_command(command, cfg: DictConfig):
     ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead."""
     try:
         return command(cfg)
-    except INPUT_ERRORS as exc:
-        if os.environ.get("FISHEYEDEPTH_TRACEBACK"):
+    except (*INPUT_ERRORS, OSError) as exc:
+        if os.environ.get("FISHEYEDEPTH_TRACEBACK") or not is_input_error(exc):
             raise
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        if isinstance(exc, KeyError) and exc.args:
+            message = exc.args[0]
+        elif type(exc) in (OSError, PermissionError) and exc.filename:  # OSError's str() puts it last
+            message = f"{exc.filename}: cannot write there ({exc.strerror})"
+        else:
+            message = exc
         print(f"error: {message}", file=sys.stderr)
         raise SystemExit(EXIT_USAGE) from None
+
+
+def is_input_error(exc: BaseException) -> bool:
+    """An error about the user's input: one of :data:`INPUT_ERRORS`, or a write the filesystem refused
+    at a path the user chose (:data:`WRITE_ERRORS`)."""
+    if isinstance(exc, INPUT_ERRORS):
+        return True
+    return isinstance(exc, OSError) and exc.errno in WRITE_ERRORS and exc.filename is not None
+
+
+def check_writable(folder: str | os.PathLike, option: str) -> Path:
+    """``folder`` (created if missing) accepts files: checked before any work, so a read-only or
+    full filesystem is named at once, not after the network has run. A ValueError names the option."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
+            pass
+    except OSError as err:
+        if err.errno not in WRITE_ERRORS and not isinstance(err, FileExistsError | NotADirectoryError):
+            raise
+        raise ValueError(f"{option}: {folder}: cannot write there ({err.strerror})") from None
+    return folder
 
 
 def prepare_data(cfg: DictConfig) -> None:

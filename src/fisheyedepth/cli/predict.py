@@ -20,13 +20,14 @@ from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
 from ..runtimes import OnnxRuntime
 from ..utils import atomic_write_text
-from . import free_path, load_runtime, model_file_alias, run_command
+from . import check_writable, free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
-    out = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir)
+    option = "output" if cfg.get("output") else "paths.output_dir"
+    out = check_writable(cfg.get(option) if option == "output" else cfg.paths.output_dir, option)
     writer = PredictionWriter(
         out, cfg.z_depth, cfg.point_cloud, str(cfg.png_scale), cfg.vmin, cfg.vmax, cfg.overwrite
     )
