@@ -1,0 +1,310 @@
+"""Sweep stereo on the sphere: metric distance from two or more calibrated cameras, untrained.
+
+For a reference pixel p with unit ray r(p) and a distance hypothesis L, the point ``X = L r(p)`` lands at
+``p_s = F_s(T_{ref->s} X)`` in source s (any camera model; a rig's extrinsics, odometry, or both). The
+source image, warped to the reference grid at every hypothesis, is compared with the reference in a
+window around p (ZNCC or census): the cost volume ``C[d, p]``. Hypotheses are uniform in inverse
+distance, as parallax is. Nothing is rectified: a pixel beyond 90 degrees of incidence keeps its
+estimate wherever a source sees its point.
+
+Then Hirschmueller's semi-global aggregation along paths of the reference image,
+
+    L_r(p, d) = C(p, d) + min(L_r(p-r, d), L_r(p-r, d+-1) + P1, min_k L_r(p-r, k) + P2) - min_k L_r(p-r, k),
+
+winner-take-all over the summed paths with a parabola through the winner and its neighbours
+(sub-hypothesis), a confidence (how unique the winner is), and a round trip: the reference's point,
+looked up in the source's own estimate and carried back, must land within ``check_px`` of where it
+started (left-right consistency for any geometry).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..cameras.base import CameraModel
+from ..cameras.rays import compute_rays
+from ..geometry.se3 import invert_pose, transform_points
+from ..geometry.warp import pixels_to_grid, sample, warp_to_source
+
+COSTS = ("zncc", "census")
+UNSEEN = 0.5  # the cost of a hypothesis no source sees: neither a match nor a mismatch (costs are in [0, 1])
+
+
+class View(NamedTuple):
+    """One image and its camera. ``image``: ``[B, C, H, W]`` (C = 1 or 3, any range: costs are
+    normalised per window); ``T_ref_to_view``: ``[B, 4, 4]`` (or ``[4, 4]``) reference camera to this one
+    (the identity for the reference itself)."""
+
+    image: Tensor
+    camera: CameraModel
+    T_ref_to_view: Tensor
+
+
+class StereoResult(NamedTuple):
+    distance: Tensor  # [B, H, W] metres along the ray; 0 where the check rejects or nothing is seen
+    dense: Tensor  # [B, H, W] the same before the check: every pixel a source sees at some hypothesis
+    confidence: Tensor  # [B, H, W] in [0, 1]: 1 - best / second-best aggregated cost (0 where unseen)
+    valid: Tensor  # [B, H, W] bool: kept by the round trip (distance > 0)
+    seen: Tensor  # [B, H, W] bool: some source sees the pixel at some hypothesis (dense > 0)
+
+
+@dataclass(frozen=True)
+class SweepStereo:
+    """The sweep's settings. ``hypotheses`` distances uniform in inverse distance over
+    ``[min_distance, max_distance]`` metres; ``cost``: ``zncc`` (``window`` x ``window``) or ``census``
+    (``census_window``); ``p1``, ``p2``: the aggregation's penalties for a step of one hypothesis and for a
+    jump, in cost units; ``paths``: 0 (none), 4 or 8; ``check_px``: the round trip's tolerance."""
+
+    hypotheses: int = 128
+    min_distance: float = 0.3
+    max_distance: float = 80.0
+    cost: str = "zncc"
+    window: int = 11
+    census_window: int = 7
+    p1: float = 0.03
+    p2: float = 0.3
+    paths: int = 4
+    check_px: float = 1.5
+
+    def __post_init__(self) -> None:
+        if self.cost not in COSTS:
+            raise ValueError(f"cost: {self.cost!r} is not one of {', '.join(COSTS)}")
+        if not 0 < self.min_distance < self.max_distance < float("inf"):
+            raise ValueError(
+                f"min_distance, max_distance: {self.min_distance}, {self.max_distance}; "
+                "need 0 < min_distance < max_distance < inf"
+            )
+        if self.hypotheses < 3:
+            raise ValueError(f"hypotheses: {self.hypotheses}; at least 3 (the refinement fits a parabola)")
+        for name in ("window", "census_window"):
+            if getattr(self, name) < 3 or getattr(self, name) % 2 == 0:
+                raise ValueError(f"{name}: {getattr(self, name)} is not an odd number >= 3")
+        if self.paths not in (0, 4, 8):
+            raise ValueError(f"paths: {self.paths} is not 0, 4 or 8")
+        if not (0 <= self.p1 <= self.p2) or self.check_px <= 0:
+            raise ValueError(
+                f"p1, p2, check_px: {self.p1}, {self.p2}, {self.check_px}; need 0 <= p1 <= p2, check_px > 0"
+            )
+
+    def inverse_distances(self, device=None) -> Tensor:
+        """``[D]`` inverse distances, nearest first, uniform steps."""
+        return torch.linspace(1 / self.min_distance, 1 / self.max_distance, self.hypotheses, device=device)
+
+    # ------------------------------------------------------------------ one reference
+    def cost_volume(self, reference: View, sources: Sequence[View]) -> tuple[Tensor, Tensor]:
+        """``[B, D, H, W]`` matching cost of every hypothesis, averaged over the sources that see it
+        (:data:`UNSEEN` where none does), and ``[B, D, H, W]`` how many sources see it."""
+        ref = gray(reference.image)
+        batch, _, height, width = ref.shape
+        rays, has_ray = compute_rays(reference.camera, ref.device)
+        rays, has_ray = rays.expand(batch, -1, -1, -1), has_ray.expand(batch, -1, -1)
+        ref_code = census(ref, self.census_window) if self.cost == "census" else None
+        total = ref.new_zeros(batch, self.hypotheses, height, width)
+        count = ref.new_zeros(batch, self.hypotheses, height, width)
+        for source in sources:
+            image = gray(source.image)
+            T = _batched(source.T_ref_to_view, batch).to(ref)
+            for d, inverse in enumerate(self.inverse_distances(ref.device)):
+                distance = torch.full_like(ref[:, 0], float(1 / inverse))
+                warp = warp_to_source(rays, has_ray, distance, T, source.camera)
+                warped = sample(image, warp.grid, padding_mode="zeros")
+                if self.cost == "census":
+                    cost = hamming(ref_code, census(warped, self.census_window))
+                else:
+                    cost = zncc_cost(ref, warped, self.window)
+                seen = warp.valid.to(ref.dtype)
+                total[:, d] += cost * seen
+                count[:, d] += seen
+        volume = torch.where(count > 0, total / count.clamp(min=1), torch.full_like(total, UNSEEN))
+        return volume, count
+
+    def estimate(self, reference: View, sources: Sequence[View]) -> tuple[Tensor, Tensor, Tensor]:
+        """The distance before the check ``[B, H, W]`` (0 where no hypothesis is seen), its confidence,
+        and which pixels are seen."""
+        volume, count = self.cost_volume(reference, sources)
+        seen = (count > 0).any(1)
+        aggregated = aggregate(volume, self.p1, self.p2, self.paths)
+        index, confidence = winner(aggregated)
+        inverse = self.inverse_distances(volume.device)
+        step = inverse[1] - inverse[0]
+        distance = 1 / (inverse[0] + index * step).clamp(min=float(inverse[-1]) * 0.5)
+        distance = torch.where(seen, distance, torch.zeros_like(distance))
+        return distance, torch.where(seen, confidence, torch.zeros_like(confidence)), seen
+
+    # ------------------------------------------------------------------ with the round trip
+    def __call__(self, reference: View, sources: Sequence[View]) -> StereoResult:
+        """Distance for the reference, kept where a round trip through some source's own estimate (that
+        source as reference, the reference as its source) comes back within ``check_px``."""
+        if not sources:
+            raise ValueError("sources: sweep stereo needs at least one source view")
+        dense, confidence, seen = self.estimate(reference, sources)
+        batch = dense.shape[0]
+        kept = torch.zeros_like(seen)
+        for source in sources:
+            back = invert_pose(_batched(source.T_ref_to_view, batch).to(dense))
+            partner = View(source.image, source.camera, torch.eye(4, dtype=dense.dtype))
+            partner_distance, _, _ = self.estimate(partner, [View(reference.image, reference.camera, back)])
+            kept |= round_trip(dense, reference.camera, partner_distance, source.camera, source.T_ref_to_view,
+                               self.check_px)  # fmt: skip
+        kept &= seen & (dense > 0)
+        distance = torch.where(kept, dense, torch.zeros_like(dense))
+        return StereoResult(distance, dense, confidence, kept, seen)
+
+
+def _batched(T: Tensor, batch: int) -> Tensor:
+    T = torch.as_tensor(T)
+    return T.expand(batch, 4, 4) if T.dim() == 2 else T
+
+
+def gray(image: Tensor) -> Tensor:
+    """``[B, 1, H, W]`` float luminance of an RGB or one-channel image."""
+    image = image.float()
+    if image.shape[1] == 3:
+        weights = image.new_tensor((0.299, 0.587, 0.114)).reshape(1, 3, 1, 1)
+        return (image * weights).sum(1, keepdim=True)
+    if image.shape[1] != 1:
+        raise ValueError(f"image: {image.shape[1]} channels; expected 1 or 3")
+    return image
+
+
+# ------------------------------------------------------------------ matching costs
+def box_mean(x: Tensor, window: int) -> Tensor:
+    """Mean over the ``window`` x ``window`` neighbourhood (the image's inside only, at its border)."""
+    return F.avg_pool2d(x, window, stride=1, padding=window // 2, count_include_pad=False)
+
+
+def zncc_cost(a: Tensor, b: Tensor, window: int, eps: float = 1e-4) -> Tensor:
+    """``(1 - ZNCC) / 2`` in [0, 1] of ``[B, 1, H, W]`` images over ``window`` x ``window``: 0 for
+    windows equal up to gain and offset, 1 for inverted ones; flat windows score 0.5 (no evidence)."""
+    mean_a, mean_b = box_mean(a, window), box_mean(b, window)
+    var_a = (box_mean(a * a, window) - mean_a**2).clamp(min=0)
+    var_b = (box_mean(b * b, window) - mean_b**2).clamp(min=0)
+    covariance = box_mean(a * b, window) - mean_a * mean_b
+    scale = var_a.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-12)  # eps relative to the image's contrast
+    ncc = covariance / torch.sqrt((var_a + eps * scale) * (var_b + eps * scale))
+    return ((1 - ncc.clamp(-1, 1)) / 2)[:, 0]
+
+
+def census(image: Tensor, window: int) -> Tensor:
+    """``[B, window**2 - 1, H, W]`` bool: each neighbour brighter than the centre (the census transform)."""
+    r = window // 2
+    padded = F.pad(image, (r, r, r, r), mode="replicate")
+    height, width = image.shape[-2:]
+    bits = [
+        padded[:, 0, dy : dy + height, dx : dx + width] > image[:, 0]
+        for dy in range(window)
+        for dx in range(window)
+        if (dy, dx) != (r, r)
+    ]
+    return torch.stack(bits, 1)
+
+
+def hamming(a: Tensor, b: Tensor) -> Tensor:
+    """The fraction of census bits that differ, ``[B, H, W]`` in [0, 1]."""
+    return (a != b).float().mean(1)
+
+
+# ------------------------------------------------------------------ semi-global aggregation
+STRAIGHT = ((0, 1), (0, -1), (1, 0), (-1, 0))  # (dy, dx): along rows and columns, both ways
+DIRECTIONS = {4: STRAIGHT, 8: (*STRAIGHT, (1, 1), (-1, -1), (1, -1), (-1, 1))}
+
+
+def aggregate(volume: Tensor, p1: float, p2: float, paths: int = 4) -> Tensor:
+    """The sum over ``paths`` directions of Hirschmueller's path costs ``L_r`` of ``volume [B, D, H, W]``
+    (``paths=0``: the volume itself)."""
+    if paths == 0:
+        return volume
+    return sum(path_cost(volume, dy, dx, p1, p2) for dy, dx in DIRECTIONS[paths])
+
+
+def path_cost(volume: Tensor, dy: int, dx: int, p1: float, p2: float) -> Tensor:
+    """``L_r`` along direction ``r = (dy, dx)``: one image line at a time, every line of the other axis and
+    every hypothesis at once. A diagonal path walks the rows and takes its predecessor from the row
+    before, shifted by one column."""
+    if dy == 0:  # horizontal: walk the columns
+        out = path_cost(volume.transpose(-1, -2), dx, 0, p1, p2)
+        return out.transpose(-1, -2)
+    rows = range(volume.shape[-2]) if dy > 0 else range(volume.shape[-2] - 1, -1, -1)
+    out = torch.empty_like(volume)
+    previous = None
+    for y in rows:
+        cost = volume[..., y, :]  # [B, D, W]
+        if previous is None:
+            current = cost
+        else:
+            if dx:  # the predecessor of column x is column x - dx of the previous row
+                previous = torch.roll(previous, shifts=dx, dims=-1)
+                edge = slice(0, 1) if dx > 0 else slice(-1, None)
+                previous[..., edge] = cost[..., edge]  # a path starts at the border
+            best = previous.amin(1, keepdim=True)
+            up = F.pad(previous[:, 1:], (0, 0, 0, 1), value=float("inf"))
+            down = F.pad(previous[:, :-1], (0, 0, 1, 0), value=float("inf"))
+            step = torch.minimum(torch.minimum(up, down) + p1, best + p2)
+            current = cost + torch.minimum(previous, step) - best
+        out[..., y, :] = current
+        previous = current
+    return out
+
+
+def winner(aggregated: Tensor) -> tuple[Tensor, Tensor]:
+    """Winner-take-all with a parabola through the winner and its two neighbours: ``[B, H, W]`` fractional
+    hypothesis index, and the confidence ``1 - best / second best`` outside the winner's neighbours."""
+    depth = aggregated.shape[1]
+    best, index = aggregated.min(1)
+    lower = aggregated.gather(1, (index - 1).clamp(min=0)[:, None])[:, 0]
+    upper = aggregated.gather(1, (index + 1).clamp(max=depth - 1)[:, None])[:, 0]
+    curvature = lower - 2 * best + upper
+    offset = torch.where(curvature > 1e-12, (lower - upper) / (2 * curvature.clamp(min=1e-12)), 0 * best)
+    inner = (index > 0) & (index < depth - 1)
+    refined = index.to(aggregated.dtype) + torch.where(inner, offset.clamp(-0.5, 0.5), 0 * best)
+    hypotheses = torch.arange(depth, device=aggregated.device).reshape(1, -1, 1, 1)
+    near = (hypotheses - index[:, None]).abs() <= 1
+    second = aggregated.masked_fill(near, float("inf")).amin(1)
+    confidence = (1 - best / second.clamp(min=1e-12)).clamp(0, 1)
+    return refined, confidence
+
+
+# ------------------------------------------------------------------ the round trip
+def round_trip(
+    distance: Tensor,
+    camera: CameraModel,
+    partner_distance: Tensor,
+    partner: CameraModel,
+    T_ref_to_partner: Tensor,
+    check_px: float,
+) -> Tensor:
+    """``[B, H, W]`` bool: the reference pixel's point, at ``distance``, lands in the partner's image; the
+    partner's own distance there (nearest pixel), carried back into the reference, lands within
+    ``check_px`` pixels of where it started."""
+    batch, height, width = distance.shape
+    rays, has_ray = compute_rays(camera, distance.device)
+    T = _batched(T_ref_to_partner, batch).to(distance)
+    points = transform_points(T, rays * distance[..., None])
+    uv, visible = partner.project(points)
+    inside = (uv[..., 0] > -0.5) & (uv[..., 0] < partner.width - 0.5)
+    inside &= (uv[..., 1] > -0.5) & (uv[..., 1] < partner.height - 0.5)
+    grid = pixels_to_grid(
+        torch.where((visible & inside)[..., None], uv, torch.zeros_like(uv)), partner.width, partner.height
+    )
+    theirs = F.grid_sample(partner_distance[:, None], grid, mode="nearest", align_corners=False)[:, 0]
+    partner_rays, partner_has_ray = partner.unproject(
+        torch.where((visible & inside)[..., None], uv, torch.zeros_like(uv))
+    )
+    back = transform_points(invert_pose(T), partner_rays * theirs[..., None])
+    returned, returns = camera.project(back)
+    pixels = torch.stack(
+        torch.meshgrid(
+            torch.arange(width, device=distance.device),
+            torch.arange(height, device=distance.device),
+            indexing="xy",
+        ),
+        -1,
+    ).to(distance)
+    error = (returned - pixels).norm(dim=-1)
+    return has_ray & visible & inside & partner_has_ray & returns & (theirs > 0) & (error <= check_px)
