@@ -1,6 +1,7 @@
 """Sweep stereo on the sphere (fisheyedepth.stereo): its costs, aggregation and refinement to exact numbers,
 and metric distance from a fisheye rig, a moving fisheye camera and a rectified pinhole pair (beside
-OpenCV's StereoSGBM) in a textured room with exact ground truth."""
+OpenCV's StereoSGBM) in a textured room with exact ground truth; a rig's rotation refined from its
+images' feature matches."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
 from fisheyedepth.stereo import SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
+from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
 
 from conftest import kitti02
 
@@ -242,3 +244,51 @@ def test_the_sweep_runs_on_cuda_as_on_the_cpu():
     on_gpu = SweepStereo(hypotheses=24)(cuda[0], cuda[1:])
     agree = (on_gpu.dense.cpu() - on_cpu.dense).abs() <= 1e-3 * on_cpu.dense
     assert agree.float().mean() > 0.99
+
+
+# ------------------------------------------------------------------ the rig refined from its images
+def rotation_between_deg(T_a: torch.Tensor, T_b: torch.Tensor) -> float:
+    cos = ((torch.trace(T_a[:3, :3] @ T_b[:3, :3].T) - 1) / 2).clamp(-1, 1)
+    return math.degrees(float(torch.acos(cos)))
+
+
+@functools.cache
+def refine_rig() -> tuple:
+    """Two KITTI-360 fisheyes at 384 px, 0.2 m apart and turned 15 degrees, their SIFT matches, and the
+    true pose between them."""
+    camera = kitti02().resize(384, 384)
+    T_b = pose(15.0, (0.2, 0.0, 0.0))
+    image_a, _ = render(camera, pose(), texture_volume(0))
+    image_b, _ = render(camera, T_b, texture_volume(0))
+    matches = match_features(image_a, camera, image_b, camera)
+    return camera, matches, invert_pose(T_b) @ pose()
+
+
+@pytest.mark.parametrize("degrees", [1.0, 2.0])
+@pytest.mark.parametrize("direction", [True, False])
+def test_a_rig_turned_by_one_or_two_degrees_is_recovered(degrees, direction):
+    camera, matches, T_true = refine_rig()
+    axis = torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)
+    turn = axis_angle_to_matrix(axis / axis.norm() * math.radians(degrees))
+    start = make_pose(turn @ T_true[:3, :3], T_true[:3, 3])  # the rotation off, the lever arm as measured
+    refined = refine_relative_pose(matches, start, float(camera.paraxial_focal()[0]), direction=direction)
+    assert rotation_between_deg(refined.T_a_to_b, T_true) < 0.05
+    assert refined.rotation_deg == pytest.approx(degrees, abs=0.05)
+    assert refined.error_before_px > 0.8 * degrees and refined.error_after_px < 0.2  # pixels of camera b
+    assert float(refined.T_a_to_b[:3, 3].norm()) == pytest.approx(0.2, rel=1e-9)  # the baseline's length kept
+    assert refined.inliers > 0.9 * refined.matches > 1000
+
+
+def test_a_correct_rig_is_left_as_it_is():
+    camera, matches, T_true = refine_rig()
+    refined = refine_relative_pose(matches, T_true, float(camera.paraxial_focal()[0]))
+    assert refined.rotation_deg < 0.02 and rotation_between_deg(refined.T_a_to_b, T_true) < 0.02
+
+
+def test_too_few_matches_or_no_baseline_are_refused():
+    camera, matches, T_true = refine_rig()
+    few = Matches(matches.rays_a[:5], matches.rays_b[:5], matches.uv_a[:5], matches.uv_b[:5])
+    with pytest.raises(ValueError, match="matches: 5 feature matches; at least 8 are needed"):
+        refine_relative_pose(few, T_true, 100.0)
+    with pytest.raises(ValueError, match="T_a_to_b: the baseline has no length"):
+        refine_relative_pose(matches, make_pose(T_true[:3, :3], torch.zeros(3)), 100.0)
