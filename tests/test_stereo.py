@@ -1,18 +1,21 @@
 """Sweep stereo on the sphere (fisheyedepth.stereo): its costs, aggregation and refinement to exact numbers,
 and metric distance from a fisheye rig, a moving fisheye camera and a rectified pinhole pair (beside
 OpenCV's StereoSGBM) in a textured room with exact ground truth; a rig's rotation refined from its
-images' feature matches."""
+images' feature matches; the command on a rig recording."""
 
 from __future__ import annotations
 
 import functools
+import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+import yaml
 
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
@@ -292,3 +295,66 @@ def test_too_few_matches_or_no_baseline_are_refused():
         refine_relative_pose(few, T_true, 100.0)
     with pytest.raises(ValueError, match="T_a_to_b: the baseline has no length"):
         refine_relative_pose(matches, make_pose(T_true[:3, :3], torch.zeros(3)), 100.0)
+
+
+# ------------------------------------------------------------------ the command on a recording
+def write_room_rig(root: Path, size: int = 96, stamps=(1_000_000_000, 1_100_000_000, 1_200_000_000)) -> dict:
+    """A rig layout in the textured room: cameras ``left`` and ``right`` 0.2 m apart, turned 20 degrees
+    apart, moving 0.15 m forward per frame, with exact distance maps; and ``lonely``, whose one image is
+    taken between the others' instants."""
+    camera = kitti02().resize(size, size)
+    extrinsics = {"left": pose(-10.0, (-0.1, 0.0, 0.0)), "right": pose(10.0, (0.1, 0.0, 0.0))}
+    entries = [
+        {"name": n, "model": camera.to_dict(), "cam_to_body": E.tolist()} for n, E in extrinsics.items()
+    ]
+    entries.append({"name": "lonely", "model": camera.to_dict(), "cam_to_body": np.eye(4).tolist()})
+    (root / "seq").mkdir(parents=True)
+    (root / "rig.yaml").write_text(yaml.safe_dump({"cameras": entries}))
+    poses = {t: pose(0.0, (0.0, 0.0, 0.15 * i)) for i, t in enumerate(stamps)}
+    (root / "seq" / "poses.txt").write_text(
+        "".join(f"{t} 0 0 {0.15 * i} 0 0 0 1\n" for i, t in enumerate(stamps))
+    )
+    for name, E in extrinsics.items():
+        for t, P in poses.items():
+            image, distance = render(camera, P @ E, texture_volume(0))
+            (root / "seq" / "images" / name).mkdir(parents=True, exist_ok=True)
+            (root / "seq" / "distance" / name).mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(
+                str(root / "seq" / "images" / name / f"{t}.png"),
+                (image[0, 0].numpy() * 255).round().astype(np.uint8),
+            )
+            np.save(root / "seq" / "distance" / name / f"{t}.npy", distance[0].numpy())
+    lonely = root / "seq" / "images" / "lonely"
+    lonely.mkdir(parents=True)
+    cv2.imwrite(str(lonely / f"{stamps[0] + 50_000_000}.png"), np.zeros((size, size), np.uint8))
+    return {"stamps": stamps, "camera": camera}
+
+
+def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
+    from fisheyedepth.stereo.recording import main
+
+    rig = write_room_rig(tmp_path / "rec", size=80)
+    out = tmp_path / "out"
+    args = [str(tmp_path / "rec"), "--out", str(out), "--hypotheses", "32", "--min-distance", "0.5",
+            "--max-distance", "20", "--quiet"]  # fmt: skip
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    t0, t1, _ = rig["stamps"]
+    assert summary["unpaired"] == [f"seq/lonely/{t0 + 50_000_000}"]  # no partner at its instant or later
+    first = {r["image"]: r for r in summary["images"]}[f"seq/left/{t0}"]
+    assert first["partners"] == [f"right/{t0}", f"left/{t1}"]  # the rig's other camera, then its own motion
+    for record in summary["images"]:
+        assert record["checked"]["abs_rel"] < 0.12 and record["checked"]["coverage"] > 0.6, record  # 80 px
+        assert record["checked"]["abs_rel"] < 0.5 * record["checked"]["constant_abs_rel"], record
+    distance = np.load(out / "seq" / "distance" / "left" / f"{t0}.npy")
+    dense = np.load(out / "seq" / "dense" / "left" / f"{t0}.npy")
+    assert distance.dtype == np.float32 and distance.shape == (80, 80)
+    assert ((distance == 0) | (distance == dense)).all() and (dense > 0).sum() >= (distance > 0).sum() > 0
+    assert cv2.imread(str(out / "seq" / "panels" / "left" / f"{t0}.png")).shape == (80, 4 * 80, 3)
+
+    assert main(args) == 2  # the outputs exist: replaced only with --overwrite
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"error: {out / 'summary.json'} exists; pass --overwrite to replace the outputs"
+    )
+    assert main([*args[:3], "--sources", "rig,gps", "--quiet"]) == 2
+    assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
