@@ -48,6 +48,7 @@ from .cameras import (
     RayCache,
     camera_from_mapping,
     load_camera,
+    load_json,
 )
 from .cameras.fisheye624 import ARIA_PARAMS
 from .cameras.io import field
@@ -141,8 +142,8 @@ def read_rgb(path: Path) -> Tensor:
 
 def read_json(path: Path) -> dict[str, Any]:
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as err:
+        data = load_json(path.read_bytes(), path)  # not JSON, not text, nested too deeply: names the file
+    except OSError as err:
         raise CalibrationError(path, None, f"not readable JSON ({err})") from None
     if not isinstance(data, dict):
         raise CalibrationError(path, None, f"expected a JSON object, got {type(data).__name__}")
@@ -489,7 +490,7 @@ def records_table(paths: Sequence[Path], sets: Sequence[str] = FRAME_SETS) -> li
         "|---|---|---|---|---|",
     ]
     for file in files:
-        real = json.loads(file.read_text()).get("real_world")
+        real = load_json(file.read_bytes(), file).get("real_world")
         if real is None:
             continue
         for frame, r in real["frames"].items():

@@ -3,12 +3,20 @@
 See :mod:`fisheyedepth.cameras.base` for the conventions shared by every model.
 """
 
-from .base import CAMERA_MODELS, CameraModel, CameraParameterError
+from .base import CAMERA_MODELS, CameraModel, CameraParameterError, check_plausible
 from .calibration_files import CalibratedCamera, read_basalt, read_calibration, read_kalibr
 from .double_sphere import DoubleSphereCamera
 from .fisheye624 import Fisheye624Camera
 from .fov import FovCamera
-from .io import CalibrationError, camera_from_mapping, load_camera, load_yaml, opencv_yaml, save_camera
+from .io import (
+    CalibrationError,
+    camera_from_mapping,
+    load_camera,
+    load_json,
+    load_yaml,
+    opencv_yaml,
+    save_camera,
+)
 from .kannala_brandt import KannalaBrandtCamera
 from .mei import MeiCamera
 from .opencv import OpenCVCamera
@@ -34,10 +42,12 @@ __all__ = [
     "Rays",
     "UnifiedCamera",
     "camera_from_mapping",
+    "check_plausible",
     "compute_rays",
     "erode_field_of_view",
     "load_camera",
     "opencv_yaml",
+    "load_json",
     "load_yaml",
     "pinhole_like",
     "pixel_grid",

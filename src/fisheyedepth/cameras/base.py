@@ -27,10 +27,11 @@ from torch import Tensor
 
 
 class CameraParameterError(ValueError):
-    """A camera parameter is missing, non-finite or impossible. ``key`` names the parameter."""
+    """A camera parameter is missing, non-finite or impossible. ``key`` names the parameter; None where the
+    fault is the parameters together (a calibration that gives almost no pixel a ray)."""
 
-    def __init__(self, key: str, message: str):
-        super().__init__(f"{key}: {message}")
+    def __init__(self, key: str | None, message: str):
+        super().__init__(message if key is None else f"{key}: {message}")
         self.key = key
         self.reason = message
 
@@ -110,6 +111,23 @@ class CameraModel:
         uv = torch.stack(torch.meshgrid(u, v, indexing="xy"), dim=-1)
         return float(self.unproject(uv)[1].double().mean())
 
+    def field_of_view(self, samples: int = 65) -> tuple[float, float]:
+        """Degrees the image sees across its width and across its height, along the row and the column
+        through the principal point: on each side of it, the largest incidence of a pixel with a ray, out
+        to the image's outer edge (``-0.5`` and ``W - 0.5`` under the pixel-centre convention); the two
+        sides summed (a fisheye whose image circle is inside the image sees its whole domain, 2 x
+        ``max_incidence``). A side with no ray counts 0."""
+        cu, cv = self.principal_point
+        spans = []
+        for size, centre, line in ((self.width, cu, 0), (self.height, cv, 1)):
+            t = torch.linspace(-0.5, size - 0.5, samples, dtype=torch.float64)
+            other = torch.full_like(t, (cv, cu)[line])
+            rays, valid = self.unproject(torch.stack((t, other) if line == 0 else (other, t), dim=-1))
+            theta = torch.acos(rays[..., 2].clamp(-1.0, 1.0))
+            sides = [theta[valid & side] for side in (t < centre, t > centre)]
+            spans.append(math.degrees(sum(float(s.max()) if len(s) else 0.0 for s in sides)))
+        return spans[0], spans[1]
+
     @property
     def principal_point(self) -> tuple[float, float]:
         return getattr(self, self._cu), getattr(self, self._cv)
@@ -170,7 +188,99 @@ class CameraModel:
             no_default = field.default is dataclasses.MISSING
             if no_default and key not in data:
                 raise CameraParameterError(key, f"missing (required by the {name} model)")
-        return cls(**{k: v for k, v in data.items() if k != "model"})
+        return check_plausible(cls(**{k: v for k, v in data.items() if k != "model"}))
+
+
+# -------------------------------------------------------------------- plausibility
+# The bounds of check_plausible. Every real calibration the project reads or ships (KITTI-360's two Mei
+# fisheyes, TUM-VI's Kannala-Brandt and double sphere, Aria's Fisheye624 and Kannala-Brandt cameras,
+# ScanNet++'s DSLR fisheye, ROS plumb_bob and rational_polynomial examples) and every camera the synthetic
+# rigs draw has its paraxial focal between 0.19 and 1.3 times the image size along the same axis, its
+# principal point within 3 % of the image size of its centre, and sees 45 to 203 degrees across its image.
+#
+# Fewer pixels with a ray than this: an impossible distortion coefficient, a wrong unit (KITTI-360's
+# image_02 gives 87 % of its pixels a ray; the synthetic rigs draw cameras with at least 50 %).
+MIN_PIXEL_COVERAGE = 0.05
+# A paraxial focal below 1/20 of the image size would map the image's half-width to 10 radians at the
+# centre's magnification: an equidistant lens would see 1146 degrees across, the most centre-compressing
+# mapping the models have (stereographic: UCM alpha = 0.5, Mei xi = 1) 314 degrees, a pinhole 169.
+# The widest fisheye lenses made see about 280 degrees (equidistant: 0.2 image sizes).
+MIN_FOCAL_SIZES = 1 / 20
+# Above 100 image sizes a pinhole sees 0.57 degrees across: narrower than any lens (a 2000 mm telephoto on
+# a full-frame sensor, the longest made, sees 1 degree across: 55 image sizes).
+MAX_FOCAL_SIZES = 100.0
+# The narrowest view accepted across the image, whatever made it narrow (the focal or the distortion).
+MIN_FIELD_OF_VIEW = 1.0  # degrees
+
+
+def check_plausible(camera: CameraModel) -> CameraModel:
+    """``camera`` if its calibration can be a real camera's; else :class:`CameraParameterError` naming the
+    parameter (its ``key``; None where no one parameter is to blame). The one rule, for every model:
+
+    1. the principal point lies inside the image (``-0.5 <= cx <= W - 0.5``, the image's outer edge under
+       the pixel-centre convention, no margin): the optical axis meets the sensor. Resizing and
+       flipping map the image onto itself, so they keep a camera inside the rule;
+    2. at least :data:`MIN_PIXEL_COVERAGE` of the image has a ray in the model (the image does not reach
+       far beyond what the model can see);
+    3. the paraxial focal (:meth:`CameraModel.paraxial_focal`) along each axis lies between
+       :data:`MIN_FOCAL_SIZES` and :data:`MAX_FOCAL_SIZES` times the image size along it;
+    4. the image sees at least :data:`MIN_FIELD_OF_VIEW` degrees across its width and across its height
+       (:meth:`CameraModel.field_of_view`, from the model's rays: a sane focal with a distortion that
+       squeezes the image into a sliver is refused too).
+
+    Every reader of a calibration goes through it: :meth:`CameraModel.from_dict` (so every file the
+    project reads, :func:`~fisheyedepth.cameras.io.camera_from_mapping`, and a ROS ``CameraInfo``),
+    ``OpenCVCamera.from_ros`` and ``Fisheye624Camera.from_aria_params``.
+    Cameras built by code (presets, resizing, flipping, the synthetic rigs' draws, cameras a computation
+    builds for its own use) are not checked at construction: the tests check the presets and the draws.
+    """
+    sides = (
+        ("width", camera.width, camera._fu, camera._cu),
+        ("height", camera.height, camera._fv, camera._cv),
+    )
+    for side, size, _, centre_key in sides:
+        centre = getattr(camera, centre_key)
+        if not -0.5 <= centre <= size - 0.5:
+            raise CameraParameterError(
+                centre_key,
+                f"the principal point's {centre:g} px lies outside the {size} px image {side} (-0.5 to "
+                f"{size - 0.5:g}): the optical axis must meet the image (the principal point of a real "
+                "camera lies near the image centre)",
+            )
+    coverage = camera.pixel_coverage()
+    if coverage < MIN_PIXEL_COVERAGE:
+        raise CameraParameterError(
+            None,
+            f"only {coverage:.1%} of the {camera.width}x{camera.height} image has a ray in this "
+            f"{camera.model_name} model (at least {MIN_PIXEL_COVERAGE:.0%} expected): an impossible "
+            "distortion or focal value?",
+        )
+    for (side, size, focal_key, _), paraxial in zip(sides, camera.paraxial_focal(), strict=True):
+        value = getattr(camera, focal_key)
+        fov = math.degrees(2 * math.atan2(size / 2, paraxial))  # a pinhole's, at the paraxial focal
+        of = f"{value:g} px" + ("" if paraxial == value else f" (a paraxial focal length of {paraxial:g} px)")
+        if paraxial > MAX_FOCAL_SIZES * size:
+            raise CameraParameterError(
+                focal_key,
+                f"{of} gives a field of view of {fov:.2g} degrees across the {size} px image {side} (a "
+                f"focal length of at most {MAX_FOCAL_SIZES:g} times the image {side}, "
+                f"{MAX_FOCAL_SIZES * size:g} px, expected): a wrong unit or a corrupt value?",
+            )
+        if paraxial < MIN_FOCAL_SIZES * size:
+            raise CameraParameterError(
+                focal_key,
+                f"{of} is less than 1/{1 / MIN_FOCAL_SIZES:g} of the {size} px image {side} (at least "
+                f"{MIN_FOCAL_SIZES * size:g} px expected; a pinhole of this focal would see {fov:.3g} "
+                "degrees across it): a wrong unit or a corrupt value?",
+            )
+    for (side, size, _, _), degrees in zip(sides, camera.field_of_view(), strict=True):
+        if degrees < MIN_FIELD_OF_VIEW:
+            raise CameraParameterError(
+                None,
+                f"the {camera.model_name} model sees {degrees:.2g} degrees across the {size} px image {side} "
+                f"(at least {MIN_FIELD_OF_VIEW:g} degree expected): an impossible distortion coefficient?",
+            )
+    return camera
 
 
 # -------------------------------------------------------------------- shared numerical helpers

@@ -36,13 +36,13 @@ T_imu_cam``, quaternion in x, y, z, w order); cameras are named ``cam0``, ``cam1
 :func:`read_calibration` reads either, by content. Every problem raises
 :class:`~fisheyedepth.cameras.io.CalibrationError` naming the file, the camera and the field: an
 unsupported model combination, a wrong number of intrinsics or coefficients, a missing resolution, a
-transform that is not rigid, a parameter the camera model refuses.
+transform that is not rigid, a parameter the camera model refuses, a calibration that cannot be a real
+camera's (:func:`~fisheyedepth.cameras.base.check_plausible`), a file nested too deeply to parse.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import math
 import os
@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from .base import CameraModel
-from .io import CalibrationError, camera_from_mapping, load_yaml
+from .io import CalibrationError, camera_from_mapping, load_json, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -193,13 +193,10 @@ def _read_text(path: Path) -> str:
 
 
 def _parse(path: Path) -> Any:
-    """The file's tree: JSON when it starts with '{', else YAML (safe loader)."""
+    """The file's tree: JSON when it starts with '{', else YAML (both safe, errors naming ``path``)."""
     text = _read_text(path)
     if text.lstrip().startswith("{"):
-        try:
-            return json.loads(text)
-        except ValueError as exc:
-            raise CalibrationError(path, None, f"not valid JSON: {exc}") from None
+        return load_json(text, path)
     return load_yaml(text, path)
 
 

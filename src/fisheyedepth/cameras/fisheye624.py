@@ -18,7 +18,6 @@ theta_d stops increasing (at most pi), where also the tangential and thin-prism 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import os
 from functools import cached_property
@@ -30,6 +29,7 @@ from torch import Tensor
 from .base import (
     CameraModel,
     CameraParameterError,
+    check_plausible,
     finite_where,
     odd_poly_monotone_limit,
     register_model,
@@ -130,26 +130,28 @@ class Fisheye624Camera(CameraModel):
     # ------------------------------------------------------------------ Aria's calibration files
     @classmethod
     def from_aria_params(cls, params, size) -> Fisheye624Camera:
-        """From Aria's ``params`` ``[f, cx, cy, k0..k5, p0, p1, s0..s3]`` and ``size`` ``[W, H]``."""
+        """From Aria's ``params`` ``[f, cx, cy, k0..k5, p0, p1, s0..s3]`` and ``size`` ``[W, H]``; a
+        calibration that cannot be a real camera's is refused (:func:`.base.check_plausible`)."""
         values = dict(zip(ARIA_PARAMS, (float(p) for p in params), strict=True))
         f = values.pop("f")
         # no int(): a size of 512.7 is refused by the model's checks, not truncated to 512
-        return cls(width=float(size[0]), height=float(size[1]), fx=f, fy=f, **values)
+        return check_plausible(cls(width=float(size[0]), height=float(size[1]), fx=f, fy=f, **values))
 
     @classmethod
     def from_aria(cls, path: str | os.PathLike, camera_name: str) -> Fisheye624Camera:
         """Camera ``camera_name`` of an Aria calibration JSON in the layout of
         ``aria_gen2_rig/calib_slam_fisheye624.json``: ``{name: {"model": "...FISHEYE624", "params":
         [15 numbers], "size": [W, H], "T_device_camera": 4x4}}``. Errors name the file and the field."""
-        from .io import CalibrationError
+        from .io import CalibrationError, load_json
 
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
+            text = path.read_bytes()
         except FileNotFoundError:
             raise FileNotFoundError(f"{path}: no such Aria calibration file") from None
-        except (OSError, ValueError) as err:
-            raise CalibrationError(path, None, f"not readable JSON ({err})") from None
+        except OSError as err:
+            raise CalibrationError(path, None, f"not readable ({err.strerror or err})") from None
+        data = load_json(text, path)
         if not isinstance(data, dict) or camera_name not in data:
             names = sorted(data) if isinstance(data, dict) else []
             raise CalibrationError(path, camera_name, f"no such camera; the file has {names}")
@@ -184,5 +186,6 @@ class Fisheye624Camera(CameraModel):
         try:
             return cls.from_aria_params(params, size)
         except (CameraParameterError, TypeError, ValueError) as err:
-            key = getattr(err, "key", "params")
-            raise CalibrationError(path, f"{camera_name}.{key}", getattr(err, "reason", str(err))) from None
+            key = getattr(err, "key", "params")  # None: the parameters together (no pixel has a ray)
+            where = camera_name if key is None else f"{camera_name}.{key}"
+            raise CalibrationError(path, where, getattr(err, "reason", str(err))) from None

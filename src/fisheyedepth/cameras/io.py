@@ -17,6 +17,7 @@ Every problem raises :class:`CalibrationError` naming the file and the key.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 from pathlib import Path
@@ -54,17 +55,32 @@ _SafeOpenCVLoader.add_implicit_resolver(
     list("-+0123456789"),
 )
 
-# A calibration whose model gives a ray to fewer pixels than this is refused (an impossible distortion
-# coefficient, a wrong unit): a real fisheye covers most of its image (KITTI-360's image_02: 87 %).
-MIN_PIXEL_COVERAGE = 0.05
+# Both parsers recurse once per level of nesting (PyYAML through several Python calls), so a file nested
+# deeper than the interpreter's recursion limit allows raises RecursionError. No calibration nests more
+# than 5 levels.
+_TOO_DEEP = "nested too deeply to be a calibration (lists or mappings hundreds of levels deep)"
 
 
 def load_yaml(text: str, path) -> Any:
-    """Parse calibration YAML safely (no Python tags), with OpenCV's conventions; errors name ``path``."""
+    """Parse a user's YAML safely (no Python tags), with OpenCV's conventions; every reader of a calibration
+    or rig file parses through it. Errors name ``path``: not YAML, or nested too deeply to parse."""
     try:
         return yaml.load(text, Loader=_SafeOpenCVLoader)
     except yaml.YAMLError as exc:
         raise CalibrationError(path, None, f"not valid YAML: {exc}") from None
+    except RecursionError:
+        raise CalibrationError(path, None, _TOO_DEEP) from None
+
+
+def load_json(text: str | bytes, path) -> Any:
+    """Parse a user's JSON (``bytes`` are decoded as JSON's UTF-8, -16 or -32); every reader of a user's JSON
+    parses through it. Errors name ``path``: not JSON (or not text), or nested too deeply to parse."""
+    try:
+        return json.loads(text)
+    except ValueError as exc:  # JSONDecodeError, UnicodeDecodeError
+        raise CalibrationError(path, None, f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise CalibrationError(path, None, _TOO_DEEP) from None
 
 
 def field(tree: dict, dotted: str, path) -> Any:
@@ -159,7 +175,9 @@ def opencv_yaml(camera: CameraModel, name: str) -> str:
 
 
 def camera_from_mapping(data: dict[str, Any], path="<mapping>") -> CameraModel:
-    """Build a camera from the project's YAML mapping, with errors naming ``path`` and the key."""
+    """Build a camera from the project's YAML mapping, with errors naming ``path`` and the key: a missing or
+    impossible parameter, or a calibration that cannot be a real camera's
+    (:func:`~fisheyedepth.cameras.base.check_plausible`, through :meth:`CameraModel.from_dict`)."""
     data = dict(data)
     source_keys = data.pop("_source_keys", {})
     try:
@@ -168,15 +186,6 @@ def camera_from_mapping(data: dict[str, Any], path="<mapping>") -> CameraModel:
         raise CalibrationError(path, source_keys.get(exc.key, exc.key), exc.reason) from None
     except TypeError as exc:  # a value of the wrong kind reached a constructor
         raise CalibrationError(path, None, str(exc)) from None
-    coverage = camera.pixel_coverage()
-    if coverage < MIN_PIXEL_COVERAGE:
-        raise CalibrationError(
-            path,
-            None,
-            f"only {coverage:.1%} of the {camera.width}x{camera.height} image has a ray in this "
-            f"{camera.model_name} model (at least {MIN_PIXEL_COVERAGE:.0%} expected): an impossible "
-            "distortion or focal value?",
-        )
     return camera
 
 

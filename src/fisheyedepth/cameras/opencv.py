@@ -36,6 +36,7 @@ from torch import Tensor
 from .base import (
     CameraModel,
     CameraParameterError,
+    check_plausible,
     finite_where,
     register_model,
     safe_norm,
@@ -117,6 +118,26 @@ def radial_monotone_limit(num: Sequence[float], den: Sequence[float]) -> tuple[f
     return math.sqrt(s_fold), False
 
 
+def ros_matrix_fault(K: Sequence[float]) -> tuple[str, str] | None:
+    """``(field, what is wrong)`` for a ROS ``CameraInfo.K`` (9 numbers, row-major) that is not
+    ``[fx 0 cx 0 fy cy 0 0 1]`` (its skew ``K[1]`` aside), or None. A ``K`` written column-major (cx, cy
+    in ``K[6]``, ``K[7]``) is named as such: read row-major it would give cx = cy = 0, a plausible
+    principal point in the image's corner."""
+    k = [float(v) for v in K]
+    if k[6] != 0 or k[7] != 0:
+        if k[2] == 0 and k[5] == 0:
+            return "K", (
+                f"written column-major: cx = K[6] = {k[6]:g} and cy = K[7] = {k[7]:g} where K[2] = K[5] = 0; "
+                "K is row-major, [fx 0 cx 0 fy cy 0 0 1]"
+            )
+        return "K[6]" if k[6] != 0 else "K[7]", f"must be 0 (K = [fx 0 cx 0 fy cy 0 0 1]), got {k}"
+    if k[3] != 0:
+        return "K[3]", f"must be 0 (K = [fx 0 cx 0 fy cy 0 0 1]), got {k}"
+    if k[8] != 1:
+        return "K[8]", f"must be 1 (K = [fx 0 cx 0 fy cy 0 0 1]), got {k[8]:g}"
+    return None
+
+
 def _ros_matrix(K: Any) -> np.ndarray:
     try:
         K = np.asarray(K, dtype=np.float64).reshape(3, 3)
@@ -124,10 +145,9 @@ def _ros_matrix(K: Any) -> np.ndarray:
         raise CameraParameterError("K", f"expected 9 numbers (a 3x3 matrix, row-major), got {K!r}") from None
     if K[0, 1] != 0:
         raise CameraParameterError("K", f"skew K[0][1] = {K[0, 1]!r} is not supported (must be 0)")
-    if K[1, 0] != 0 or list(K[2]) != [0.0, 0.0, 1.0]:
-        raise CameraParameterError(
-            "K", f"not an intrinsic matrix [[fx 0 cx] [0 fy cy] [0 0 1]]: {K.tolist()}"
-        )
+    fault = ros_matrix_fault(K.ravel())
+    if fault is not None:
+        raise CameraParameterError(*fault)
     return K
 
 
@@ -157,7 +177,9 @@ class OpenCVCamera(CameraModel):
         """From a ROS ``sensor_msgs/CameraInfo``: ``K`` (9 numbers, row-major, or 3x3) and ``D``, 5
         coefficients (``plumb_bob``: k1 k2 p1 p2 k3) or 8 (``rational_polynomial``: ... k4 k5 k6).
         ``distortion_model``, when given, must name the model ``D``'s length implies. Raises
-        :class:`CameraParameterError` naming ``K``, ``D`` or ``distortion_model``."""
+        :class:`CameraParameterError` naming ``K`` (or the entry of it: a column-major ``K``, ``K[8]`` not
+        1), ``D``, ``distortion_model``, or the parameter of a calibration that cannot be a real camera's
+        (:func:`~fisheyedepth.cameras.base.check_plausible`)."""
         coeffs = list(D) if isinstance(D, Sequence | np.ndarray) else None
         lengths = {len(names): model for model, names in ROS_MODELS.items()}
         if coeffs is None or len(coeffs) not in lengths:
@@ -178,7 +200,8 @@ class OpenCVCamera(CameraModel):
             if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer):
                 raise CameraParameterError("D", f"{name} must be a number, got {value!r}")
             values[name] = float(value)
-        return cls(width=width, height=height, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], **values)
+        camera = cls(width=width, height=height, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], **values)
+        return check_plausible(camera)
 
     def to_ros(self) -> dict[str, Any]:
         """The ``sensor_msgs/CameraInfo`` fields of this camera: ``plumb_bob`` when k4 = k5 = k6 = 0."""
