@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from fisheyedepth.data.aria import aria_to_rig
@@ -32,7 +33,7 @@ def main(argv=None) -> int:
     try:
         summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
     except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
-        print(f"error: {err}")
+        print(f"error: {err}", file=sys.stderr)
         return 2
     print(json.dumps(summary, indent=2))
     return 0

@@ -108,7 +108,7 @@ def test_refuses_to_overwrite(world, estimated, capsys):
     before = path.read_bytes()
     path.write_bytes(b"not the estimate")
     assert main(["--root", str(root), "--sequence", TRAIN, "--camera", "image_02"]) == 2
-    assert str(path) in capsys.readouterr().out
+    assert str(path) in capsys.readouterr().err
     assert path.read_bytes() == b"not the estimate"
     assert main(["--root", str(root), "--sequence", TRAIN, "--camera", "image_02", "--overwrite"]) == 0
     assert path.read_bytes() == before
@@ -118,10 +118,10 @@ def test_too_few_frames(world, tmp_path, capsys):
     root, _ = world
     out = tmp_path / "mask.png"
     assert main(["--root", str(root), "--sequence", VAL, "--camera", "image_02", "--out", str(out)]) == 2
-    message = capsys.readouterr().out
+    message = capsys.readouterr().err
     assert VAL in message and "3 frames" in message and "at least 10" in message
     assert main(["--root", str(root), "--sequence", TRAIN, "--camera", "image_02", "--frames", "5"]) == 2
-    assert "at least 10" in capsys.readouterr().out
+    assert "at least 10" in capsys.readouterr().err
     assert not out.exists()
 
 
@@ -159,7 +159,7 @@ def test_rig_layout(world, tmp_path, capsys):
     victim.write_bytes(victim.read_bytes()[:100])  # truncated
     args = ["--root", str(rig), "--layout", "rig", "--sequence", "seq0", "--camera", "image_03"]
     assert main([*args, "--out", str(tmp_path / "m.png")]) == 2
-    assert str(victim) in capsys.readouterr().out
+    assert str(victim) in capsys.readouterr().err
 
 
 def test_still_sky_is_not_body():

@@ -63,7 +63,7 @@ def test_a_body_mask_needs_frames_that_change(tmp_path, capsys):
     images = still_rig(tmp_path)
     args = ["--root", str(tmp_path), "--layout", "rig", "--sequence", "seq0", "--camera", "cam"]
     assert estimate_mask_main([*args, "--frames", "20"]) == 2
-    out = capsys.readouterr().out.strip().splitlines()
+    out = capsys.readouterr().err.strip().replace("\r", "\n").splitlines()[-1:]  # after the progress bar
     assert out == [
         f"error: the 20 frames of camera 'cam' in {images} do not change over time (9 pixels in 10 vary "
         "by less than 1% of the mean brightness): a body mask needs a moving camera"
@@ -140,7 +140,7 @@ def test_two_aria_frames_with_one_capture_time_are_an_error(tmp_path, capsys):
         aria_to_rig(src, out, overwrite=True)  # where one image silently replaced the other
     assert not out.exists()
     assert load_script("aria_to_rig").main(["--src", str(src), "--out", str(out)]) == 2
-    assert capsys.readouterr().out.strip() == f"error: {info.value}"
+    assert capsys.readouterr().err.strip() == f"error: {info.value}"
 
 
 @pytest.mark.parametrize(
@@ -312,11 +312,18 @@ def test_predict_into_a_read_only_folder_is_refused_before_any_work(tmp_path, mo
     from fisheyedepth.cli import predict as predict_module
 
     out = tmp_path / "ro"
+    out.mkdir()
     read_only(monkeypatch, out)
     monkeypatch.setattr(predict_module, "load_runtime", lambda cfg: pytest.fail("the network was loaded"))
     cfg = predict_cfg(input=tmp_path / "in", camera=tmp_path / "cam.yaml", output=out)
     line = one_line_error(predict, cfg, capsys)
     assert line == f"error: output: {out}: cannot write there (Read-only file system)"
+    # a folder still to be made is checked in its nearest existing parent, and is not made by the check
+    read_only(monkeypatch, tmp_path)
+    cfg = predict_cfg(input=tmp_path / "in", camera=tmp_path / "cam.yaml", output=tmp_path / "new" / "out")
+    line = one_line_error(predict, cfg, capsys)
+    assert line == f"error: output: {tmp_path / 'new' / 'out'}: cannot write there (Read-only file system)"
+    assert not (tmp_path / "new").exists()
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import unicodedata
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,56 @@ def run_config(run: str | os.PathLike) -> dict[str, Any]:
     except yaml.YAMLError as err:
         raise ValueError(f"{path}: not readable YAML ({err})") from err
     return data if isinstance(data, dict) else {}
+
+
+# A name may take this many bytes (UTF-8): 255 (NAME_MAX of ext4, XFS, btrfs, APFS) less room for what the
+# files named after it add (``body_mask_<camera>.png``, the LiDAR cache's ``<camera>_<W>x<H>_<16 hex>``,
+# atomic writes' ``.<name>.<8 random>.tmp``).
+NAME_BYTES = 200
+
+
+def path_name(name: str, what: str, source: str | os.PathLike) -> str:
+    """``name`` (a camera's, a sequence's: read from a file or given as an option) checked to be one plain
+    file or folder name, as every command that joins it into a path needs it: ``root / sequence /
+    "images" / camera`` must stay under ``root``. A ``ValueError`` ``<source>: <what> <name!r> ...``
+    (``source``: the file or option it came from; ``what``: its field) otherwise.
+
+    Refused: an empty name, ``.`` and ``..``, a path separator (``/``, and ``\\``, Windows' separator,
+    which a folder copied there would split on), an absolute path, a control character (NUL ends the
+    name for the operating system; a newline breaks the one-line split files and error messages),
+    more than :data:`NAME_BYTES` bytes, and a leading ``-``: every shell tool (``ls``, ``rm``, ``cp``,
+    ``tar``) and argparse (``--camera -left``) reads such a name as an option, so that camera's files
+    could not be named on a command line without tricks, and no camera, ROS topic (which may not start
+    with ``-``), Kalibr or KITTI-360 name needs one."""
+    if not isinstance(name, str):
+        raise ValueError(f"{source}: {what} {name!r} is not a name (a string)")
+    separators = [c for c in ("/", "\\") if c in name]
+    controls = [c for c in name if unicodedata.category(c) == "Cc"]
+    size = len(name.encode("utf-8", "surrogateescape"))
+    why = (
+        "is empty" if not name
+        else "is not a name but a folder (this one or its parent)" if name in (".", "..")
+        else "is an absolute path" if name.startswith(("/", "\\")) or os.path.isabs(name)
+        else f"contains a path separator ({separators[0]!r})" if separators
+        else f"contains a control character ({controls[0]!r})" if controls
+        else "starts with '-', which command-line tools read as an option" if name.startswith("-")
+        else f"is {size} bytes long, more than {NAME_BYTES}" if size > NAME_BYTES
+        else None
+    )  # fmt: skip
+    if why is not None:
+        raise ValueError(f"{source}: {what} {name!r} {why}: it must be one plain file or folder name")
+    return name
+
+
+def inside(root: str | os.PathLike, path: str | os.PathLike, source: str | os.PathLike) -> Path:
+    """``path``, checked to lie under ``root`` as written (``..`` folded away): what :func:`path_name`
+    already ensures for names, checked again where a path is written. Links are not followed, so a
+    dataset whose folders are links to another disk stays readable and writable."""
+    top = os.path.normpath(os.path.abspath(root))
+    where = os.path.normpath(os.path.abspath(path))
+    if os.path.commonpath([top, where]) != top:
+        raise ValueError(f"{source}: {path} lies outside {root}")
+    return Path(path)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
@@ -64,8 +115,10 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def staged_folder(out: str | os.PathLike, label: str):
     """A hidden folder beside ``out`` (the same filesystem, so the final move is a rename) in which an
     importer builds ``out``, with a plain folder's permissions (not ``mkdtemp``'s private 0700); removed
-    with whatever is left in it when the block ends, however it ends."""
+    with whatever is left in it when the block ends, however it ends, and so are the folders above
+    ``out`` that it created, when the block leaves no ``out`` in them."""
     out = Path(out)
+    created = [p for p in (out.parent, *out.parent.parents) if not p.exists()]  # deepest first
     out.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{label}-", dir=out.parent))
     try:
@@ -73,20 +126,57 @@ def staged_folder(out: str | os.PathLike, label: str):
         yield staging
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        if not os.path.lexists(out):
+            for folder in created:
+                with contextlib.suppress(OSError):  # not empty: something else was put there meanwhile
+                    folder.rmdir()
 
 
-def move_into_place(staging: Path, out: Path, parts: list[Path]) -> None:
+def move_into_place(staging: Path, out: Path, parts: list[Path], overwrite: bool = False) -> None:
     """The finished ``staging`` folder becomes ``out`` (one rename), or, where ``out`` holds other files
     already, its ``parts`` (paths relative to both, in order) replace theirs: a folder part whole, so no
-    stale file of an earlier import stays; put last the file that marks ``out`` complete."""
+    stale file of an earlier import stays; put last the file that marks ``out`` complete.
+
+    A part that exists in ``out`` now (another command may have written it since the caller checked)
+    is replaced only with ``overwrite`` (a ``FileExistsError`` otherwise, before anything moves). The
+    replaced files are set aside inside ``staging`` until every part is in place; a part that cannot be
+    moved puts back what was there and takes away what was moved, so ``out`` is as it was."""
     if not out.exists() or not any(out.iterdir()):
-        os.replace(staging, out)
-        return
+        try:
+            os.replace(staging, out)
+            return
+        except OSError:  # filled since: part by part, as below
+            if not out.is_dir() or not any(out.iterdir()):
+                raise
     for part in parts:
-        (out / part).parent.mkdir(parents=True, exist_ok=True)
-        if (out / part).is_dir():  # a folder cannot replace a non-empty one: set the old one aside
-            (out / part).rename(staging / ".replaced")
-        os.replace(staging / part, out / part)
+        inside(out, out / part, out)
+    taken = [out / part for part in parts if os.path.lexists(out / part)]
+    if taken and not overwrite:
+        raise FileExistsError(f"{taken[0]} exists; pass overwrite=True (--overwrite) to replace it")
+    aside = Path(tempfile.mkdtemp(prefix=".replaced-", dir=staging))  # a name no part can have
+    moved: list[tuple[Path, Path | None]] = []  # (part, where its old file was set aside)
+    made: list[Path] = []  # folders created for the parts, deepest first
+    try:
+        for i, part in enumerate(parts):
+            target = out / part
+            made = [p for p in target.parents if not p.exists()] + made
+            target.parent.mkdir(parents=True, exist_ok=True)
+            old = None
+            if os.path.lexists(target):  # a folder cannot replace a non-empty one: set the old one aside
+                old = aside / str(i)
+                os.rename(target, old)
+            moved.append((part, old))
+            os.replace(staging / part, target)
+    except BaseException:
+        for part, old in reversed(moved):
+            if os.path.lexists(out / part) and not os.path.lexists(staging / part):
+                os.replace(out / part, staging / part)
+            if old is not None:
+                os.rename(old, out / part)
+        for folder in made:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        raise
 
 
 def pid_alive(pid: int) -> bool:

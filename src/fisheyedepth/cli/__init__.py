@@ -84,15 +84,21 @@ def is_input_error(exc: BaseException) -> bool:
 
 
 def check_writable(folder: str | os.PathLike, option: str) -> Path:
-    """``folder`` (created if missing) accepts files: checked before any work, so a read-only or
-    full filesystem is named at once, not after the network has run. A ValueError names the option."""
+    """``folder`` can take files: checked before any work, so a read-only or full filesystem is named at
+    once, not after the network has run. Nothing is left behind: the check writes a temporary file into
+    ``folder``, or into its nearest existing parent when it is still to be made. A ValueError names the
+    option."""
     folder = Path(folder)
+    here = folder
+    while not here.exists() and here != here.parent:
+        here = here.parent
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
+        if not here.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(here))
+        with tempfile.NamedTemporaryFile(dir=here, prefix=".write-check-"):
             pass
     except OSError as err:
-        if err.errno not in WRITE_ERRORS and not isinstance(err, FileExistsError | NotADirectoryError):
+        if err.errno not in WRITE_ERRORS and not isinstance(err, NotADirectoryError):
             raise
         raise ValueError(f"{option}: {folder}: cannot write there ({err.strerror})") from None
     return folder

@@ -22,7 +22,6 @@ refused export leaves nothing behind.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import re
 import shutil
@@ -32,9 +31,9 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, save_camera
+from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
-from ..utils import move_into_place, staged_folder
+from ..utils import inside, move_into_place, path_name, staged_folder
 from .layouts import RigLayout, _transform
 
 CALIBRATION = "calib_slam_fisheye624.json"
@@ -122,6 +121,7 @@ def aria_to_rig(
     (cameras, images per camera, those outside the poses' time range, poses). Nothing is overwritten
     unless ``overwrite``; nothing is written when the export is refused."""
     src, out = Path(src), Path(out)
+    path_name(sequence, "sequence", "--sequence")  # a folder under out
     calib_path = src / CALIBRATION
     if not calib_path.is_file():
         raise FileNotFoundError(f"{calib_path}: Aria calibration not found")
@@ -129,10 +129,11 @@ def aria_to_rig(
         raise FileExistsError(f"{out} is a file, not a folder for the rig layout")
     if (out / "rig.yaml").exists() and not overwrite:
         raise FileExistsError(f"{out / 'rig.yaml'} exists; pass overwrite=True (--overwrite) to replace it")
-    try:
-        calibration = json.loads(calib_path.read_text())
-    except ValueError as err:
-        raise CalibrationError(calib_path, None, f"not readable JSON ({err})") from None
+    calibration = load_json(calib_path.read_bytes(), calib_path)  # not JSON, not text, nested too deeply
+    if not isinstance(calibration, dict):
+        raise CalibrationError(calib_path, None, "expected a mapping {camera: calibration}")
+    for name in calibration:  # each names a folder of src, and one under out
+        path_name(name, "camera", calib_path)
     names = sorted(n for n in calibration if (src / n).is_dir())
     if not names:
         raise FileNotFoundError(f"{src}: no image folder named like a camera of {calib_path.name}")
@@ -142,7 +143,7 @@ def aria_to_rig(
     targets = [Path("rig.yaml"), Path(sequence) / "poses.txt"]
     targets += [Path("calibration") / f"{name}.yaml" for name in names]
     targets += [Path(sequence) / "images" / n / f"{t}.png" for n, files in images.items() for t in files]
-    taken = next((out / t for t in targets if (out / t).exists()), None)
+    taken = next((out / t for t in targets if os.path.lexists(inside(out, out / t, "--out"))), None)
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass overwrite=True (--overwrite) to replace it")
 
@@ -180,7 +181,7 @@ def aria_to_rig(
             raise ValueError(
                 f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
             ) from None
-        move_into_place(staging, out, [*targets[1:], targets[0]])  # file by file, rig.yaml last
+        move_into_place(staging, out, [*targets[1:], targets[0]], overwrite)  # file by file, rig.yaml last
     return {
         "cameras": names,
         "images": {n: len(f) for n, f in images.items()},

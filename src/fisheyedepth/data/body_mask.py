@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import sys
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -33,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from ..cameras import CameraModel, compute_rays
-from ..utils import atomic_write_bytes
+from ..utils import atomic_write_bytes, path_name
 from .dataset import read_checked
 from .kitti360 import Kitti360Layout
 from .layouts import RigLayout
@@ -289,13 +290,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing mask file")
     args = parser.parse_args(argv)
     try:
+        path_name(args.camera, "camera", "--camera")  # folders and the default mask's file name
+        path_name(args.sequence, "sequence", "--sequence")
         layout = open_layout(args.layout, args.root, args.camera)
         summary = write_body_mask(
             layout, args.sequence, args.camera, args.frames, args.out, args.threshold,
             args.sky_elevation, args.up, args.overwrite,
         )  # fmt: skip
     except (FileNotFoundError, FileExistsError, KeyError, ValueError) as err:  # ImageError is a ValueError
-        print(f"error: {err.args[0] if isinstance(err, KeyError) else err}")
+        print(f"error: {err.args[0] if isinstance(err, KeyError) else err}", file=sys.stderr)
         return 2
     print(
         f"{args.camera}: {100 * summary['body_fraction']:.1f} % of the pixels with a ray are body "

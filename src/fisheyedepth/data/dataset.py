@@ -27,7 +27,7 @@ from torch.utils.data import Dataset
 
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
-from ..utils import atomic_write_bytes, file_key
+from ..utils import atomic_write_bytes, file_key, path_name
 from .augment import Augment, PoseNoise
 from .kitti360 import OCCLUSION, Kitti360Layout, LidarGroundTruth
 from .layouts import Frame
@@ -228,6 +228,9 @@ def parse_split(spec, layout) -> list[tuple[str, set[int] | None, int, list[str]
                 continue
             if len(fields) not in (2, 3) or not fields[1].isdigit():
                 raise ValueError(f"{path}:{lineno}: expected '<sequence> <frame> [camera]'")
+            path_name(fields[0], "sequence", f"{path}:{lineno}")  # folders under the layout's root
+            if len(fields) == 3:
+                path_name(fields[2], "camera", f"{path}:{lineno}")
             per_seq.setdefault((fields[0], fields[2] if len(fields) == 3 else None), set()).add(
                 int(fields[1])
             )
@@ -236,6 +239,7 @@ def parse_split(spec, layout) -> list[tuple[str, set[int] | None, int, list[str]
     for entry in spec:
         entry = dict(entry)
         rows = slice(entry.get("start"), entry.get("stop"))
+        path_name(entry["sequence"], "sequence", "split")  # a folder under the layout's root
         out.append((entry["sequence"], rows, int(entry.get("stride", 1)), entry.get("cameras")))
     return out
 

@@ -20,6 +20,7 @@ import torch
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
 from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_camera, read_calibration
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
+from ..utils import path_name
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +85,9 @@ class RigLayout:
         self.max_pose_gap = max_pose_gap
         calibrated, calibration_to_body = self._calibration_file(rig, rig_file)
         if entries is None and calibrated:  # every camera of the calibration file, by its name there
-            entries = [{"name": c.name} for c in calibrated]
+            entries = [
+                {"name": path_name(c.name, "camera", self.root / rig["calibration"])} for c in calibrated
+            ]
         if not isinstance(entries, list) or not entries:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
         self.cameras = {}
@@ -93,7 +96,7 @@ class RigLayout:
             where = f"cameras[{i}]"
             if not isinstance(entry, dict) or "name" not in entry:
                 raise CalibrationError(rig_file, f"{where}.name", "missing")
-            name = str(entry["name"])
+            name = path_name(str(entry["name"]), f"{where}.name", rig_file)  # images/<name>/ under root
             if cameras is not None and name not in cameras:
                 continue
             calibrated_as = None  # the camera of the top-level calibration file this entry takes
@@ -210,6 +213,8 @@ class RigLayout:
     def frames(self, sequence: str, camera: str) -> list[Frame]:
         key = (sequence, camera)
         if key not in self._frames:
+            path_name(sequence, "sequence", self.root)  # from a split or an option: a folder under root
+            path_name(camera, "camera", self.root)
             times, trans, quats = self._poses(sequence)
             folder = self.root / sequence / "images" / camera
             stamps = sorted(int(p.stem) for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem))

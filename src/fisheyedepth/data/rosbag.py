@@ -21,6 +21,8 @@ folder with ``metadata.yaml`` and sqlite3 ``.db3`` or ``.mcap`` files) and write
 The import is written into a hidden folder beside ``out``, opened with ``RigLayout`` (what training
 will read) and only then moved into place: a failed import leaves nothing at ``out``. A corrupt image
 message is skipped and counted (refused with ``strict``). Nothing is overwritten without ``overwrite``.
+Camera and sequence names become folder and file names under ``out``: each must be one plain name
+(:func:`fisheyedepth.utils.path_name`: no ``/``, no ``..``, ...).
 """
 
 from __future__ import annotations
@@ -36,11 +38,11 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CameraModel, load_camera, save_camera
+from ..cameras import CameraModel, load_camera, load_yaml, save_camera
 from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
-from ..utils import move_into_place, staged_folder
+from ..utils import inside, move_into_place, path_name, staged_folder
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix
 from .layouts import _transform as read_transform
 
@@ -139,16 +141,46 @@ def camera_from_info(msg, topic: str) -> CameraModel:
     and the coefficient count. ``R`` (the stereo rectification) and ``P`` (the projection of the
     rectified image) are ignored: they describe ``image_rect``, not the raw image; to import rectified
     images, give a pinhole calibration file built from ``P`` instead (``--calibration NAME=FILE``).
+
+    Refused too, naming the topic and the field: a ``K`` that is not ``[fx 0 cx 0 fy cy 0 0 1]`` (written
+    column-major, ``K[8]`` not 1); a ``binning_x``/``binning_y`` above 1 or a ``roi`` smaller than the
+    calibrated image (``K`` and ``D`` describe the full sensor, the images are binned or cropped from it:
+    this import does not rescale the calibration); and a calibration that cannot be a real camera's
+    (:func:`~fisheyedepth.cameras.base.check_plausible`).
     """
+    from ..cameras.opencv import ros_matrix_fault
+
     K = [float(v) for v in _field(msg, "k", "K")]
     D = [float(v) for v in _field(msg, "d", "D")]
     model = str(msg.distortion_model)
     size = {"width": int(msg.width), "height": int(msg.height)}
+    shape = f"{size['width']}x{size['height']}"
+    instead = "give the calibration of the images as they are in the bag instead (--calibration NAME=FILE)"
+    if len(K) != 9:
+        raise RosbagError(f"{topic}: the CameraInfo's K has {len(K)} numbers, expected 9 (row-major 3x3)")
     if not any(K):
         raise RosbagError(
             f"{topic}: the CameraInfo's K is all zeros (an uncalibrated camera); give the camera's "
             "calibration file instead (--calibration NAME=FILE)"
         )
+    if (fault := ros_matrix_fault(K)) is not None:
+        raise RosbagError(f"{topic}: the CameraInfo's {fault[0]}: {fault[1]}")
+    binning = {key: int(getattr(msg, key, 0)) for key in ("binning_x", "binning_y")}
+    for key, factor in binning.items():
+        if factor > 1:  # 0 and 1 both mean no binning
+            raise RosbagError(
+                f"{topic}: the CameraInfo's {key} is {factor}: its K and D describe the {shape} sensor "
+                f"before binning, not the binned images, and this import does not rescale them; {instead}"
+            )
+    roi = getattr(msg, "roi", None)
+    if roi is not None:
+        x, y, w, h = (int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+        if (x, y) != (0, 0) or (w, h) not in ((0, 0), (size["width"], size["height"])):  # 0 0 0 0: none
+            raise RosbagError(
+                f"{topic}: the CameraInfo's roi (x_offset {x}, y_offset {y}, width {w}, height {h}) crops "
+                f"the {shape} calibrated image: its K and D describe the whole image, not the crop, and "
+                f"this import does not shift them; {instead}"
+            )
     if K[1] != 0:
         log.warning("%s: the CameraInfo's K has a skew of %g, which is ignored (no camera model has one)",
                     topic, K[1])  # fmt: skip
@@ -169,9 +201,8 @@ def camera_from_info(msg, topic: str) -> CameraModel:
             "(--calibration NAME=FILE)"
         )
     try:
-        return CameraModel.from_dict(data)
-    except ValueError as err:  # an impossible parameter: a zero size, a negative focal length
-        shape = f"{size['width']}x{size['height']}"
+        return CameraModel.from_dict(data)  # checks that it can be a real camera's too
+    except ValueError as err:  # an impossible parameter: a zero size, a negative focal length, fx 1e30
         raise RosbagError(f"{topic}: CameraInfo {shape}, distortion {model!r}, K {K}, D {D}: {err}") from None
 
 
@@ -254,17 +285,20 @@ def import_rosbag(
         raise ValueError(f"bit_depth: expected 8 to 16 bits, got {bit_depth}")
     if max_pose_gap is not None and not max_pose_gap > 0:
         raise ValueError(f"max_pose_gap: expected seconds > 0, got {max_pose_gap}")
+    path_name(sequence, "sequence", "--sequence")  # each becomes a folder or file name under out
+    for name in cameras:
+        path_name(name, "camera", "--camera")
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
     parts = [Path(sequence), *(Path("calibration") / f"{name}.yaml" for name in cameras), Path("rig.yaml")]
     for part in reversed(parts):  # rig.yaml first: the clash that says "this is a rig already"
-        if (out / part).exists() and not overwrite:
+        if os.path.lexists(inside(out, out / part, "--out")) and not overwrite:
             raise FileExistsError(f"{out / part} exists; pass overwrite=True (--overwrite) to replace it")
     with staged_folder(out, "importing") as staging:
         try:
             summary = _import(bag, staging, cameras, info_topics, calibrations, extrinsics, odometry,
                               tf_poses, body_frame, sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
-            move_into_place(staging, out, parts)  # rig.yaml last: a rig is complete when it has one
+            move_into_place(staging, out, parts, overwrite)  # rig.yaml last: a rig is complete with it
         except RosbagError as err:  # named by the bag, and by the path the file would have had
             message = str(err).replace(str(staging), str(out))
             raise RosbagError(message if str(bag) in message else f"{bag}: {message}") from None
@@ -514,11 +548,14 @@ def _check_loads(bag: Path, out: Path, sequence: str, counts: dict[str, int]) ->
 
 
 def _pairs(values: list[str], what: str) -> dict[str, str]:
+    """``NAME=VALUE`` options as a mapping; a name given twice is refused (the last would win unseen)."""
     out = {}
     for value in values or []:
         if "=" not in value:
-            raise SystemExit(f"error: {what}: expected NAME=VALUE, got {value!r}")
+            raise ValueError(f"{what}: expected NAME=VALUE, got {value!r}")
         name, _, rest = value.partition("=")
+        if name in out:
+            raise ValueError(f"{what}: {name} given twice ({name}={out[name]} and {value})")
         out[name] = rest
     return out
 
@@ -527,6 +564,7 @@ def main(argv=None) -> int:
     """Console script ``fisheyedepth-import-rosbag``."""
     import argparse
     import json
+    import sys
 
     parser = argparse.ArgumentParser(
         description="Import a ROS 1 or ROS 2 bag into the rig layout (docs/data-format.md).",
@@ -563,7 +601,7 @@ def main(argv=None) -> int:
     try:
         extrinsics = {}
         if args.extrinsics:
-            data = yaml.safe_load(args.extrinsics.read_text())
+            data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
             if not isinstance(data, dict):
                 raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
             extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
@@ -574,7 +612,7 @@ def main(argv=None) -> int:
             args.max_pose_gap, args.bit_depth, args.strict,
         )  # fmt: skip
     except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
-        print(f"error: {err}")
+        print(f"error: {err}", file=sys.stderr)
         return 2
     print(json.dumps(summary, indent=2))
     return 0

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ...cameras import load_camera
+from ...utils import path_name
 from ..layouts import CameraSpec, Frame, existing
 from .files import read_cam_to_pose, read_cam_to_velo, read_poses
 
@@ -55,11 +56,13 @@ class Kitti360Layout:
         calib = self.root / "calibration"
         extrinsics_file = existing(calib / "calib_cam_to_pose.txt", "calibration file")
         extrinsics = read_cam_to_pose(extrinsics_file)
+        source = "cameras" if cameras is not None else self.root  # the option, or the folders found
         if cameras is None:
             cameras = self.discover_cameras()
         self.cameras: dict[str, CameraSpec] = {}
         self.mask_paths: dict[str, Path | None] = {}
         for name in cameras:
+            path_name(name, "camera", source)  # calibration/<name>.yaml, data_2d_raw/<seq>/<name>/
             if name not in extrinsics:
                 raise KeyError(f"{extrinsics_file}: no line for camera {name!r}")
             calibration = existing(calib / f"{name}.yaml", f"calibration file of camera {name!r}")
@@ -97,6 +100,7 @@ class Kitti360Layout:
     def frames(self, sequence: str, camera: str | None = None) -> list[Frame]:
         """The sequence's frames in ``poses.txt`` row order (the same for every camera)."""
         if sequence not in self._frames:
+            path_name(sequence, "sequence", self.root)  # from a split or an option: a folder under root
             poses = read_poses(existing(self.root / "data_poses" / sequence / "poses.txt", "pose file"))
             self._frames[sequence] = [Frame(k, poses[k]) for k in sorted(poses)]
         return self._frames[sequence]
