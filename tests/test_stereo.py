@@ -22,6 +22,7 @@ from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
 from fisheyedepth.stereo import SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
 from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
+from fisheyedepth.stereo.sweep import box_mean
 
 from conftest import kitti02
 
@@ -92,6 +93,21 @@ def test_zncc_cost_is_zero_for_gain_and_offset_and_one_for_inversion():
     assert zncc_cost(a, -a, 5)[0, 2:-2, 2:-2].min() > 1 - 1e-3
     flat = torch.full_like(a, 0.3)
     assert torch.allclose(zncc_cost(a, flat, 5), torch.full((1, 24, 24), 0.5), atol=1e-3)  # no evidence
+
+
+@pytest.mark.parametrize("window", [3, 7, 11])
+def test_the_separable_box_mean_is_the_window_mean(window):
+    x = torch.rand(2, 1, 37, 53, dtype=torch.float64, generator=torch.Generator().manual_seed(window))
+    expected = F.avg_pool2d(x, window, stride=1, padding=window // 2, count_include_pad=False)
+    assert torch.allclose(box_mean(x, window), expected, atol=1e-12)
+
+
+def test_hypotheses_warped_in_chunks_give_the_same_volume():
+    camera = kitti02().resize(48, 48)
+    reference, source, _ = pair(camera, camera, pose(), pose(30.0, (0.2, 0.0, 0.0)))
+    one, seen_one = SweepStereo(hypotheses=10, chunk=1).cost_volume(reference, [source])
+    many, seen_many = SweepStereo(hypotheses=10, chunk=4).cost_volume(reference, [source])
+    assert torch.equal(one, many) and torch.equal(seen_one, seen_many)
 
 
 def test_census_counts_the_neighbours_that_change_order():

@@ -59,7 +59,8 @@ class SweepStereo:
     """The sweep's settings. ``hypotheses`` distances uniform in inverse distance over
     ``[min_distance, max_distance]`` metres; ``cost``: ``zncc`` (``window`` x ``window``) or ``census``
     (``census_window``); ``p1``, ``p2``: the aggregation's penalties for a step of one hypothesis and for a
-    jump, in cost units; ``paths``: 0 (none), 4 or 8; ``check_px``: the round trip's tolerance."""
+    jump, in cost units; ``paths``: 0 (none), 4 or 8; ``check_px``: the round trip's tolerance;
+    ``chunk``: hypotheses warped at once (memory against speed; the result does not depend on it)."""
 
     hypotheses: int = 128
     min_distance: float = 0.3
@@ -71,6 +72,7 @@ class SweepStereo:
     p2: float = 0.3
     paths: int = 4
     check_px: float = 1.5
+    chunk: int = 32
 
     def __post_init__(self) -> None:
         if self.cost not in COSTS:
@@ -85,6 +87,8 @@ class SweepStereo:
         for name in ("window", "census_window"):
             if getattr(self, name) < 3 or getattr(self, name) % 2 == 0:
                 raise ValueError(f"{name}: {getattr(self, name)} is not an odd number >= 3")
+        if self.chunk < 1:
+            raise ValueError(f"chunk: {self.chunk}; at least 1")
         if self.paths not in (0, 4, 8):
             raise ValueError(f"paths: {self.paths} is not 0, 4 or 8")
         if not (0 <= self.p1 <= self.p2) or self.check_px <= 0:
@@ -99,28 +103,45 @@ class SweepStereo:
     # ------------------------------------------------------------------ one reference
     def cost_volume(self, reference: View, sources: Sequence[View]) -> tuple[Tensor, Tensor]:
         """``[B, D, H, W]`` matching cost of every hypothesis, averaged over the sources that see it
-        (:data:`UNSEEN` where none does), and ``[B, D, H, W]`` how many sources see it."""
+        (:data:`UNSEEN` where none does), and ``[B, D, H, W]`` how many sources see it. ``chunk``
+        hypotheses are warped and compared at once (one batch of ``B * chunk`` images)."""
         ref = gray(reference.image)
         batch, _, height, width = ref.shape
         rays, has_ray = compute_rays(reference.camera, ref.device)
-        rays, has_ray = rays.expand(batch, -1, -1, -1), has_ray.expand(batch, -1, -1)
-        ref_code = census(ref, self.census_window) if self.cost == "census" else None
+        if self.cost == "census":
+            ref_code = census(ref, self.census_window)
+        else:
+            ref_stats = window_stats(ref, self.window)
         total = ref.new_zeros(batch, self.hypotheses, height, width)
         count = ref.new_zeros(batch, self.hypotheses, height, width)
+        inverse = self.inverse_distances(ref.device)
         for source in sources:
             image = gray(source.image)
             T = _batched(source.T_ref_to_view, batch).to(ref)
-            for d, inverse in enumerate(self.inverse_distances(ref.device)):
-                distance = torch.full_like(ref[:, 0], float(1 / inverse))
-                warp = warp_to_source(rays, has_ray, distance, T, source.camera)
-                warped = sample(image, warp.grid, padding_mode="zeros")
+            for start in range(0, self.hypotheses, self.chunk):
+                k = min(self.chunk, self.hypotheses - start)
+
+                def each(x: Tensor, k=k) -> Tensor:  # [B, ...] -> [B * k, ...], hypotheses inner
+                    return x.unsqueeze(1).expand(x.shape[0], k, *x.shape[1:]).reshape(-1, *x.shape[1:])
+
+                distance = (
+                    (1 / inverse[start : start + k]).reshape(1, k, 1, 1).expand(batch, k, height, width)
+                )
+                warp = warp_to_source(
+                    rays.expand(batch * k, -1, -1, -1),
+                    has_ray.expand(batch * k, -1, -1),
+                    distance.reshape(batch * k, height, width),
+                    each(T),
+                    source.camera,
+                )
+                warped = sample(each(image), warp.grid, padding_mode="zeros")
                 if self.cost == "census":
-                    cost = hamming(ref_code, census(warped, self.census_window))
+                    cost = hamming(each(ref_code), census(warped, self.census_window))
                 else:
-                    cost = zncc_cost(ref, warped, self.window)
-                seen = warp.valid.to(ref.dtype)
-                total[:, d] += cost * seen
-                count[:, d] += seen
+                    cost = zncc_cost(each(ref), warped, self.window, tuple(each(x) for x in ref_stats))
+                seen = warp.valid.to(ref.dtype).reshape(batch, k, height, width)
+                total[:, start : start + k] += cost.reshape(batch, k, height, width) * seen
+                count[:, start : start + k] += seen
         volume = torch.where(count > 0, total / count.clamp(min=1), torch.full_like(total, UNSEEN))
         return volume, count
 
@@ -175,18 +196,31 @@ def gray(image: Tensor) -> Tensor:
 
 # ------------------------------------------------------------------ matching costs
 def box_mean(x: Tensor, window: int) -> Tensor:
-    """Mean over the ``window`` x ``window`` neighbourhood (the image's inside only, at its border)."""
-    return F.avg_pool2d(x, window, stride=1, padding=window // 2, count_include_pad=False)
+    """Mean over the ``window`` x ``window`` neighbourhood (the image's inside only, at its border): a row
+    mean then a column mean, ``2 window`` additions per pixel instead of ``window**2``."""
+    r = window // 2
+    rows = F.avg_pool2d(x, (1, window), stride=1, padding=(0, r), count_include_pad=False)
+    return F.avg_pool2d(rows, (window, 1), stride=1, padding=(r, 0), count_include_pad=False)
 
 
-def zncc_cost(a: Tensor, b: Tensor, window: int, eps: float = 1e-4) -> Tensor:
+def window_stats(a: Tensor, window: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-pixel mean and variance of ``a`` over the window, and the image's largest variance (the scale
+    of :func:`zncc_cost`'s regulariser): computed once for a reference compared with many warps."""
+    mean = box_mean(a, window)
+    var = (box_mean(a * a, window) - mean**2).clamp(min=0)
+    return mean, var, var.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-12)
+
+
+def zncc_cost(
+    a: Tensor, b: Tensor, window: int, stats_a: tuple[Tensor, Tensor, Tensor] | None = None, eps: float = 1e-4
+) -> Tensor:
     """``(1 - ZNCC) / 2`` in [0, 1] of ``[B, 1, H, W]`` images over ``window`` x ``window``: 0 for
-    windows equal up to gain and offset, 1 for inverted ones; flat windows score 0.5 (no evidence)."""
-    mean_a, mean_b = box_mean(a, window), box_mean(b, window)
-    var_a = (box_mean(a * a, window) - mean_a**2).clamp(min=0)
+    windows equal up to gain and offset, 1 for inverted ones; flat windows score 0.5 (no evidence).
+    ``stats_a``: :func:`window_stats` of ``a``, when already known."""
+    mean_a, var_a, scale = window_stats(a, window) if stats_a is None else stats_a
+    mean_b = box_mean(b, window)
     var_b = (box_mean(b * b, window) - mean_b**2).clamp(min=0)
     covariance = box_mean(a * b, window) - mean_a * mean_b
-    scale = var_a.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-12)  # eps relative to the image's contrast
     ncc = covariance / torch.sqrt((var_a + eps * scale) * (var_b + eps * scale))
     return ((1 - ncc.clamp(-1, 1)) / 2)[:, 0]
 
@@ -226,30 +260,30 @@ def aggregate(volume: Tensor, p1: float, p2: float, paths: int = 4) -> Tensor:
 def path_cost(volume: Tensor, dy: int, dx: int, p1: float, p2: float) -> Tensor:
     """``L_r`` along direction ``r = (dy, dx)``: one image line at a time, every line of the other axis and
     every hypothesis at once. A diagonal path walks the rows and takes its predecessor from the row
-    before, shifted by one column."""
+    before, shifted by one column. The walked axis is moved to the front, so each line is contiguous."""
     if dy == 0:  # horizontal: walk the columns
-        out = path_cost(volume.transpose(-1, -2), dx, 0, p1, p2)
-        return out.transpose(-1, -2)
-    rows = range(volume.shape[-2]) if dy > 0 else range(volume.shape[-2] - 1, -1, -1)
-    out = torch.empty_like(volume)
+        return path_cost(volume.transpose(-1, -2), dx, 0, p1, p2).transpose(-1, -2)
+    lines = volume.permute(2, 0, 1, 3).contiguous()  # [H, B, D, W]
+    out = torch.empty_like(lines)
+    rows = range(lines.shape[0]) if dy > 0 else range(lines.shape[0] - 1, -1, -1)
     previous = None
     for y in rows:
-        cost = volume[..., y, :]  # [B, D, W]
+        cost = lines[y]  # [B, D, W]
         if previous is None:
-            current = cost
+            current = cost.clone()
         else:
             if dx:  # the predecessor of column x is column x - dx of the previous row
                 previous = torch.roll(previous, shifts=dx, dims=-1)
                 edge = slice(0, 1) if dx > 0 else slice(-1, None)
                 previous[..., edge] = cost[..., edge]  # a path starts at the border
             best = previous.amin(1, keepdim=True)
-            up = F.pad(previous[:, 1:], (0, 0, 0, 1), value=float("inf"))
-            down = F.pad(previous[:, :-1], (0, 0, 1, 0), value=float("inf"))
-            step = torch.minimum(torch.minimum(up, down) + p1, best + p2)
-            current = cost + torch.minimum(previous, step) - best
-        out[..., y, :] = current
+            step = torch.minimum(previous, best + p2)  # stay, or jump anywhere
+            step[:, :-1] = torch.minimum(step[:, :-1], previous[:, 1:] + p1)  # one hypothesis nearer
+            step[:, 1:] = torch.minimum(step[:, 1:], previous[:, :-1] + p1)  # one farther
+            current = cost + step - best
+        out[y] = current
         previous = current
-    return out
+    return out.permute(1, 2, 0, 3)
 
 
 def winner(aggregated: Tensor) -> tuple[Tensor, Tensor]:
