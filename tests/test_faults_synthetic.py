@@ -1,5 +1,6 @@
 """Faults around rendering the synthetic dataset: a user's folder is never replaced, a killed
-render leaves no worker processes and no hidden temporary folder behind."""
+render leaves no worker processes and no hidden temporary folder behind, a parameter not of its kind or
+range (a flag or a ``data.generate`` option) is refused by name before anything is written."""
 
 from __future__ import annotations
 
@@ -21,12 +22,14 @@ from fisheyedepth.data.synthetic import (
     NotASyntheticDataset,
     Terminated,
     ensure_dataset,
+    ensure_datasets,
     generate,
     is_complete,
     made_by_generator,
 )
 from fisheyedepth.data.synthetic import writer as writer_module
 from fisheyedepth.data.synthetic.cli import main as cli_main
+from fisheyedepth.data.synthetic.sensor import check_effects
 
 TINY = {"frames": 9, "size": 16, "supersample": 1, "lidar": False, "progress": False}
 # long enough to be killed mid-render on two cores: ~15 s of rendering after the first image
@@ -152,6 +155,53 @@ def test_cli_overwrite_says_what_it_replaces(tmp_path, capsys):
     assert is_complete(mine)
     assert cli_main(["--out", str(mine), *args]) == 0
     assert "(a synthetic dataset made by fisheyedepth)" in capsys.readouterr().err
+
+
+DENSITY = "(0: no traffic, 1: a busy street)"
+REFUSED_FLAGS = {
+    # had not rendered 9 frames of 64 px after 400 s: the agents' tracks take the square of the density
+    ("--traffic", "1000"): f"--traffic: 1000.0 is not a number in [0, 8] {DENSITY}",
+    ("--traffic", "nan"): f"--traffic: nan is not a number in [0, 8] {DENSITY}",
+    ("--frames", "5"): "--frames: 5 is not a whole number >= 9 (3 per split)",
+    ("--supersample", "0"): "--supersample: 0 is not a whole number >= 1",
+    ("--seed", "-1"): "--seed: -1 is not a whole number >= 0",
+    ("--workers", "-2"): "--workers: -2 is not a whole number >= 0",
+}
+
+
+def test_cli_flags_are_checked_as_data_generate_is_before_anything_is_written(tmp_path, capsys):
+    """Each flag of a generation parameter by the kind and range of its ``data.generate`` option, named
+    as typed: the dataset folder is not made, a user's folder under ``--overwrite`` not even announced."""
+    for (flag, value), message in REFUSED_FLAGS.items():
+        assert cli_main(["--out", str(tmp_path / "d"), "--size", "64", flag, value, "--quiet"]) == 2, flag
+        assert capsys.readouterr().err == f"error: {message}\n"
+    assert list(tmp_path.iterdir()) == []
+    mine = user_folder(tmp_path / "mine")
+    before = snapshot(mine)
+    assert cli_main(["--out", str(mine), "--overwrite", "--traffic", "9", "--quiet"]) == 2
+    assert capsys.readouterr().err == f"error: --traffic: 9.0 is not a number in [0, 8] {DENSITY}\n"
+    assert snapshot(mine) == before and not hidden_siblings(mine)
+
+
+def test_effects_are_names_and_parameters_are_checked_before_rendering(tmp_path):
+    """An effect is a switch: ``effects=[{noise: -1}]`` was a TypeError traceback (a dict in a set)."""
+    effects = "exposure, white_balance, vignetting, noise, motion_blur"
+    named_alone = (
+        rf"^effects\[0\]: \{{'noise': -1\}} is not one of {effects} \(each effect a switch, named alone\)$"
+    )
+    with pytest.raises(ValueError, match=named_alone):
+        generate(tmp_path / "d", effects=[{"noise": -1}], **TINY)
+    with pytest.raises(ValueError, match=r"^data\.generate\.effects\[0\]: \{'noise': -1\} is not one of"):
+        ensure_datasets(tmp_path / "d", {"effects": [{"noise": -1}], **TINY})
+    with pytest.raises(ValueError, match=r"^random_cameras: 'maybe' is not a boolean \(true or false\)$"):
+        ensure_dataset(tmp_path / "d", random_cameras="maybe", **TINY)
+    with pytest.raises(
+        ValueError, match=r"^data\.generate\.worlds\[1\]\.traffic: 9 is not a number in \[0, 8\]"
+    ):
+        ensure_datasets([tmp_path / "a", tmp_path / "b"], {**TINY, "worlds": [{"seed": 0}, {"traffic": 9}]})
+    with pytest.raises(ValueError, match=r"^effects: unknown \[\{'noise': -1\}\]"):  # where it is read, too
+        check_effects([{"noise": -1}])
+    assert list(tmp_path.iterdir()) == []
 
 
 # ---------------------------------------------------------------- interruptions in this process

@@ -336,7 +336,7 @@ def test_the_command_line_takes_traffic_and_effects_and_refuses_bad_ones(tmp_pat
 
     out = tmp_path / "d"
     assert main(["--out", str(out), "--traffic", "-1", "--quiet"]) == 2
-    assert "traffic must be a density >= 0" in capsys.readouterr().err and not out.exists()
+    assert "error: --traffic: -1.0 is not a number in [0, 8]" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit):
         main(["--out", str(out), "--effects", "fog"])
     assert "invalid choice: 'fog'" in capsys.readouterr().err

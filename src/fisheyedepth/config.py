@@ -1,9 +1,9 @@
 """What a training config leaves to be worked out: ``auto`` values (``model.net.base_focal``,
 ``trainer.precision``), keys that two groups must agree on (the source offsets the model warps and the data
-loads; ``${mul:...}``, the resolver of the cosine schedule), and checks of options
-against the network (its input sizes, a resumed checkpoint's network). One place, so that every command
-and test resolves a config the same way; nothing here builds an object from a config (that happens in
-:mod:`fisheyedepth.cli`)."""
+loads; ``${mul:...}``, the resolver of the cosine schedule), and checks of options: against the network
+(its input sizes, a resumed checkpoint's network) and by kind and range (:func:`check_options`). One
+place, so that every command and test resolves a config the same way; nothing here builds an object from
+a config (that happens in :mod:`fisheyedepth.cli`)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,10 @@ from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
 from .checkpoints import nested_hparams
+from .data.synthetic import GENERATE_OPTIONS
 from .models.depth_net import check_input_size
+from .option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Kind
+from .option_checks import check_options as check_table
 
 log = logging.getLogger("fisheyedepth")
 # ``${mul:a,b}``: a x b, e.g. the cosine schedule's floor, a tenth of the learning rate
@@ -83,6 +86,30 @@ def check_sizes(cfg: DictConfig) -> None:
     check_input_size(cfg.data.datamodule.size, "data.datamodule.size")
     if cfg.model.get("input_size") is not None:
         check_input_size(cfg.model.input_size, "model.input_size")
+
+
+def _configured(node: DictConfig | None, table: dict[str, Kind]) -> dict[str, Any]:
+    """The options of ``node`` that ``table`` names, resolved; the others stay unresolved (a recorded
+    dataset's ``root: ???`` is its reader's to name)."""
+    if node is None:
+        return {}
+    return {
+        key: OmegaConf.to_container(node[key], resolve=True) if OmegaConf.is_config(node[key]) else node[key]
+        for key in table
+        if key in node
+    }
+
+
+def check_options(cfg: DictConfig) -> None:
+    """The sizes (:func:`check_sizes`), then every switch and number of the model (``model.*``), the data
+    module (``data.datamodule.*``) and the synthetic renderer (``data.generate.*``) of its kind and range
+    (:mod:`fisheyedepth.option_checks`), named as configured: refused before anything is rendered or
+    trained, where a wrong kind would otherwise be taken for another (``automask=maybe`` as true,
+    ``truth_weight=nan`` as 0)."""
+    check_sizes(cfg)
+    check_table(_configured(cfg.model, MODEL_OPTIONS), MODEL_OPTIONS, "model.")
+    check_table(_configured(cfg.data.datamodule, DATAMODULE_OPTIONS), DATAMODULE_OPTIONS, "data.datamodule.")
+    check_table(_configured(cfg.data.get("generate"), GENERATE_OPTIONS), GENERATE_OPTIONS, "data.generate.")
 
 
 def configured_model(cfg: DictConfig) -> dict[str, Any]:

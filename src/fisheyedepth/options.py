@@ -2,17 +2,17 @@
 ``net`` (the :class:`~fisheyedepth.models.DepthNet`'s keywords), ``objective`` (the
 :class:`~fisheyedepth.losses.objective.SelfSupervisedObjective`'s, and the PoseNet's
 ``pose_translation_scale``), ``optimizer`` and ``scheduler`` (``_target_`` configs), and the module's
-own; their defaults (:func:`model_options`) and the check that numbers are numbers
-(:func:`check_numbers`)."""
+own; their defaults (:func:`model_options`) and the check of each switch and number by kind and range
+(:func:`check_numbers`, on :data:`fisheyedepth.option_checks.MODEL_OPTIONS`)."""
 
 from __future__ import annotations
 
 import inspect
-import numbers
 from typing import Any
 
 from .losses.objective import SelfSupervisedObjective
 from .models import DepthNet
+from .option_checks import MODEL_OPTIONS, check_options
 
 
 def _defaults(function, *leave_out: str) -> dict[str, Any]:
@@ -28,15 +28,6 @@ OBJECTIVE = _defaults(SelfSupervisedObjective.__init__, "scales", "pose_net") | 
 }
 OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-4, "weight_decay": 1e-5}
 SCHEDULER = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True, "step_size": 8, "gamma": 0.1}
-# Numeric options: a string (``model.optimizer.lr=abc``) is refused by name, not deep in the optimiser
-REALS = (
-    *("net.min_distance", "net.max_distance", "net.decoder_width", "objective.smoothness"),
-    *("objective.pose_translation_scale", "optimizer.lr", "optimizer.weight_decay", "scheduler.gamma"),
-    *("scheduler.eta_min", "objective.truth_weight", "objective.photometric_weight"),
-)
-INTEGERS = ("net.resnet", "net.n_bins", "objective.rim_margin", "scheduler.step_size", "scheduler.T_max")
-INTEGERS += ("log_images_every",)
-OPTIONAL = ("objective.pose_translation_scale", "objective.rim_margin")  # None: the default
 
 
 def _group(defaults: dict[str, Any], given: dict[str, Any] | None) -> dict[str, Any]:
@@ -62,20 +53,10 @@ def model_options(*, net=None, objective=None, optimizer=None, scheduler=None, *
 
 
 def check_numbers(options: dict[str, Any]) -> None:
-    """A ValueError naming the first of :data:`REALS` and :data:`INTEGERS` in ``options`` (dotted: group
-    and key) that is not a number (a whole one), None allowed for :data:`OPTIONAL`."""
-    for name in (*REALS, *INTEGERS):
-        *group, key = name.split(".")
-        values = options[group[0]] if group else options
-        if key not in values:
-            continue
-        value, kind = values[key], numbers.Integral if name in INTEGERS else numbers.Real
-        if value is None and name in OPTIONAL:
-            continue
-        if isinstance(value, bool) or not isinstance(value, kind):
-            raise ValueError(
-                f"{name}: {value!r} is not a {'whole number' if kind is numbers.Integral else 'number'}"
-            )
+    """A ValueError naming the first switch or number of the module's ``options`` (dotted: group and
+    key, ``net.n_bins``) that is not of its kind and range (:data:`MODEL_OPTIONS`): a string is refused
+    by name (``model.optimizer.lr=abc``), not met deep in the optimiser or the loss."""
+    check_options(options, MODEL_OPTIONS)
 
 
-__all__ = ["INTEGERS", "KEYWORDS", "OPTIONAL", "REALS", "check_numbers", "model_options"]
+__all__ = ["KEYWORDS", "check_numbers", "model_options"]

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from ..callbacks import run_folder
 from ..checkpoints import CheckpointError, check_resumable, weights_mismatch
 from ..config import (
-    check_sizes,
+    check_options,
     configured_model,
     named_option,
     resolve_base_focal,
@@ -65,7 +65,7 @@ def build_model(cfg: DictConfig, **resolved):
 
 def train(cfg: DictConfig) -> dict[str, Any] | None:
     out_dir = Path(cfg.paths.output_dir)
-    check_sizes(cfg)
+    check_options(cfg)  # sizes, switches and numbers by kind and range, before any folder, render or fit
     ckpt_path = cfg.get("ckpt_path")
     # the model's class (and Lightning with it) is imported only for a checkpoint that can be resumed
     resumed = check_resumable(ckpt_path, lambda: configured_model(cfg)) if ckpt_path else None

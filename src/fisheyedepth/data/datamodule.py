@@ -14,6 +14,7 @@ import torch
 from torch.utils.data import ConcatDataset, DataLoader, Sampler
 
 from ..models.depth_net import scale_focal
+from ..option_checks import DATAMODULE_OPTIONS, check_options
 from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset
@@ -114,6 +115,10 @@ class FisheyeDataModule(L.LightningDataModule):
         source_baseline: float | None = None,
         max_pose_gap: float | None = None,
     ):
+        given = locals()  # its arguments; an Augment or PoseNoise made already is its own, not a mapping
+        check_options(
+            {k: v for k, v in given.items() if not isinstance(v, Augment | PoseNoise)}, DATAMODULE_OPTIONS
+        )
         super().__init__()
         if max_pose_gap is not None and layout != "rig":
             raise ValueError(f"max_pose_gap: only the rig layout interpolates poses, not {layout!r}")

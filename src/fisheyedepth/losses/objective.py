@@ -27,6 +27,7 @@ from ..geometry import (
     translation_direction_error_deg,
     warp_to_source,
 )
+from ..option_checks import OBJECTIVE_OPTIONS, check_options
 from .selfsup import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 
 LOSS_RESOLUTIONS = ("full", "native")
@@ -85,6 +86,7 @@ class SelfSupervisedObjective(nn.Module):
         photometric_weight: float = 1.0,
         pose_net: nn.Module | None = None,
     ):
+        check_options(locals(), OBJECTIVE_OPTIONS)  # its arguments: switches and numbers of their kind
         super().__init__()
         if loss_resolution not in LOSS_RESOLUTIONS:
             raise ValueError(
@@ -99,7 +101,7 @@ class SelfSupervisedObjective(nn.Module):
             )
         if rim_margin is not None and rim_margin < 0:
             raise ValueError(f"rim_margin: {rim_margin} pixels is negative (null switches the rim mask off)")
-        if truth_weight < 0 or photometric_weight < 0 or truth_weight + photometric_weight <= 0:
+        if truth_weight + photometric_weight == 0:  # each finite and >= 0 (the table)
             raise ValueError(
                 f"truth_weight {truth_weight}, photometric_weight {photometric_weight}: the weights are "
                 "not negative and one of them is positive"

@@ -14,6 +14,7 @@ from .indoor import clearance, make_indoor_trajectory, make_indoor_world
 from .rig import FAMILIES, RIGS, Rig, camera_is_valid, make_rig, random_camera
 from .world import SCENES, World, make_trajectory, make_world
 from .writer import (
+    GENERATE_OPTIONS,
     MARKER,
     DatasetMismatch,
     NotASyntheticDataset,
@@ -30,6 +31,7 @@ from .writer import (
 
 __all__ = [
     "FAMILIES",
+    "GENERATE_OPTIONS",
     "MARKER",
     "RIGS",
     "SCENES",

@@ -7,10 +7,24 @@ import argparse
 import sys
 from pathlib import Path
 
+from ...option_checks import check_options
 from .rig import RIGS
 from .sensor import EFFECTS
+from .traffic import MAX_TRAFFIC
 from .world import SCENES
-from .writer import Terminated, generate, made_by_generator
+from .writer import GENERATE_OPTIONS, Terminated, generate, made_by_generator
+
+
+def flag(option: str) -> str:
+    """The command line's spelling of a generation parameter: ``random_cameras`` -> ``--random-cameras``."""
+    return "--" + option.replace("_", "-")
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """The flags that are generation parameters, by the kinds and ranges of ``data.generate``
+    (:data:`~.writer.GENERATE_OPTIONS`), named as typed: ``--traffic: 1000.0 is not a number in [0, 8]``."""
+    given = {flag(k): v for k, v in vars(args).items()}
+    check_options(given, {flag(k): kind for k, kind in GENERATE_OPTIONS.items()})
 
 
 def _announce_replacement(out: Path) -> None:
@@ -46,7 +60,10 @@ def main(argv: list[str] | None = None) -> int:
         help="draw every camera (model family, intrinsics, mounting height and tilt) from --seed",
     )
     p.add_argument(
-        "--traffic", type=float, default=0.0, help="density of moving cars and pedestrians (0: none; 1: busy)"
+        "--traffic",
+        type=float,
+        default=0.0,
+        help=f"density of moving cars and pedestrians (0: none; 1: busy; at most {MAX_TRAFFIC:g})",
     )
     p.add_argument(
         "--effects",
@@ -59,9 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset at --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     a = p.parse_args(argv)
-    if a.overwrite:
-        _announce_replacement(Path(a.out))
     try:
+        check_flags(a)
+        if a.overwrite:
+            _announce_replacement(Path(a.out))
         out = generate(
             a.out,
             a.rig,

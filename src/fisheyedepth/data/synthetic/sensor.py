@@ -30,14 +30,13 @@ READ_NOISE, SHOT_NOISE = 0.004, 0.0008  # sigma^2 = READ^2 + SHOT * signal (sign
 
 
 def check_effects(effects) -> tuple[str, ...]:
-    """``effects`` as a sorted tuple of names of :data:`EFFECTS`; an unknown name is an error."""
-    if isinstance(effects, str):
-        effects = [effects]
-    names = tuple(sorted(set(effects or ())))
-    unknown = [e for e in names if e not in EFFECTS]
+    """``effects`` as a sorted tuple of names of :data:`EFFECTS`; an unknown name (or anything but a
+    name: an effect is a switch, it has no level) is an error."""
+    effects = [effects] if isinstance(effects, str) else list(effects or ())
+    unknown = [e for e in effects if not (isinstance(e, str) and e in EFFECTS)]
     if unknown:
         raise ValueError(f"effects: unknown {unknown}; choose among {', '.join(EFFECTS)}")
-    return names
+    return tuple(sorted(set(effects)))
 
 
 def blur_times(frame: int) -> np.ndarray:

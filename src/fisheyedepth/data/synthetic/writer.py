@@ -44,13 +44,14 @@ from tqdm import tqdm
 from ... import __version__
 from ...cameras import CameraModel, opencv_yaml
 from ...geometry import axis_angle_to_matrix, make_pose
+from ...option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_options
 from ...utils import pid_alive
 from .indoor import make_indoor_trajectory, make_indoor_world
 from .raycast import Movers, scene_tensors
 from .render import CameraRenderer, LidarRenderer, quantise
 from .rig import RIGS, Rig, make_rig
-from .sensor import Sensor, blur_times, check_effects
-from .traffic import Traffic, make_traffic, no_traffic
+from .sensor import EFFECTS, Sensor, blur_times, check_effects
+from .traffic import DENSITY, Traffic, make_traffic, no_traffic
 from .world import SCENES, World, make_drive, make_world
 
 SPLITS = ("train", "val", "test")
@@ -78,6 +79,22 @@ CHECKED = (
 # parameters a street dataset with fixed cameras does not write into synthetic.json (its files stay those
 # of the versions before them): a finished dataset without the key was rendered with this value
 UNWRITTEN = {"scene": "street", "random_cameras": False, "traffic": 0, "effects": []}
+# The kind and range of each switch and number of the generation (``data.generate.*`` of a training
+# config, the flags of ``fisheyedepth-synthetic``; fisheyedepth.option_checks): checked before anything
+# is rendered. ``worlds``: a mixed dataset's per-folder parameters, each of the same kinds.
+_WORLD_OPTIONS: dict[str, Kind] = {
+    "frames": Number(low=9, whole=True, note="3 per split"),
+    "size": Number(low=16, whole=True),  # and a multiple of 8 (generate)
+    "seed": Number(low=0, whole=True),
+    "supersample": Number(low=1, whole=True),
+    "workers": Number(low=0, whole=True),
+    "lidar": SWITCH,
+    "progress": SWITCH,
+    "random_cameras": SWITCH,
+    "traffic": DENSITY,
+    "effects": ListOf(Choice(EFFECTS, note="each effect a switch, named alone"), single=True),
+}
+GENERATE_OPTIONS: dict[str, Kind] = _WORLD_OPTIONS | {"worlds": ListOf(Group(_WORLD_OPTIONS), optional=True)}
 LANES = {"right": 1.75, "left": -1.75}  # the car's offset from the street's centreline, metres to its right
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
@@ -494,6 +511,7 @@ def generate(
     ``--overwrite``); ``ensure_dataset`` is the careful variant that replaces only what this generator made.
     SIGTERM or Ctrl-C stops the workers, removes the temporary folder and re-raises (``Terminated``).
     """
+    check_options(locals(), GENERATE_OPTIONS)
     out = Path(out)
     if rig not in RIGS:
         raise ValueError(f"unknown rig {rig!r}; one of {RIGS}")
@@ -506,8 +524,6 @@ def generate(
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
     effects = check_effects(effects)
-    if not (isinstance(traffic, int | float) and math.isfinite(traffic) and traffic >= 0):
-        raise ValueError(f"traffic must be a density >= 0 (0: no traffic), got {traffic!r}")
     ranges = split_frames(frames)
     n_trajectory = ranges["test"][1]
     world = make_scene_world(scene, seed)
@@ -635,6 +651,7 @@ def ensure_dataset(
     has no ``synthetic.json`` is rendered again. Anything else raises ``NotASyntheticDataset`` (a
     ``FileExistsError``) and is left untouched.
     """
+    check_options(locals(), GENERATE_OPTIONS)
     root = Path(root)
     asked = {
         "rig": rig,
@@ -678,7 +695,9 @@ def ensure_datasets(root, generate: dict, log=None) -> list[Path]:
     holds one mapping per folder, in the same order, whose keys replace the shared ones (``scene``,
     ``seed``, ...). Each folder is rendered on first use like a single one (its own progress bar, its own
     temporary folder renamed into place when complete). ``log``: a logger that names each folder it
-    renders. Returns the folders."""
+    renders. Returns the folders. A parameter of the wrong kind or range is named as configured
+    (``data.generate.traffic``), before anything is rendered."""
+    check_options(generate, GENERATE_OPTIONS, "data.generate.")
     shared = {k: v for k, v in dict(generate).items() if k != "worlds"}
     worlds = generate.get("worlds")
     if isinstance(root, str | os.PathLike):
