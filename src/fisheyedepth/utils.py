@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import shutil
@@ -74,6 +75,32 @@ def inside(root: str | os.PathLike, path: str | os.PathLike, source: str | os.Pa
     if os.path.commonpath([top, where]) != top:
         raise ValueError(f"{source}: {path} lies outside {root}")
     return Path(path)
+
+
+# Writes the machine refuses (a read-only or full filesystem, a folder without write permission): the
+# user's output option is at fault, not the program, so they end a command like any bad input.
+WRITE_ERRORS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT}
+
+
+def check_writable(folder: str | os.PathLike, option: str) -> Path:
+    """``folder`` can take files: checked before any work, so a read-only or full filesystem is named at
+    once, not after the network has run. Nothing is left behind: the check writes a temporary file into
+    ``folder``, or into its nearest existing parent when it is still to be made. A ValueError names the
+    option."""
+    folder = Path(folder)
+    here = folder
+    while not here.exists() and here != here.parent:
+        here = here.parent
+    try:
+        if not here.is_dir():
+            raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(here))
+        with tempfile.NamedTemporaryFile(dir=here, prefix=".write-check-"):
+            pass
+    except OSError as err:
+        if err.errno not in WRITE_ERRORS and not isinstance(err, NotADirectoryError):
+            raise
+        raise ValueError(f"{option}: {folder}: cannot write there ({err.strerror})") from None
+    return folder
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:

@@ -5,11 +5,9 @@ synthetic data, and output paths that never replace an earlier run's file."""
 
 from __future__ import annotations
 
-import errno
 import logging
 import os
 import sys
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -18,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from ..checkpoints import released_checkpoint
 from ..data.synthetic import ensure_datasets
 from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
-from ..utils import keep_freed_memory
+from ..utils import WRITE_ERRORS, keep_freed_memory
 
 log = logging.getLogger("fisheyedepth")
 
@@ -26,9 +24,6 @@ EXIT_SIGTERM = 128 + 15  # the shell's status for a process ended by SIGTERM
 EXIT_USAGE = 2
 # Errors about the user's input (files, options): one line naming the file or option, no traceback.
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
-# Writes the machine refuses (a read-only or full filesystem, a folder without write permission): the
-# user's output option is at fault, not the program, so they end a command the same way.
-WRITE_ERRORS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT}
 
 
 def model_file_alias(argv: list[str]) -> list[str]:
@@ -81,27 +76,6 @@ def is_input_error(exc: BaseException) -> bool:
     if isinstance(exc, INPUT_ERRORS):
         return True
     return isinstance(exc, OSError) and exc.errno in WRITE_ERRORS and exc.filename is not None
-
-
-def check_writable(folder: str | os.PathLike, option: str) -> Path:
-    """``folder`` can take files: checked before any work, so a read-only or full filesystem is named at
-    once, not after the network has run. Nothing is left behind: the check writes a temporary file into
-    ``folder``, or into its nearest existing parent when it is still to be made. A ValueError names the
-    option."""
-    folder = Path(folder)
-    here = folder
-    while not here.exists() and here != here.parent:
-        here = here.parent
-    try:
-        if not here.is_dir():
-            raise NotADirectoryError(errno.ENOTDIR, "not a folder", str(here))
-        with tempfile.NamedTemporaryFile(dir=here, prefix=".write-check-"):
-            pass
-    except OSError as err:
-        if err.errno not in WRITE_ERRORS and not isinstance(err, NotADirectoryError):
-            raise
-        raise ValueError(f"{option}: {folder}: cannot write there ({err.strerror})") from None
-    return folder
 
 
 def prepare_data(cfg: DictConfig) -> None:

@@ -19,8 +19,8 @@ from ..cameras import load_camera
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
 from ..runtimes import OnnxRuntime
-from ..utils import atomic_write_text
-from . import check_writable, free_path, load_runtime, model_file_alias, run_command
+from ..utils import atomic_write_text, check_writable
+from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 
