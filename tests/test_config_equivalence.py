@@ -136,6 +136,12 @@ def recorded_threads():
     torch.set_num_threads(threads)
 
 
+# Another CPU's kernels sum in another order: on an AMD EPYC the recorded code gives losses 5e-5 and
+# 1.5e-4 (relative) off the record, and the minimum-reprojection choice of a few pixels flips (used_pixels
+# 1.4e-3 off); a changed option moves them by far more.
+CPU_REL = 5e-3
+
+
 @pytest.mark.parametrize("name", ["default", "ablation_baseline"])
 def test_the_objective_gives_the_recorded_losses(kitti_data, name, recorded_threads):
     """The module built from the config (seeded) and its objective on ``tiny_batch``, in training mode
@@ -152,11 +158,12 @@ def test_the_objective_gives_the_recorded_losses(kitti_data, name, recorded_thre
         with torch.set_grad_enabled(mode == "train"):
             torch.manual_seed(1)
             loss, logs = module.objective(batch, module(batch.image, batch.camera))
-        assert loss.item() == pytest.approx(recorded[f"{mode}_loss"], rel=1e-5, abs=1e-9)
+        assert loss.item() == pytest.approx(recorded[f"{mode}_loss"], rel=CPU_REL, abs=1e-9)
         got = {k: v.item() for k, v in logs.items()}
-        assert got == pytest.approx(recorded[f"{mode}_logs"], rel=1e-5, abs=1e-9)
+        assert got == pytest.approx(recorded[f"{mode}_logs"], rel=CPU_REL, abs=1e-9)
     gt = batch.distance[:, 0]
     gt = torch.where(gt > 0, gt, torch.full_like(gt, 1e4))
     error, used, usable = module.objective.pixel_objective(batch, gt, batch.poses)
-    assert [int(used.sum()), int(usable.sum())] == recorded["pixel"][1:]
-    assert float(error.double().sum()) == pytest.approx(recorded["pixel"][0], rel=1e-5)
+    assert int(usable.sum()) == recorded["pixel"][2]
+    assert int(used.sum()) == pytest.approx(recorded["pixel"][1], rel=CPU_REL)  # a few pixels' choice flips
+    assert float(error.double().sum()) == pytest.approx(recorded["pixel"][0], rel=CPU_REL)

@@ -40,8 +40,12 @@ TRAIN = SEQUENCES[0]
 SIZE = 96
 # sha256 of every file but synthetic.json of the two tiny street datasets of _street_digest, as the
 # generator wrote them before the indoor scene and random cameras existed (torch and OpenCV as pinned in
-# constraints.txt)
-STREET_DIGEST = "e6b3b763cb20aabd0cf8d7c00761ccfff7d2b435483bae8040b01cee6b39d402"
+# constraints.txt). The bytes depend on the CPU's floating-point kernels: the same code (568c7ba) writes
+# the second digest on an AMD EPYC.
+STREET_DIGESTS = {
+    "e6b3b763cb20aabd0cf8d7c00761ccfff7d2b435483bae8040b01cee6b39d402": "the CPU of the recording",
+    "f0b9748c44e5c0546205338a1d254e8720f6bd81f0d1f88ddb2cc3529a98425c": "AMD EPYC",
+}
 
 
 def _files(root: Path) -> dict[str, bytes]:
@@ -61,7 +65,7 @@ def _street_digest(out: Path) -> str:
 
 
 def test_the_default_street_world_is_unchanged(tmp_path):
-    assert _street_digest(tmp_path) == STREET_DIGEST
+    assert _street_digest(tmp_path) in STREET_DIGESTS
 
 
 @pytest.fixture(scope="module")
