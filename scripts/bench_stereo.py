@@ -32,18 +32,10 @@ from fisheyedepth.stereo.pairs import MOTORCYCLE, motorcycle
 from _benchmarks import bench_parser, interleaved, markers, parse_args, publish
 
 START, END = markers("bench_stereo")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the sweep tests' textured room
 
-
-def scored(distance: torch.Tensor, truth: torch.Tensor) -> dict[str, float]:
-    has = truth > 0
-    kept = has & (distance > 0)
-    ratio = distance[kept] / truth[kept]
-    return {
-        "abs_rel": float((ratio - 1).abs().mean()),
-        "a1": float((torch.maximum(ratio, 1 / ratio) < 1.25).float().mean()),
-        "coverage": float(kept.sum() / has.sum()),
-    }
+from stereo_world import pair as room_pair  # noqa: E402
+from stereo_world import pose, scores  # noqa: E402
 
 
 def sgbm_distance(pair) -> torch.Tensor:
@@ -82,13 +74,10 @@ def main(argv=None) -> None:
     )
     sweep_s, sgbm_s = statistics.median(times["sweep"]), statistics.median(times["sgbm"])
     ours, dense, theirs = (
-        scored(results["sweep"].distance[0], pair.distance),
-        scored(results["sweep"].dense[0], pair.distance),
-        scored(results["sgbm"], pair.distance),
+        scores(results["sweep"].distance, pair.distance[None]),
+        scores(results["sweep"].dense, pair.distance[None]),
+        scores(results["sgbm"][None], pair.distance[None]),
     )
-
-    from stereo_world import pair as room_pair
-    from stereo_world import pose
 
     camera = kitti360_camera(2).resize(640, 480)
     reference, source, _ = room_pair(camera, camera, pose(), pose(30.0, (0.2, 0.0, 0.0)))
