@@ -6,12 +6,12 @@ checkpoint."""
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 from rich.console import Console
@@ -19,8 +19,8 @@ from rich.console import Console
 from ..cameras import PinholeCamera, load_camera
 from ..inference import DistancePredictor
 from ..models.depth_net import check_input_size
-from ..runtimes import TrainedDepthNet, calibration_images, onnx_export, onnx_session
-from ..utils import atomic_write_bytes, atomic_write_text
+from ..outputs import output_lock, place, refuse_existing, writable
+from ..runtimes import TrainedDepthNet, calibration_split, onnx_export, onnx_session
 from . import checkpoint_path
 
 EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
@@ -47,17 +47,28 @@ def export(cfg: DictConfig) -> dict[str, Any]:
             "export needs a fixed input size: size=[W,H] (or a checkpoint that stores input_size)"
         )
     size = check_input_size(size, "size" if cfg.get("size") else f"{ckpt_path}: input_size")
+    name = f"fisheyedepth_{size[0]}x{size[1]}{'_' + quantize if quantize else ''}{EXPORT_FORMATS[cfg.format]}"
+    path = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir) / name
+    overwrite = bool(cfg.get("overwrite"))
+    with output_lock(path):  # one export.py at a time writes this file
+        refuse_existing(path, overwrite)
+        data, record = exported(cfg, module, ckpt_path, size, quantize, path)
+        record["sha256"] = hashlib.sha256(data).hexdigest()
+        with writable(path):
+            place(path, data, json.dumps(record, indent=2) + "\n", overwrite)
+    Console(width=130).print(record)
+    return record
+
+
+def exported(cfg: DictConfig, module, ckpt_path: str, size, quantize, path: Path):
+    """The network of ``module`` at ``size`` serialised in ``cfg.format`` and its record, checked against
+    PyTorch on probe images (:data:`PARITY`): a file outside its tolerance is a ValueError."""
     if cfg.get("camera"):
         camera = load_camera(cfg.camera)
     else:  # no camera: depth_scale 1, i.e. a camera with the base focal (the training cameras' mean)
         focal = module.depth_net.base_focal or 1.0
         camera = PinholeCamera(width=size[0], height=size[1], fx=focal, fy=focal, cx=0.0, cy=0.0)
     net = DistancePredictor(module, camera, size).exportable()
-    name = f"fisheyedepth_{size[0]}x{size[1]}{'_' + quantize if quantize else ''}{EXPORT_FORMATS[cfg.format]}"
-    path = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir) / name
-    if path.exists() and not cfg.overwrite:
-        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it")
-    path.parent.mkdir(parents=True, exist_ok=True)
     example = torch.rand(1, 3, size[1], size[0], generator=torch.Generator().manual_seed(0))
     probe = torch.rand(2, 3, size[1], size[0], generator=torch.Generator().manual_seed(1))
     buffer = io.BytesIO()  # serialised in memory, verified, then written atomically
@@ -68,20 +79,9 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         data = buffer.getvalue()
     else:
         calibration = None
-        if quantize:
-            frames = int(cfg.calibration_frames)
-            if frames < 2:
-                raise ValueError(f"calibration_frames: {frames}; int8 ranges need at least 2 images")
-            # the parity probes are real images too, but not ones the int8 ranges were measured on
-            images = calibration_images(cfg.calibration, size, frames + 4)
-            held = set(range(1, len(images), 2)[:4]) if len(images) > 2 else set()
-            calibration = [im for i, im in enumerate(images) if i not in held]
-            if len(calibration) < 2 or not held:
-                raise ValueError(
-                    f"calibration: {cfg.calibration} has {len(images)} images; int8 needs at least 3 "
-                    "(2 to measure ranges on, 1 to check the quantized file against)"
-                )
-            probe = torch.from_numpy(np.concatenate([images[i] for i in sorted(held)]))
+        if quantize:  # the parity probes are real images too, but not ones the ranges were measured on
+            calibration, held = calibration_split(cfg.calibration, size, int(cfg.calibration_frames))
+            probe = torch.from_numpy(held)
         data = onnx_export(net, size, module.depth_net.base_focal, quantize, calibration)
         try:
             session = onnx_session(data)
@@ -114,7 +114,4 @@ def export(cfg: DictConfig) -> dict[str, Any]:
                 f"{path}: not written, the exported network differs from PyTorch by "
                 f"{record[f'{statistic}_relative_difference']:.2e} ({statistic} relative), over {tolerance}"
             )
-    atomic_write_bytes(path, data)
-    atomic_write_text(path.with_suffix(path.suffix + ".json"), json.dumps(record, indent=2) + "\n")
-    Console(width=130).print(record)
-    return record
+    return data, record

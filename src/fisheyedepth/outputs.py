@@ -1,0 +1,127 @@
+"""Files written as a pair with their ``.json`` record, and never over another command's: what
+``export.py`` needs when two runs write one output at once. One run at a time holds the output's lock
+(:func:`output_lock`); the file and its record are written in full beside their targets, then put in
+place together (:func:`place`), hard-linked where nothing may be replaced, so a file that appeared
+meanwhile is refused, not overwritten; a folder that refuses writes is named (:func:`writable`)."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import tempfile
+from pathlib import Path
+
+from .utils import WRITE_ERRORS, current_umask
+
+
+def record_path(path: Path) -> Path:
+    """The ``.json`` record beside an exported file: what it is, where from, its parity and its sha256."""
+    return path.with_suffix(path.suffix + ".json")
+
+
+def refuse_existing(path: Path, overwrite: bool) -> None:
+    """Without ``overwrite``: a FileExistsError when the file or its record is there already."""
+    for taken in (path, record_path(path)):
+        if taken.exists() and not overwrite:
+            raise FileExistsError(f"{taken} exists; pass overwrite=true to replace it")
+
+
+@contextlib.contextmanager
+def output_lock(path: Path):
+    """Hold ``.NAME.lock`` beside ``path`` (``flock``, waited for) while the block runs: two export.py
+    writing one file take turns, so the second sees the first's file (and is refused without
+    overwrite=true) or replaces file and record together. The kernel lets the lock go when a process
+    ends, however it ends; the lock file is removed by its holder (as the run folders' ``.train.lock``)."""
+    lock = path.parent / f".{path.name}.lock"
+    with writable(path):  # before the export's work: a folder it cannot write fails at once
+        path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        with writable(path):
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        if same_file(fd, lock):  # not a lock file its holder removed while this one waited for it
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        if same_file(fd, lock):
+            lock.unlink()
+        os.close(fd)
+
+
+def same_file(fd: int, path: Path) -> bool:
+    try:
+        return os.fstat(fd).st_ino == os.stat(path).st_ino
+    except FileNotFoundError:
+        return False
+
+
+def place(path: Path, data: bytes, record: str, overwrite: bool) -> None:
+    """The exported file and its record, written as a pair: both written in full to temporary files
+    beside them first (a full disk fails here, replacing nothing), then moved into place one after the
+    other, under :func:`output_lock` (no other export.py writes between the two). Without ``overwrite``
+    neither may replace a file that appeared after :func:`refuse_existing`: each is hard-linked into
+    place, which fails if its name is taken, and the file placed first is taken back if the record
+    cannot follow. The record's sha256 tells whether a file and the record beside it belong together."""
+    record_file = record_path(path)
+    with staged(path, data) as file_tmp, staged(record_file, record.encode()) as record_tmp:
+        if overwrite:
+            os.replace(file_tmp, path)
+            os.replace(record_tmp, record_file)
+            return
+        place_new(file_tmp, path)
+        try:
+            place_new(record_tmp, record_file)
+        except BaseException:
+            path.unlink()
+            raise
+
+
+@contextlib.contextmanager
+def staged(path: Path, data: bytes):
+    """``data`` in a temporary file beside ``path`` with a plain file's permissions (0666 less the
+    umask); removed when the block ends, unless it was moved into place."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+            os.fchmod(handle.fileno(), 0o666 & ~current_umask())
+        yield tmp
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def place_new(tmp: str, path: Path) -> None:
+    """``tmp`` at ``path``, which must not exist: ``os.link``, a FileExistsError naming ``path`` if a file
+    took the name meanwhile; on a filesystem without hard links (FAT), checked and renamed."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it") from None
+    except OSError as err:
+        if err.errno not in NO_HARD_LINKS:
+            raise
+        if path.exists():
+            raise FileExistsError(f"{path} exists; pass overwrite=true to replace it") from None
+        os.replace(tmp, path)
+
+
+NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EMLINK)
+
+
+@contextlib.contextmanager
+def writable(path: Path):
+    """A folder that cannot be written (:data:`~fisheyedepth.utils.WRITE_ERRORS`) is a ValueError naming
+    ``path`` and why, not a traceback: the output option is at fault, as a missing checkpoint is."""
+    try:
+        yield
+    except OSError as err:
+        if err.errno not in WRITE_ERRORS:
+            raise
+        where = f": {err.filename}" if err.filename and Path(err.filename) != path else ""
+        raise ValueError(
+            f"{path}: cannot be written ({err.strerror}{where}); choose another output=FILE"
+        ) from None
