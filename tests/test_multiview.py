@@ -48,7 +48,7 @@ def test_a_rig_turned_by_one_or_two_degrees_is_recovered(degrees, direction):
     camera, matches, T_true = refine_rig()
     axis = torch.tensor([0.3, -0.8, 0.5], dtype=torch.float64)
     turn = axis_angle_to_matrix(axis / axis.norm() * math.radians(degrees))
-    start = make_pose(turn @ T_true[:3, :3], T_true[:3, 3])  # the rotation off, the lever arm as measured
+    start = make_pose(turn @ T_true[:3, :3], turn @ T_true[:3, 3])  # b turned about its centre
     refined = refine_relative_pose(matches, start, float(camera.paraxial_focal()[0]), direction=direction)
     assert rotation_between_deg(refined.T_a_to_b, T_true) < 0.05
     assert refined.rotation_deg == pytest.approx(degrees, abs=0.05)
@@ -73,15 +73,20 @@ def test_too_few_matches_or_no_baseline_are_refused():
 
 
 # ------------------------------------------------------------------ the command on a recording
-def write_room_rig(root: Path, size: int = 96, stamps=(1_000_000_000, 1_100_000_000, 1_200_000_000)) -> dict:
+def write_room_rig(
+    root: Path,
+    size: int = 96,
+    stamps=(1_000_000_000, 1_100_000_000, 1_200_000_000),
+    calibrated: dict | None = None,
+) -> dict:
     """A rig layout in the textured room: cameras ``left`` and ``right`` 0.2 m apart, turned 20 degrees
     apart, moving 0.15 m forward per frame, with exact distance maps; and ``lonely``, whose one image is
-    taken between the others' instants."""
+    taken between the others' instants. ``calibrated``: cam_to_body written to rig.yaml in place of the
+    true one, by camera."""
     camera = kitti02().resize(size, size)
     extrinsics = {"left": pose(-10.0, (-0.1, 0.0, 0.0)), "right": pose(10.0, (0.1, 0.0, 0.0))}
-    entries = [
-        {"name": n, "model": camera.to_dict(), "cam_to_body": E.tolist()} for n, E in extrinsics.items()
-    ]
+    written = {**extrinsics, **(calibrated or {})}
+    entries = [{"name": n, "model": camera.to_dict(), "cam_to_body": E.tolist()} for n, E in written.items()]
     entries.append({"name": "lonely", "model": camera.to_dict(), "cam_to_body": np.eye(4).tolist()})
     (root / "seq").mkdir(parents=True)
     (root / "rig.yaml").write_text(yaml.safe_dump({"cameras": entries}))
@@ -102,7 +107,7 @@ def write_room_rig(root: Path, size: int = 96, stamps=(1_000_000_000, 1_100_000_
     lonely = root / "seq" / "images" / "lonely"
     lonely.mkdir(parents=True)
     cv2.imwrite(str(lonely / f"{stamps[0] + 50_000_000}.png"), np.zeros((size, size), np.uint8))
-    return {"stamps": stamps, "camera": camera}
+    return {"stamps": stamps, "camera": camera, "extrinsics": extrinsics}
 
 
 def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
@@ -133,6 +138,44 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     )
     assert main([*args[:3], "--sources", "rig,gps", "--quiet"]) == 2
     assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
+
+
+def turned(T: torch.Tensor, degrees: float, axis=(0.3, 1.0, -0.2)) -> torch.Tensor:
+    """``T`` turned by ``degrees`` about ``axis`` (in its own frame), its centre kept."""
+    axis = torch.tensor(axis, dtype=torch.float64)
+    R = axis_angle_to_matrix(axis / axis.norm() * math.radians(degrees))
+    return make_pose(T[:3, :3] @ R, T[:3, 3])
+
+
+@pytest.mark.parametrize("degrees", [0.0, 1.5])
+def test_refine_writes_the_rig_its_images_say(tmp_path, degrees):
+    """``--refine`` on a rig whose rig.yaml has the right camera turned by 1.5 degrees: the rotation the
+    images say is recovered to 0.05 degrees, written to OUT/rig.yaml (the recording untouched) and swept
+    with; a correct rig is left within 0.02 degrees. The camera with no same-instant partner is named."""
+    from fisheyedepth.data.layouts import RigLayout
+    from fisheyedepth.stereo.recording import main
+
+    true_right = pose(10.0, (0.1, 0.0, 0.0))
+    rec, out = tmp_path / "rec", tmp_path / "out"
+    rig = write_room_rig(rec, size=384, calibrated={"right": turned(true_right, degrees)})
+    before = (rec / "rig.yaml").read_text()
+    args = [str(rec), "--out", str(out), "--refine", "--sources", "rig", "--hypotheses", "32",
+            "--min-distance", "0.5", "--max-distance", "20", "--max-images", "1", "--quiet"]  # fmt: skip
+    assert main(args) == 0
+    assert (rec / "rig.yaml").read_text() == before
+    refined = RigLayout(out)  # OUT/rig.yaml reads as a rig description (its models are inline)
+    right = torch.from_numpy(refined.cameras["right"].cam_to_body)
+    assert rotation_between_deg(right, true_right) < (0.02 if degrees == 0 else 0.05)
+    assert np.allclose(refined.cameras["left"].cam_to_body, rig["extrinsics"]["left"].numpy())  # the kept one
+    assert np.allclose(right[:3, 3].numpy(), [0.1, 0.0, 0.0])  # rotation only: the lever arm kept
+    summary = json.loads((out / "summary.json").read_text())
+    change = summary["refinement"]["cameras"]["right"]
+    assert change["relative_to"] == "left" and change["instants"] == 3 and change["inliers"] > 100
+    assert change["rotation_deg"] == pytest.approx(degrees, abs=0.05)
+    assert change["epipolar_px_after"] < 0.2 and change["epipolar_px_before"] > (0.8 if degrees else 0.0)
+    assert summary["refinement"]["unrefined"] == ["lonely"]
+    (record,) = summary["images"]
+    assert record["checked"]["abs_rel"] < 0.1, record
 
 
 # ------------------------------------------------------------------ a real rectified pair

@@ -50,6 +50,7 @@ def export(cfg: DictConfig) -> dict[str, Any]:
     name = f"fisheyedepth_{size[0]}x{size[1]}{'_' + quantize if quantize else ''}{EXPORT_FORMATS[cfg.format]}"
     path = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir) / name
     overwrite = bool(cfg.get("overwrite"))
+    refuse_existing(path, overwrite)  # at once, not after waiting for another export of the file
     with output_lock(path):  # one export.py at a time writes this file
         refuse_existing(path, overwrite)
         data, record = exported(cfg, module, ckpt_path, size, quantize, path)

@@ -1,7 +1,7 @@
-"""``fisheyedepth-multiview ROOT --out OUT [--sources rig,time]``: sweep stereo over a recording in the rig
-layout (docs/data-format.md, "Robot rig layout"): every image paired with the rig's other cameras at the
-same instant (``rig``) and with its own camera a few frames on (``time``, the odometry's motion), metric
-because the calibration and the odometry are.
+"""``fisheyedepth-multiview ROOT --out OUT [--refine] [--sources rig,time]``: sweep stereo over a recording
+in the rig layout (docs/data-format.md, "Robot rig layout"): every image paired with the rig's other cameras
+at the same instant (``rig``) and with its own camera a few frames on (``time``, the odometry's motion),
+metric because the calibration and the odometry are.
 
 For each image it can pair it writes, under ``OUT/<sequence>/``:
 - ``distance/<camera>/<timestamp_ns>.npy``: float32 H x W metres along the ray, 0 where the round trip
@@ -9,14 +9,17 @@ For each image it can pair it writes, under ``OUT/<sequence>/``:
 - ``dense/<camera>/<timestamp_ns>.npy``: the same before the check (every pixel a partner sees);
 - ``confidence/<camera>/<timestamp_ns>.npy``: float32 in [0, 1];
 - ``panels/<camera>/<timestamp_ns>.png``: image | checked | dense [| ground truth];
-and ``OUT/summary.json``: per image its partners and, where the folder has ground truth
-(``<sequence>/distance/<camera>/<timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the
-same pixels; the images with no partner, by name. Nothing existing is replaced without ``--overwrite``.
+with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
+changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
+its partners and, where the folder has ground truth (``<sequence>/distance/<camera>/<timestamp_ns>.npy``),
+abs_rel, a1, coverage and the constant map on the same scored pixels; the images with no partner, by name.
+Nothing existing is replaced without ``--overwrite``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import sys
@@ -29,15 +32,18 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from ..cameras import load_yaml
 from ..data.layouts import Frame, RigLayout
 from ..geometry.se3 import relative_pose
 from ..images import read_image
 from ..utils import atomic_write_bytes, atomic_write_text
 from ..viz import colourise
+from .refine import Matches, match_features, refine_relative_pose
 from .sweep import StereoResult, SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
 SOURCES = ("rig", "time")
+REFINE = ("rotation", "pose")  # what --refine corrects of each camera's extrinsics (pose: also the direction)
 
 
 @dataclass(frozen=True)
@@ -149,6 +155,94 @@ def estimate(layout: RigLayout, pairing: Pairing, sweep: SweepStereo) -> StereoR
     return sweep(reference, sources)
 
 
+def _same_instants(layout: RigLayout, a: str, b: str, limit: int, same_instant_ns: int = 1_000_000):
+    """Up to ``limit`` (sequence, frame of a, frame of b) taken at one instant, spread over the recording."""
+    found = []
+    for sequence in layout.sequences():
+        theirs = layout.frames(sequence, b)
+        for frame in layout.frames(sequence, a):
+            nearest = min(theirs, key=lambda f: abs(f.key - frame.key), default=None)
+            if nearest is not None and abs(nearest.key - frame.key) <= same_instant_ns:
+                found.append((sequence, frame, nearest))
+    step = max(1, len(found) // limit) if found else 1
+    return found[::step][:limit]
+
+
+def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Matches, int]:
+    """The SIFT matches between cameras ``a`` and ``b`` pooled over up to ``instants`` same-instant images."""
+    found, used = [], _same_instants(layout, a, b, instants)
+    for sequence, frame_a, frame_b in used:
+        found.append(match_features(
+            _image(layout, sequence, a, frame_a), layout.cameras[a].camera,
+            _image(layout, sequence, b, frame_b), layout.cameras[b].camera,
+        ))  # fmt: skip
+    pooled = Matches(
+        torch.cat([m.rays_a for m in found] or [torch.zeros(0, 3, dtype=torch.float64)]),
+        torch.cat([m.rays_b for m in found] or [torch.zeros(0, 3, dtype=torch.float64)]),
+        np.concatenate([m.uv_a for m in found] or [np.zeros((0, 2))]),
+        np.concatenate([m.uv_b for m in found] or [np.zeros((0, 2))]),
+    )
+    return pooled, len(used)
+
+
+def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:
+    """Each camera's extrinsics refined from its images (:mod:`.refine`): every pair of cameras matched at
+    up to ``instants`` shared instants; from the first camera, which is kept, each other camera is reached
+    through the pair with the most matches to a camera already placed (a maximum spanning tree), and its
+    rotation (``what="pose"``: and its translation's direction) relative to that camera refined, the
+    baseline's length kept. ``layout.cameras`` is updated in place; returns what changed, per camera, and
+    the cameras left as they were (no pair with ``min_inliers`` matches to the placed ones)."""
+    if what not in REFINE:
+        raise ValueError(f"--refine: {what!r}; choose from {', '.join(REFINE)}")
+    names = list(layout.cameras)
+    matches = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            m, used = _pair_matches(layout, a, b, instants)
+            if len(m.rays_a) >= min_inliers:
+                matches[a, b] = (m, used)
+    placed, refined_cameras = [names[0]], {}
+    while True:
+        edges = [(len(m.rays_a), a, b) for (a, b), (m, _) in matches.items() if (a in placed) ^ (b in placed)]
+        if not edges:
+            break
+        _, a, b = max(edges)
+        m, used = matches[a, b]
+        if b in placed:  # refine the unplaced camera against the placed one
+            a, b, m = b, a, Matches(m.rays_b, m.rays_a, m.uv_b, m.uv_a)
+        E_a, E_b = layout.cameras[a].cam_to_body, layout.cameras[b].cam_to_body
+        T_a_to_b = torch.from_numpy(np.linalg.inv(E_b) @ E_a)
+        focal = float(np.mean(layout.cameras[b].camera.paraxial_focal()))
+        refined = refine_relative_pose(m, T_a_to_b, focal, direction=what == "pose")
+        layout.cameras[b] = dataclasses.replace(
+            layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
+        )
+        placed.append(b)
+        refined_cameras[b] = {"relative_to": a, "instants": used, "matches": refined.matches,
+                     "inliers": refined.inliers, "rotation_deg": round(refined.rotation_deg, 4),
+                     "direction_deg": round(refined.direction_deg, 4),
+                     "epipolar_px_before": round(refined.error_before_px, 3),
+                     "epipolar_px_after": round(refined.error_after_px, 3)}  # fmt: skip
+    unrefined = [n for n in names if n not in placed]
+    return {"what": what, "kept": names[0], "cameras": refined_cameras, "unrefined": unrefined}
+
+
+def refined_rig_yaml(layout: RigLayout) -> str:
+    """The recording's ``rig.yaml`` with each camera's ``cam_to_body`` replaced by ``layout``'s (its other
+    entries, paths relative to the recording, unchanged): a drop-in for the recording's own."""
+    import yaml
+
+    rig_file = layout.root / "rig.yaml"
+    rig = load_yaml(rig_file.read_text(encoding="utf-8"), rig_file)
+    if "cameras" not in rig:  # every camera of the calibration file
+        rig["cameras"] = [{"name": name} for name in layout.cameras]
+    for entry in rig["cameras"]:
+        if str(entry["name"]) in layout.cameras:
+            E = layout.cameras[str(entry["name"])].cam_to_body
+            entry["cam_to_body"] = [[float(v) for v in row] for row in E]
+    return yaml.safe_dump(rig, sort_keys=False, width=120)
+
+
 def score(distance: torch.Tensor, truth: torch.Tensor, among: torch.Tensor) -> dict[str, Any]:
     """abs_rel, a1 and coverage of ``distance`` on ``among`` (pixels with truth), and the constant map at
     the truth's median on the same scored pixels: a score of nothing is ``None``, never 0."""
@@ -195,13 +289,29 @@ def run(
     overwrite: bool = False,
     progress: bool = True,
     max_images: int | None = None,
+    refine: str | None = None,
 ) -> dict[str, Any]:
-    """The command's work: every pairing of ``root`` swept, its outputs and ``summary.json`` in ``out``."""
+    """The command's work: every pairing of ``root`` swept, its outputs and ``summary.json`` in ``out``;
+    with ``refine`` (:data:`REFINE`) the rig's extrinsics are refined from its images first
+    (:func:`refine_rig`), swept with, and written to ``out/rig.yaml``; the recording is never modified."""
     layout, out = RigLayout(root), Path(out)
     check_sources(sources)
+    if refine is not None and refine not in REFINE:
+        raise ValueError(f"--refine: {refine!r}; choose from {', '.join(REFINE)}")
     summary_path = out / "summary.json"
-    if summary_path.exists() and not overwrite:
-        raise FileExistsError(f"{summary_path} exists; pass --overwrite to replace the outputs")
+    for path in (summary_path, out / "rig.yaml") if refine else (summary_path,):
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass --overwrite to replace the outputs")
+    refinement = None
+    if refine:
+        refinement = refine_rig(layout, refine)
+        for name, change in refinement["cameras"].items():
+            log.info("%s refined against %s: %.3f degrees; epipolar error %.2f -> %.2f px (%d inliers)",
+                     name, change["relative_to"], change["rotation_deg"], change["epipolar_px_before"],
+                     change["epipolar_px_after"], change["inliers"])  # fmt: skip
+        if refinement["unrefined"]:
+            log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
+        atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
     planned = pairings(layout, sources)
     paired = [p for p in planned if p.partners][:max_images]
     unpaired = [p.name for p in planned if not p.partners]
@@ -237,6 +347,7 @@ def run(
         "root": str(root),
         "sources": list(sources),
         "sweep": {k: getattr(sweep, k) for k in sweep.__dataclass_fields__},
+        "refinement": refinement,
         "images": images,
         "unpaired": unpaired,
     }
@@ -255,6 +366,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-distance", type=float, default=80.0)
     parser.add_argument("--cost", choices=("zncc", "census"), default="zncc")
     parser.add_argument("--max-images", type=int, default=None)
+    refine_help = "refine the rig's extrinsics from its images first (rotation, the default, or pose: also "
+    refine_help += "the translation's direction); writes OUT/rig.yaml"
+    parser.add_argument("--refine", nargs="?", const="rotation", choices=REFINE, help=refine_help)
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
@@ -262,7 +376,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         sweep = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
         sources = tuple(args.sources.split(","))
-        summary = run(args.root, args.out, sweep, sources, args.overwrite, not args.quiet, args.max_images)
+        summary = run(
+            args.root, args.out, sweep, sources, args.overwrite, not args.quiet, args.max_images, args.refine
+        )
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

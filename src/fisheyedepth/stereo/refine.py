@@ -35,7 +35,7 @@ class Matches(NamedTuple):
 class Refinement(NamedTuple):
     T_a_to_b: Tensor  # [4, 4] float64: the refined pose, with the starting baseline's length
     rotation_deg: float  # the correction's rotation angle
-    direction_deg: float  # the translation direction's change
+    direction_deg: float  # the change of b's centre's direction seen from a (0 with direction=False)
     error_before_px: float  # median epipolar error of the inliers, in pixels of camera b (paraxial focal)
     error_after_px: float
     inliers: int
@@ -111,10 +111,11 @@ def refine_relative_pose(
 ) -> Refinement:
     """The pose ``T_a_to_b`` (``X_b = R X_a + t``) refined on ``matches``: Gauss-Newton on Cauchy-weighted
     epipolar angles (scale ``scale_px`` pixels at ``focal_px``), over the inliers within ``gate_deg`` of
-    the starting pose, the gate halved after each solve down to 4 ``scale_px``. ``|t|`` is kept, and
-    with ``direction=False`` the translation's direction too (only the rotation is refined: a short
-    baseline before a far scene constrains its direction weakly, and a rig's lever arm is often measured
-    better than its angles)."""
+    the starting pose, the gate halved after each solve down to 4 ``scale_px``. Camera b turns about its
+    own centre, and with ``direction`` that centre also moves on the sphere of radius ``|t|`` around a's:
+    the baseline's length is kept, and with ``direction=False`` b's centre as seen from a too (only the
+    rotation is refined: a short baseline before a far scene constrains its direction weakly, and a rig's
+    lever arm is often measured better than its angles)."""
     T0 = torch.as_tensor(T_a_to_b, dtype=torch.float64)
     R0, t0 = T0[:3, :3], T0[:3, 3]
     length = float(t0.norm())
@@ -129,9 +130,9 @@ def refine_relative_pose(
     scale = scale_px / focal_px
 
     def pose(x: Tensor) -> tuple[Tensor, Tensor]:
-        R = axis_angle_to_matrix(x[:3]) @ R0
-        direction = direction0 + x[3:] @ basis
-        return R, direction / direction.norm()
+        turn = axis_angle_to_matrix(x[:3])  # b turned about its centre carries t = -R c_b along
+        direction = turn @ (direction0 + x[3:] @ basis)
+        return turn @ R0, direction / direction.norm()
 
     x = torch.zeros(5, dtype=torch.float64)
     before = epipolar_angles(a, b, R0, direction0)
@@ -165,10 +166,11 @@ def refine_relative_pose(
     R, direction = pose(x)
     kept = epipolar_angles(a, b, R, direction) < 4 * scale
     cos_rotation = ((torch.trace(R @ R0.T) - 1) / 2).clamp(-1, 1)
+    centre, centre0 = R.T @ direction, R0.T @ direction0  # b's centre seen from a, over the baseline
     return Refinement(
         T_a_to_b=make_pose(R, direction * length),
         rotation_deg=math.degrees(float(torch.acos(cos_rotation))),
-        direction_deg=math.degrees(float(torch.acos((direction @ direction0).clamp(-1, 1)))),
+        direction_deg=math.degrees(float(torch.acos((centre @ centre0).clamp(-1, 1)))),
         error_before_px=float(before[kept].median()) * focal_px if kept.any() else float("nan"),
         error_after_px=float(epipolar_angles(a[kept], b[kept], R, direction).median()) * focal_px,
         inliers=int(kept.sum()),
