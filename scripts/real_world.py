@@ -6,6 +6,7 @@ against their rendered depth (capped at the frame's range). Real cameras, never 
 
     python scripts/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
+                                 [--no-multiview]
     python scripts/real_world.py --from-records docs/records/real_photographs   # kept scores
 
 Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
@@ -15,6 +16,10 @@ network runs at its input size on the image and camera resized alike, its distan
 frame's size. ``--pictures``: input | prediction | ground truth | error per model and frame;
 ``--json``: every number (the kitti360 protocol under 8 m for the KITTI-360 frame too). Exit status
 1 when a frame's files are missing (each is named in the table), 2 on a malformed file or option.
+Then sweep stereo (fisheyedepth.stereo, untrained) on every real frame with a partner: the ADT SLAM
+pairs, frames 0 and 1, each camera as the reference, the pair's rotation refined from its images first;
+and Middlebury 2014 Motorcycle (scikit-image). Each is scored on the reference's overlap with its partner,
+checked and dense, beside the constant map and each model on the same pixels (``--no-multiview``: not).
 ``--from-records``: the MODEL arguments are run records (files or folders, ``docs/records``) whose
 ``real_world`` scores are printed as kept, nothing re-scored.
 """
@@ -27,6 +32,7 @@ from pathlib import Path
 
 from fisheyedepth.realworld import FRAME_SETS, default_root, records_table, score_models
 from fisheyedepth.runtimes import POST_PROCESSING
+from fisheyedepth.stereo.realpairs import multiview_scores
 
 
 def main(argv=None) -> int:
@@ -41,6 +47,7 @@ def main(argv=None) -> int:
     parser.add_argument("--force", action="store_true", help="replace existing pictures and JSON")
     parser.add_argument("--post-process", default="none", choices=POST_PROCESSING)
     parser.add_argument("--from-records", action="store_true", help="MODEL...: run records; score nothing")
+    parser.add_argument("--no-multiview", action="store_true", help="score the models only, not sweep stereo")
     args = parser.parse_args(argv)
     if args.from_records:
         try:
@@ -49,10 +56,19 @@ def main(argv=None) -> int:
             print(f"error: {err}", file=sys.stderr)
             return 2
         return 0
+    echo = lambda line: print(line, flush=True)  # noqa: E731
+
+    def multiview(record, predictions):
+        record["multiview"] = multiview_scores(args.root, predictions, args.pictures, echo)
+
     try:
+        if args.pictures is not None and not args.force and not args.no_multiview:
+            taken = sorted(Path(args.pictures).glob("multiview_*.png"))
+            if taken:
+                raise FileExistsError(f"{taken[0]} exists; pass --force to replace it")
         record = score_models(
             args.models, args.root, args.frames, args.pictures, args.json, args.force, args.post_process,
-            echo=lambda line: print(line, flush=True),
+            echo=echo, more=None if args.no_multiview else multiview,
         )  # fmt: skip
     except (OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -224,7 +224,7 @@ def test_kitti360_scores_the_lidar_points_as_they_are(frames):
 def test_the_command_scores_a_checkpoint_on_every_frame(root, frames, tiny, tmp_path, capsys):
     script = load_script("real_world")
     pictures, out = tmp_path / "pictures", tmp_path / "scores.json"
-    args = [str(tiny), "--root", str(root), "--pictures", str(pictures), "--json", str(out)]
+    args = [str(tiny), "--root", str(root), "--pictures", str(pictures), "--json", str(out), "--no-multiview"]
     assert script.main(args) == 0
     lines = capsys.readouterr().out.splitlines()
     rows = [cells(line) for line in lines if line.startswith(f"| {tiny.stem} |")]
@@ -264,7 +264,8 @@ def test_a_missing_frame_is_named_with_its_path(root, tiny, tmp_path, capsys):
         if not path.name.startswith("depthskel_camera-slam-left_1_"):
             (tmp_path / "adt_slam" / path.name).symlink_to(path)
     out = tmp_path / "scores.json"
-    args = [str(tiny), "--root", str(tmp_path), "--frames", "scannetpp", "adt", "--json", str(out)]
+    args = [str(tiny), "--root", str(tmp_path), "--frames", "scannetpp", "adt", "--json", str(out),
+            "--no-multiview"]  # fmt: skip
     assert load_script("real_world").main(args) == 1
     captured = capsys.readouterr()
     rows = {r[1]: r for r in map(cells, captured.out.splitlines()) if r[0] == tiny.stem}

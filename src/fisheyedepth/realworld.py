@@ -551,9 +551,12 @@ def score_models(
     force: bool = False,
     post_process: str = "none",
     echo=print,
+    more=None,
 ) -> dict[str, Any]:
     """Every model on every frame of ``sets``: the table through ``echo`` line by line, pictures
-    ``<model>_<frame>.png`` into ``pictures``, the record (returned) into ``json_out`` when given."""
+    ``<model>_<frame>.png`` into ``pictures``, the record (returned) into ``json_out`` when given.
+    ``more(record, predictions)``: further scores added to the record before it is written, given each
+    model's predicted distance per frame (``{model: {frame: [H, W]}}``)."""
     root = default_root() if root is None else Path(root)
     for path in map(Path, model_paths):  # before the frames are read
         if not path.is_file():
@@ -575,15 +578,18 @@ def score_models(
         "models": {},
         "anchors": [{"method": m, "abs_rel": a, "a1": b} for m, a, b in ANCHORS],
     }
+    predictions: dict[str, dict[str, Tensor]] = {}
     for path, name in zip(model_paths, names, strict=True):
         runtime = load_model(Path(path), post_process)
         entry = {"file": str(path), "model": runtime.describe(), "frames": {}}
+        predictions[name] = {}
         for frame in frames:
             if isinstance(frame, Missing):
                 entry["frames"][frame.name] = {"missing": str(frame.path)}
                 echo(row(name, frame))
                 continue
             results, pred = score(runtime, frame)
+            predictions[name][frame.name] = pred
             entry["frames"][frame.name] = results
             echo(row(name, frame, results, constants[frame.name]))
             if pictures is not None:
@@ -595,6 +601,8 @@ def score_models(
     echo("")
     for line in anchors_table():
         echo(line)
+    if more is not None:
+        more(record, predictions)
     if json_out is not None:
         atomic_write_text(json_out, json.dumps(record, indent=1) + "\n")
     return record

@@ -28,12 +28,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..cameras.base import CameraModel
-from ..cameras.rays import compute_rays
+from ..cameras.rays import RayCache
 from ..geometry.se3 import invert_pose, transform_points
 from ..geometry.warp import pixels_to_grid, sample, warp_to_source
 
 COSTS = ("zncc", "census")
 UNSEEN = 0.5  # the cost of a hypothesis no source sees: neither a match nor a mismatch (costs are in [0, 1])
+RAYS = RayCache(max_entries=16)  # each camera's rays, unprojected once (iterative for most fisheye models)
 
 
 class View(NamedTuple):
@@ -107,7 +108,7 @@ class SweepStereo:
         hypotheses are warped and compared at once (one batch of ``B * chunk`` images)."""
         ref = gray(reference.image)
         batch, _, height, width = ref.shape
-        rays, has_ray = compute_rays(reference.camera, ref.device)
+        rays, has_ray = RAYS.get(reference.camera, ref.device)
         if self.cost == "census":
             ref_code = census(ref, self.census_window)
         else:
@@ -317,7 +318,7 @@ def round_trip(
     partner's own distance there (nearest pixel), carried back into the reference, lands within
     ``check_px`` pixels of where it started."""
     batch, height, width = distance.shape
-    rays, has_ray = compute_rays(camera, distance.device)
+    rays, has_ray = RAYS.get(camera, distance.device)
     T = _batched(T_ref_to_partner, batch).to(distance)
     points = transform_points(T, rays * distance[..., None])
     uv, visible = partner.project(points)
@@ -327,9 +328,17 @@ def round_trip(
         torch.where((visible & inside)[..., None], uv, torch.zeros_like(uv)), partner.width, partner.height
     )
     theirs = F.grid_sample(partner_distance[:, None], grid, mode="nearest", align_corners=False)[:, 0]
-    partner_rays, partner_has_ray = partner.unproject(
-        torch.where((visible & inside)[..., None], uv, torch.zeros_like(uv))
-    )
+    # the partner's ray at uv: its cached ray grid interpolated (rays vary smoothly), not unprojected again
+    partner_grid, partner_valid = RAYS.get(partner, distance.device)
+    sampled = F.grid_sample(
+        partner_grid.permute(2, 0, 1)[None].expand(batch, -1, -1, -1), grid, mode="bilinear",
+        padding_mode="border", align_corners=False,
+    ).permute(0, 2, 3, 1)  # fmt: skip
+    partner_rays = sampled / sampled.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    partner_has_ray = F.grid_sample(
+        partner_valid[None, None].to(distance).expand(batch, -1, -1, -1), grid, mode="nearest",
+        align_corners=False,
+    )[:, 0] > 0.5  # fmt: skip
     back = transform_points(invert_pose(T), partner_rays * theirs[..., None])
     returned, returns = camera.project(back)
     pixels = torch.stack(
