@@ -16,7 +16,7 @@ from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import invert_pose
 from fisheyedepth.stereo import SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
-from fisheyedepth.stereo.sweep import box_mean
+from fisheyedepth.stereo.sweep import box_mean, census_cost
 from stereo_world import pair, pose, render, scores, texture_volume
 
 from conftest import kitti02
@@ -54,6 +54,16 @@ def test_census_counts_the_neighbours_that_change_order():
     assert bits[0, :, 2, 2].tolist() == [False] * 4 + [True] * 4
     assert float(hamming(bits, census(-a, 3))[0, 2, 2]) == 1.0
     assert float(hamming(bits, census(3 * a + 7, 3)).max()) == 0.0
+
+
+@pytest.mark.parametrize("window", [3, 7, 9])
+def test_the_census_cost_counts_what_hamming_counts(window):
+    g = torch.Generator().manual_seed(window)
+    reference = torch.rand(2, 1, 13, 17, generator=g)
+    warps = torch.rand(2, 5, 13, 17, generator=g)
+    expected = torch.stack([hamming(census(reference, window), census(warps[:, k : k + 1], window))
+                            for k in range(5)], 1)  # fmt: skip
+    assert torch.equal(census_cost(census(reference, window), warps, window), expected)
 
 
 def test_aggregation_without_penalties_adds_the_cost_once_per_path():
