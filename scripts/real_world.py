@@ -8,6 +8,7 @@ against their rendered depth (capped at the frame's range). Real cameras, never 
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
                                  [--no-multiview]
     python scripts/real_world.py --from-records docs/records/real_photographs   # kept scores
+    python scripts/real_world.py --from-records --multiview RECORD               # the sweep's, kept
 
 Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
 the ratio ground truth / prediction), beside a constant map at the ground truth's median distance,
@@ -32,7 +33,7 @@ from pathlib import Path
 
 from fisheyedepth.realworld import FRAME_SETS, default_root, records_table, score_models
 from fisheyedepth.runtimes import POST_PROCESSING
-from fisheyedepth.stereo.realpairs import multiview_scores
+from fisheyedepth.stereo.realpairs import multiview_records_table, multiview_scores
 
 
 def main(argv=None) -> int:
@@ -48,10 +49,12 @@ def main(argv=None) -> int:
     parser.add_argument("--post-process", default="none", choices=POST_PROCESSING)
     parser.add_argument("--from-records", action="store_true", help="MODEL...: run records; score nothing")
     parser.add_argument("--no-multiview", action="store_true", help="score the models only, not sweep stereo")
+    parser.add_argument("--multiview", action="store_true", help="with --from-records: the sweep's table")
     args = parser.parse_args(argv)
     if args.from_records:
         try:
-            print("\n".join(records_table(args.models, args.frames)))
+            table = multiview_records_table if args.multiview else records_table
+            print("\n".join(table(args.models) if args.multiview else table(args.models, args.frames)))
         except (OSError, ValueError) as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

@@ -292,3 +292,7 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
     assert any(
         line.startswith("ADT slam right relative to left, refined from 3 image pairs") for line in lines
     )
+    # the record rebuilds the table, nothing re-scored
+    assert load_script("real_world").main(["--from-records", "--multiview", str(out)]) == 0
+    start = lines.index(realpairs.HEADER)
+    assert capsys.readouterr().out.splitlines() == lines[start : start + 2 + len(names)]

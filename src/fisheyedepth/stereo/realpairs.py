@@ -133,6 +133,7 @@ def score_pair(scored: ScoredPair, sweep: SweepStereo) -> tuple[dict[str, Any], 
 # command's default); Middlebury's scene 1.5-10 m (census, robust to its two exposures)
 ADT_SWEEP = SweepStereo(hypotheses=128, min_distance=0.2, max_distance=10.0, cost="zncc")
 MIDDLEBURY_SWEEP = SweepStereo(hypotheses=128, min_distance=1.5, max_distance=10.0, cost="census")
+SETTINGS = ("hypotheses", "min_distance", "max_distance", "cost")  # kept in the record
 HEADER = (
     "| reference frame | its partner | overlap pixels | sweep, checked: abs_rel, a1, coverage "
     "| constant map there | sweep, dense: abs_rel, a1 | constant map there "
@@ -144,6 +145,38 @@ def _cell(metrics: dict[str, Any], keys=("abs_rel", "a1", "coverage")) -> str:
     if metrics["abs_rel"] is None:
         return "nothing kept"
     return ", ".join(f"{metrics[k]:.3f}" for k in keys)
+
+
+def multiview_row(name: str, result: dict[str, Any]) -> str:
+    """One line of the table (:data:`HEADER`) from one frame's record."""
+    partner = "right" if "_left_" in name else "left" if name.startswith("adt") else "right image"
+    models = result.get("models") or {}
+    monocular = "; ".join(f"{m}: {_cell(r, ('abs_rel', 'a1'))}" for m, r in models.items()) or "-"
+    c, d = result["checked"], result["dense"]
+    return (
+        f"| {name} | {partner} | {result['overlap_pixels']:,} | {_cell(c)} | {c['constant_abs_rel']} "
+        f"| {_cell(d, ('abs_rel', 'a1'))} | {d['constant_abs_rel']} | {monocular} |"
+    )
+
+
+def multiview_records_table(paths) -> list[str]:
+    """The sweep's real-world table kept in records (JSON files with a ``multiview`` entry, as
+    ``scripts/real_world.py --json`` writes them), nothing re-scored."""
+    from ..cameras.io import load_json
+
+    lines = [HEADER, "|---|---|---|---|---|---|---|---|"]
+    for path in map(Path, paths):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such run record")
+        kept = load_json(path.read_bytes(), path).get("multiview")
+        if not isinstance(kept, dict):
+            continue
+        for name, result in kept.items():
+            lines.append(f"| {name} | missing: {result['missing']} | | | | | | |" if "missing" in result
+                         else multiview_row(name, result))  # fmt: skip
+    if len(lines) == 2:
+        raise ValueError(f"{', '.join(map(str, paths))}: no run record with sweep-stereo scores")
+    return lines
 
 
 def multiview_scores(
@@ -193,13 +226,7 @@ def multiview_scores(
             k: getattr(sweep, k) for k in ("hypotheses", "min_distance", "max_distance", "cost")
         }
         record[name] = result
-        partner = "right" if "_left_" in name else "left" if name.startswith("adt") else "right image"
-        monocular = "; ".join(f"{m}: {_cell(r, ('abs_rel', 'a1'))}" for m, r in models.items()) or "-"
-        c, d = result["checked"], result["dense"]
-        echo(
-            f"| {name} | {partner} | {result['overlap_pixels']:,} | {_cell(c)} | {c['constant_abs_rel']} "
-            f"| {_cell(d, ('abs_rel', 'a1'))} | {d['constant_abs_rel']} | {monocular} |"
-        )
+        echo(multiview_row(name, result))
         if pictures is not None:
             image = scored.pair.reference.image
             tiles = panel(image if image.shape[1] == 3 else image.expand(-1, 3, -1, -1), stereo, truth)
