@@ -17,6 +17,7 @@ import torch
 import yaml
 
 from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
 from fisheyedepth.stereo import SweepStereo, View
 from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
@@ -296,3 +297,23 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
     assert load_script("real_world").main(["--from-records", "--multiview", str(out)]) == 0
     start = lines.index(realpairs.HEADER)
     assert capsys.readouterr().out.splitlines() == lines[start : start + 2 + len(names)]
+
+
+# ------------------------------------------------------------------ held-out worlds: what parallax resolves
+def test_a_camera_moving_forward_resolves_nothing_at_its_focus_of_expansion(monkeypatch):
+    """scripts/sweep_heldout.py's resolvable pixels: a 10 % change of the distance moves the point by a
+    pixel in a source 1 m ahead wherever it lies 45-78 degrees off the motion at 3 m, but not along the
+    motion itself (the image centre of a camera moving along its optical axis); nowhere without motion."""
+    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "scripts"))  # its sibling _compose
+    resolvable = load_script("sweep_heldout").resolvable
+    camera = kitti02().resize(192, 192)
+    truth = torch.full((192, 192), 3.0)
+    ahead = View(torch.zeros(1, 1, 192, 192), camera, make_pose(torch.eye(3), torch.tensor([0.0, 0.0, -1.0])))
+    can = resolvable(camera, truth, [ahead])
+    centre = camera.project(torch.tensor([[0.0, 0.0, 1.0]]))[0][0].round().long().tolist()
+    assert not can[centre[1] - 2 : centre[1] + 3, centre[0] - 2 : centre[0] + 3].any()  # expansion focus
+    rays, has_ray = compute_rays(camera)
+    off_axis = has_ray & (rays[..., 2] < math.cos(math.radians(45))) & (rays[..., 2] > 0.2)  # 45-78 degrees
+    assert can[off_axis].float().mean() > 0.95
+    still = View(ahead.image, camera, torch.eye(4))
+    assert not resolvable(camera, truth, [still]).any()
