@@ -14,7 +14,7 @@ Then Hirschmueller's semi-global aggregation along paths of the reference image,
 winner-take-all over the summed paths with a parabola through the winner and its neighbours
 (sub-hypothesis), a confidence (how unique the winner is), and a round trip: the reference's point,
 looked up in the source's own estimate and carried back, must land within ``check_px`` of where it
-started (left-right consistency for any geometry).
+started (left-right consistency for any geometry), and a winner inside the range, not at its ends.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ class View(NamedTuple):
 
 
 class StereoResult(NamedTuple):
-    distance: Tensor  # [B, H, W] metres along the ray; 0 where the check rejects or nothing is seen
+    distance: Tensor  # [B, H, W] metres along the ray; 0 where the check rejects, nothing is seen, or the
+    # winner is the range's first or last hypothesis
     dense: Tensor  # [B, H, W] the same before the check: every pixel a source sees at some hypothesis
     confidence: Tensor  # [B, H, W] in [0, 1]: 1 - best / second-best aggregated cost (0 where unseen)
     valid: Tensor  # [B, H, W] bool: kept by the round trip (distance > 0)
@@ -177,7 +178,13 @@ class SweepStereo:
             partner_distance, _, _ = self.estimate(partner, [View(reference.image, reference.camera, back)])
             kept |= round_trip(dense, reference.camera, partner_distance, source.camera, source.T_ref_to_view,
                                self.check_px)  # fmt: skip
-        kept &= seen & (dense > 0)
+        # a winner at either end of the range is no measurement (the cost may fall further beyond it):
+        # low texture matched at the farthest hypothesis in both directions passes the round trip
+        inverse = self.inverse_distances(dense.device)
+        quarter = (inverse[0] - inverse[1]) / 4  # an inner winner is at most half a step from its index
+        reciprocal = 1 / dense.clamp(min=1e-12)
+        inside = (reciprocal < inverse[0] - quarter) & (reciprocal > inverse[-1] + quarter)
+        kept &= seen & (dense > 0) & inside
         distance = torch.where(kept, dense, torch.zeros_like(dense))
         return StereoResult(distance, dense, confidence, kept, seen)
 
