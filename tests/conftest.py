@@ -273,25 +273,28 @@ def tiny_samples(root, frames=(2, 3), cameras=("image_02", "image_03"), size=(64
 @pytest.fixture(scope="session")
 def checkpoint(kitti_data, tmp_path_factory):
     """A full model trained for a handful of steps at 64x64, saved like Lightning saves it."""
+    return built_once(
+        tmp_path_factory, "tiny.ckpt", lambda path: train_few_steps(kitti_data, path)
+    )  # base_focal as train.py's auto
+
+
+def train_few_steps(kitti_data: Path, path: Path, **net) -> None:
+    """A model (``net`` options over a 64x64 two-scale network) trained for three steps on the tiny
+    KITTI-360 batch, saved to ``path`` like Lightning saves it."""
     import torch
 
     from fisheyedepth.module import FisheyeDepthModule
 
-    def train(path: Path) -> None:
-        torch.manual_seed(0)
-        module = FisheyeDepthModule(
-            net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64)
-        )  # as train.py's auto
-        batch = tiny_batch(kitti_data)
-        opt = torch.optim.Adam(module.parameters(), 1e-3)
-        for _ in range(3):
-            loss, _ = module.objective(batch, module(batch.image, batch.camera))
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
-
-    return built_once(tmp_path_factory, "tiny.ckpt", train)
+    torch.manual_seed(0)
+    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0, **net}, input_size=(64, 64))
+    batch = tiny_batch(kitti_data)
+    opt = torch.optim.Adam(module.parameters(), 1e-3)
+    for _ in range(3):
+        loss, _ = module.objective(batch, module(batch.image, batch.camera))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
 
 
 @pytest.fixture(scope="session")

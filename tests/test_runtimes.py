@@ -27,7 +27,7 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.options import KEYWORDS
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet, flip_averaged
 
-from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed, tiny_batch
+from conftest import TRAIN_SEQ, kitti02, kitti03, load_cfg, printed, tiny_batch, train_few_steps
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,20 +49,19 @@ def images_of(kitti_data, camera="image_02", n=3):
     return torch.from_numpy(rgb.copy()).permute(0, 3, 1, 2).float() / 255.0
 
 
+def float_and_int8(checkpoint, kitti_data, tmp: Path) -> tuple[Path, Path]:
+    """``checkpoint`` exported as float32 and as int8 (calibrated on 8 KITTI-360 frames) into ``tmp``."""
+    fp32 = export_file(checkpoint, tmp, "fp32.onnx")
+    calibration = str(kitti_data / "data_2d_raw")
+    int8 = export_file(checkpoint, tmp, "int8.onnx", quantize="int8", calibration=calibration,
+                       calibration_frames=8)  # fmt: skip
+    return fp32, int8
+
+
 @pytest.fixture(scope="module")
 def onnx_files(checkpoint, kitti_data, tmp_path_factory):
     pytest.importorskip("onnxruntime")
-    tmp = tmp_path_factory.mktemp("onnx")
-    fp32 = export_file(checkpoint, tmp, "fp32.onnx")
-    int8 = export_file(
-        checkpoint,
-        tmp,
-        "int8.onnx",
-        quantize="int8",
-        calibration=str(kitti_data / "data_2d_raw"),
-        calibration_frames=8,
-    )
-    return fp32, int8
+    return float_and_int8(checkpoint, kitti_data, tmp_path_factory.mktemp("onnx"))
 
 
 @pytest.fixture(scope="module")
@@ -70,18 +69,7 @@ def effnet_checkpoint(kitti_data, tmp_path_factory):
     """The ``checkpoint`` fixture's recipe on the default encoder (``model=fisheyedepth_effnet``: the
     ImageNet EfficientNet-Lite0), saved like Lightning saves it."""
     path = tmp_path_factory.mktemp("effnet") / "effnet.ckpt"
-    torch.manual_seed(0)
-    module = FisheyeDepthModule(
-        net={"encoder": "efficientnet_lite0", "scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64)
-    )
-    batch = tiny_batch(kitti_data)
-    opt = torch.optim.Adam(module.parameters(), 1e-3)
-    for _ in range(3):
-        loss, _ = module.objective(batch, module(batch.image, batch.camera))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
+    train_few_steps(kitti_data, path, encoder="efficientnet_lite0")
     return path
 
 
@@ -92,17 +80,7 @@ def int8_files(request, onnx_files, kitti_data, tmp_path_factory):
     if request.param == "resnet":
         return onnx_files
     checkpoint = request.getfixturevalue("effnet_checkpoint")
-    tmp = tmp_path_factory.mktemp("onnx_effnet")
-    fp32 = export_file(checkpoint, tmp, "fp32.onnx")
-    int8 = export_file(
-        checkpoint,
-        tmp,
-        "int8.onnx",
-        quantize="int8",
-        calibration=str(kitti_data / "data_2d_raw"),
-        calibration_frames=8,
-    )
-    return fp32, int8
+    return float_and_int8(checkpoint, kitti_data, tmp_path_factory.mktemp("onnx_effnet"))
 
 
 def test_onnx_file_serves_every_camera_of_the_rig_as_pytorch_does(onnx_files, checkpoint, kitti_data):

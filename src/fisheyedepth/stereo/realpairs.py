@@ -79,24 +79,21 @@ def adt_pairs(folder: Path, refine: bool = True) -> list[ScoredPair | Missing]:
     if refine:
         found = []
         for index in ADT_REFINE_FRAMES:
+            names = [f"adt_{c.rsplit('-', 1)[1]}_{index}" for c in ADT_CAMERAS]
             paths = [_one(folder, f"{c}_{index}_*.png") for c in ADT_CAMERAS]
-            if None not in paths:
-                a, b = (read_rgb(p) for p in paths)
+            if None not in paths:  # the frames with ground truth are read already
+                pairs = zip(names, paths, strict=True)
+                a, b = (frames[n].image if n in frames else read_rgb(p) for n, p in pairs)
                 found.append(match_features(a, cameras[ADT_CAMERAS[0]], b, cameras[ADT_CAMERAS[1]]))
-        matches = Matches(
-            torch.cat([m.rays_a for m in found]),
-            torch.cat([m.rays_b for m in found]),
-            np.concatenate([m.uv_a for m in found]),
-            np.concatenate([m.uv_b for m in found]),
-        )
+        matches = Matches.pooled(found)
         focal = float(np.mean(cameras[ADT_CAMERAS[1]].paraxial_focal()))
         refined = refine_relative_pose(matches, T_left_to_right, focal, direction=False)
         T_left_to_right = refined.T_a_to_b
         refinement = {"instants": len(found), **{k: round(v, 4) if isinstance(v, float) else v
                       for k, v in refined._asdict().items() if k != "T_a_to_b"}}  # fmt: skip
     out: list[ScoredPair | Missing] = []
+    T_right_to_left = invert_pose(T_left_to_right)
     for index in (0, 1):
-        T_right_to_left = invert_pose(T_left_to_right)
         for ref, src, T in (("left", "right", T_left_to_right), ("right", "left", T_right_to_left)):
             a, b = frames[f"adt_{ref}_{index}"], frames[f"adt_{src}_{index}"]
             pair = RealPair(

@@ -176,13 +176,7 @@ def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Mat
             _image(layout, sequence, a, frame_a), layout.cameras[a].camera,
             _image(layout, sequence, b, frame_b), layout.cameras[b].camera,
         ))  # fmt: skip
-    pooled = Matches(
-        torch.cat([m.rays_a for m in found] or [torch.zeros(0, 3, dtype=torch.float64)]),
-        torch.cat([m.rays_b for m in found] or [torch.zeros(0, 3, dtype=torch.float64)]),
-        np.concatenate([m.uv_a for m in found] or [np.zeros((0, 2))]),
-        np.concatenate([m.uv_b for m in found] or [np.zeros((0, 2))]),
-    )
-    return pooled, len(used)
+    return Matches.pooled(found), len(used)
 
 
 def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:

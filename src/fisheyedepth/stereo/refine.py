@@ -31,6 +31,18 @@ class Matches(NamedTuple):
     uv_a: np.ndarray  # [N, 2] pixels
     uv_b: np.ndarray
 
+    @staticmethod
+    def pooled(found: list[Matches]) -> Matches:
+        """The matches of several image pairs of the same two cameras, as one set (empty for none)."""
+        empty = Matches(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
+                        np.zeros((0, 2)), np.zeros((0, 2)))  # fmt: skip
+        return Matches(
+            torch.cat([m.rays_a for m in (empty, *found)]),
+            torch.cat([m.rays_b for m in (empty, *found)]),
+            np.concatenate([m.uv_a for m in (empty, *found)]),
+            np.concatenate([m.uv_b for m in (empty, *found)]),
+        )
+
 
 class Refinement(NamedTuple):
     T_a_to_b: Tensor  # [4, 4] float64: the refined pose, with the starting baseline's length
@@ -62,8 +74,7 @@ def match_features(
     sift = cv2.SIFT_create(nfeatures=features)
     found = [sift.detectAndCompute(to_uint8(image), None) for image in (image_a, image_b)]
     (keys_a, desc_a), (keys_b, desc_b) = found
-    empty = Matches(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
-                    np.zeros((0, 2)), np.zeros((0, 2)))  # fmt: skip
+    empty = Matches.pooled([])
     if desc_a is None or desc_b is None or len(keys_a) < 2 or len(keys_b) < 2:
         return empty
     matcher = cv2.BFMatcher(cv2.NORM_L2)
