@@ -27,6 +27,7 @@ from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
 from .data.kitti360 import OCCLUSION, occlusion_filter
 from .metrics import NAMES, DepthMetrics
+from .models.cost_volume import Sources
 from .runtimes import as_runtime
 from .viz import panel
 
@@ -288,7 +289,11 @@ def evaluate(
             continue
         if batch.distance is None:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
-        pred = model.distance(batch.image, batch.camera).float()
+        if getattr(model, "sources", None):  # a multi-view network: the frames it matches against
+            views = Sources(batch.sources, batch.poses, batch.source_camera)
+            pred = model.distance(batch.image, batch.camera, views).float()
+        else:
+            pred = model.distance(batch.image, batch.camera).float()
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
         names = batch.camera_name or [None] * len(batch)
         sources = batch.distance_source or [None] * len(batch)

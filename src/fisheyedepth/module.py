@@ -28,6 +28,7 @@ from .losses.objective import SelfSupervisedObjective
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
+from .models.cost_volume import Sources
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .options import check_numbers, model_options
 from .training import StepGuard, build_optimizer, build_scheduler
@@ -68,6 +69,11 @@ class FisheyeDepthModule(L.LightningModule):
         if translation is None:  # Monodepth2's first parallax for this head's first distance
             translation = MONODEPTH2_TRANSLATION_PER_DISTANCE * self.depth_net.initial_distance
         self.pose_net = None
+        if net["cost_volume"] and not objective["real_scale"]:
+            raise ValueError(
+                "net.cost_volume: the multi-view network matches over metric distance and needs real-scale "
+                "poses (objective.real_scale: true)"
+            )
         if not objective["real_scale"]:
             self.pose_net = PoseNet(
                 resnet=net["resnet"], weights=net["weights"], translation_scale=translation,
@@ -92,8 +98,18 @@ class FisheyeDepthModule(L.LightningModule):
         whose hyper-parameters are flat (written before the option groups) load too."""
         return model_from_checkpoint(path, cls)
 
-    def forward(self, image: Tensor, cameras: list) -> dict[str, dict[int, Tensor]]:
-        return self.depth_net.for_cameras(image, cameras)
+    def forward(
+        self, image: Tensor, cameras: list, sources: Sources | None = None
+    ) -> dict[str, dict[int, Tensor]]:
+        return self.depth_net.for_cameras(image, cameras, sources=sources)
+
+    def sources(self, batch: Batch, augmented: bool = False) -> Sources | None:
+        """The batch's sources as the multi-view network reads them (real-scale poses); None for the
+        monocular network."""
+        if self.depth_net.cost_volume is None:
+            return None
+        images = batch.sources_aug if augmented else batch.sources
+        return Sources(images, batch.poses, batch.source_camera)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""
@@ -127,7 +143,7 @@ class FisheyeDepthModule(L.LightningModule):
                 self.guard.skipped += 1  # another rank could not read its batch
             return self.guard.skip_loss()
         self.guard.keep_statistics()
-        outputs = self(batch.image_aug, batch.camera)
+        outputs = self(batch.image_aug, batch.camera, self.sources(batch, augmented=True))
         loss, logs = self.objective(batch, outputs)
         if self.guard.any_rank(not bool(torch.isfinite(loss))):
             self.guard.skip("non-finite loss on a rank", batch_idx, len(batch))
@@ -149,7 +165,7 @@ class FisheyeDepthModule(L.LightningModule):
     def validation_step(self, batch: Batch | SkippedBatch, batch_idx: int) -> Tensor | None:
         if self._count_skipped(batch):
             return None
-        outputs = self(batch.image, batch.camera)
+        outputs = self(batch.image, batch.camera, self.sources(batch))
         loss, logs = self.objective(batch, outputs)
         batch_size = len(batch)
         self.log("val/loss", loss, batch_size=batch_size, sync_dist=True)
@@ -175,7 +191,9 @@ class FisheyeDepthModule(L.LightningModule):
     ) -> Tensor | None:
         if self._count_skipped(batch):
             return None
-        return self.depth_net.distance(batch.image, batch.camera, self.hparams.input_size)
+        return self.depth_net.distance(
+            batch.image, batch.camera, self.hparams.input_size, self.sources(batch)
+        )
 
     def on_validation_epoch_end(self) -> None:
         metrics, scaled = self.val_metrics, self.val_metrics_scaled

@@ -171,6 +171,9 @@ NET_OPTIONS: dict[str, Kind] = {  # fisheyedepth.models.DepthNet
     "base_focal": Number(low=0.0, above=True, optional=True, words=("auto",)),
     "channels_last": SWITCH,
     "decoder_width": Number(0.0, 4.0, above=True, note="a factor on Monodepth2's channels"),
+    "cost_volume": Number(low=0, whole=True, note="distance hypotheses; 0: the monocular network"),
+    "cost_volume_max": POSITIVE,
+    "source_dropout": Number(0.0, 1.0),
 }
 OBJECTIVE_OPTIONS: dict[str, Kind] = {  # fisheyedepth.losses.objective.SelfSupervisedObjective
     "fisheye_projection": SWITCH,

@@ -210,6 +210,17 @@ class TorchRuntime:
             net.channels_last = True
         size = check_input_size(input_size, "size") if input_size else module.hparams.get("input_size")
         self.input_size = None if size is None else (int(size[0]), int(size[1]))
+        # a multi-view network's sources: the frames and the rig's cameras its loss warped, (offsets,
+        # rig_offsets); None for the monocular network
+        objective = module.hparams.get("objective", {})
+        self.sources = None
+        if net.cost_volume is not None:
+            self.sources = (tuple(objective["source_offsets"]), tuple(objective["rig_offsets"]))
+            if self.post_process != "none":
+                raise ValueError(
+                    f"post_process: {self.post_process!r} is for the monocular network; the multi-view "
+                    "network's sources would have to be flipped too"
+                )
 
     def describe(self) -> dict[str, Any]:
         """What results.json records of the model: its switches, upsampling, runtime and precision."""
@@ -225,9 +236,16 @@ class TorchRuntime:
         }
 
     @torch.no_grad()
-    def distance(self, images: Tensor, cameras) -> Tensor:
+    def distance(self, images: Tensor, cameras, sources=None) -> Tensor:
+        """Distance ``[B, 1, H, W]`` of images of ``cameras``; ``sources``
+        (:class:`~fisheyedepth.models.cost_volume.Sources`) for the multi-view network."""
+        if sources is not None:
+            sources = sources._replace(
+                images=sources.images.to(self.device), poses=sources.poses.to(self.device)
+            )
+
         def run(batch: Tensor, batch_cameras) -> Tensor:
-            return self.module.depth_net.distance(batch, batch_cameras, self.input_size)
+            return self.module.depth_net.distance(batch, batch_cameras, self.input_size, sources)
 
         with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             return post_processed(run, images.to(self.device), cameras, self.post_process)

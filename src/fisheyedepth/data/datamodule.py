@@ -264,10 +264,19 @@ class FisheyeDataModule(L.LightningDataModule):
         bounds, filtered LiDAR); evaluation reads :meth:`scoring_loader` instead."""
         return self._loader(split, shuffle=False)
 
-    def scoring_loader(self, split: str, batch_size: int = 4, num_workers: int = 0) -> DataLoader:
+    def scoring_loader(
+        self,
+        split: str,
+        batch_size: int = 4,
+        num_workers: int = 0,
+        offsets: tuple[int, ...] = (),
+        rig_offsets: tuple[int, ...] = (),
+    ) -> DataLoader:
         """What evaluation scores: every frame of ``split`` (no source frames, hence no neighbour
         needed and no translation bound, as the reference scores its test set) at its native
-        resolution, un-augmented, with ground truth (LiDAR unfiltered: each protocol filters its own)."""
+        resolution, un-augmented, with ground truth (LiDAR unfiltered: each protocol filters its own).
+        A multi-view network reads its sources: ``offsets`` and ``rig_offsets`` as in training, and then
+        only the frames that have them are scored."""
         if split not in self.splits:
             raise KeyError(f"no {split!r} split configured (have {sorted(self.splits)})")
         parts = [
@@ -275,11 +284,12 @@ class FisheyeDataModule(L.LightningDataModule):
                 layout,
                 self.splits[split],
                 self.cameras,
-                offsets=(),
+                offsets=tuple(offsets),
                 ground_truth=self.ground_truth,
                 skip_bad_frames=self.skip_bad_frames,
                 cache_dir=self.cache_dir,
                 lidar_occlusion=None,
+                rig_offsets=tuple(rig_offsets),
             )
             for layout in self.layouts
         ]

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from .cost_volume import CostVolume, Sources
 from .encoders import make_encoder
 from .heads import (
     MultiChannelHead,
@@ -132,6 +133,9 @@ class DepthNet(nn.Module):
         upsample: str = "distance",
         decoder_width: float = 1.0,
         encoder: str = "resnet",
+        cost_volume: int = 0,
+        cost_volume_max: float = 80.0,
+        source_dropout: float = 0.2,
     ):
         super().__init__()
         self.upsample = upsample  # checked by its setter
@@ -145,6 +149,13 @@ class DepthNet(nn.Module):
         widths = decoder_channels(decoder_width)
         self.multi_channel, self.scales = multi_channel, tuple(scales)  # a config's list too
         self.decoder = DepthDecoder(self.encoder.channels, self.scales, widths)
+        self.cost_volume, self.source_dropout = None, float(source_dropout)
+        if cost_volume:  # the multi-view network: matches joined to the encoder's stride-4 features
+            self.cost_volume = CostVolume(int(cost_volume), min_distance, cost_volume_max)
+            matched = self.encoder.channels[1]
+            self.fuse = nn.Sequential(
+                nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1), nn.ReLU(inplace=True)
+            )
         self.min_distance, self.max_distance = min_distance, max_distance
         bins = distance_bins(n_bins, min_distance, max_distance)
         # Both heads start at the same distance, the binned head's (equal logits: the bins' mean, 26 m
@@ -180,21 +191,76 @@ class DepthNet(nn.Module):
             raise ValueError(f"upsample: {value!r} is not one of {', '.join(UPSAMPLING)}")
         self._upsample = value
 
-    def head_outputs(self, image: Tensor, scales: tuple[int, ...] | None = None) -> dict[int, Tensor]:
+    def head_outputs(
+        self,
+        image: Tensor,
+        scales: tuple[int, ...] | None = None,
+        cameras=None,
+        sources: Sources | None = None,
+    ) -> dict[int, Tensor]:
         """The heads' raw outputs (bin logits or sigmoids) ``{scale: [B, C, H/2^s, W/2^s]}`` for
-        ``scales`` (default: all; the other heads are skipped)."""
+        ``scales`` (default: all; the other heads are skipped). The multi-view network also reads the
+        ``cameras`` of the images and their ``sources`` (None: the image alone)."""
         if self.channels_last:
             image = image.contiguous(memory_format=torch.channels_last)
-        features = self.decoder(self.encoder(image))
+        features = self.decoder(self.encode(image, cameras, sources))
         return {s: self.heads[str(s)](x) for s, x in features.items() if scales is None or s in scales}
 
+    def encode(self, image: Tensor, cameras=None, sources: Sources | None = None) -> list[Tensor]:
+        """The encoder's 5 feature maps; with a cost volume, the stride-4 map is fused with the matching
+        cost of ``sources`` over metric distance before the deeper stages read it."""
+        if self.cost_volume is None:
+            return self.encoder(image)
+        f0 = self.encoder.stage(0, image)
+        f1 = self.encoder.stage(1, f0)
+        features = [f0, self.fuse(torch.cat([f1, self.match(f1, cameras, sources)], 1))]
+        for k in range(2, 5):
+            features.append(self.encoder.stage(k, features[-1]))
+        return features
+
+    def match(self, target: Tensor, cameras, sources: Sources | None) -> Tensor:
+        """``[B, D + 1, h, w]`` cost volume of the target's stride-4 features against the sources' (zeros,
+        with nothing seen, without sources). In training each sample's sources are withheld with
+        probability ``source_dropout``, so that one image alone still gives a usable map."""
+        batch, _, height, width = target.shape
+        empty = target.new_zeros(batch, self.cost_volume.channels, height, width)
+        if sources is None or sources.images.shape[1] == 0:
+            return empty
+        if cameras is None:
+            raise ValueError("cameras: the multi-view network needs the target cameras with its sources")
+        n = sources.images.shape[1]
+        flat = sources.images.reshape(batch * n, *sources.images.shape[2:]).to(target.dtype)
+        if self.channels_last:
+            flat = flat.contiguous(memory_format=torch.channels_last)
+        theirs = self.encoder.stage(1, self.encoder.stage(0, flat))
+        theirs = theirs.reshape(batch, n, *theirs.shape[1:])
+        small = [c.resize(width, height) for c in cameras]
+        source_cameras = [[c.resize(width, height) for c in cams] for cams in sources.cameras]
+        with torch.autocast(target.device.type, enabled=False):  # geometry in float32
+            volume = self.cost_volume(
+                at_least_float32(target),
+                at_least_float32(theirs),
+                sources.poses.float(),
+                small,
+                source_cameras,
+            ).to(target.dtype)
+        if self.training and self.source_dropout > 0:
+            keep = torch.rand(batch, 1, 1, 1, device=target.device) >= self.source_dropout
+            volume = volume * keep.to(volume.dtype)
+        return volume
+
     def forward(
-        self, image: Tensor, depth_scale: Tensor | float = 1.0, scales: tuple[int, ...] | None = None
+        self,
+        image: Tensor,
+        depth_scale: Tensor | float = 1.0,
+        scales: tuple[int, ...] | None = None,
+        cameras=None,
+        sources: Sources | None = None,
     ) -> dict[str, dict[int, Tensor]]:
         """Returns ``{"distance": {scale: [B, 1, H/2^s, W/2^s]}, "disp": {...}}`` for ``scales`` (default:
         all; inference needs only scale 0, and skips the other heads)."""
         distance, disp = {}, {}
-        for s, y in self.head_outputs(image, scales).items():
+        for s, y in self.head_outputs(image, scales, cameras, sources).items():
             if self.multi_channel:
                 distance[s], disp[s] = self.expectation(
                     y, depth_scale, self.bins, self.min_distance, self.max_distance
@@ -212,29 +278,40 @@ class DepthNet(nn.Module):
         return depth_scale(cameras, self.base_focal)
 
     def for_cameras(
-        self, image: Tensor, cameras, scales: tuple[int, ...] | None = None
+        self, image: Tensor, cameras, scales: tuple[int, ...] | None = None, sources: Sources | None = None
     ) -> dict[str, dict[int, Tensor]]:
         """:meth:`forward` with the ``depth_scale`` of each sample's camera (images at the cameras' size)."""
-        return self(image, self.depth_scale(cameras).to(image), scales)
+        return self(image, self.depth_scale(cameras).to(image), scales, cameras, sources)
 
-    def distance(self, image: Tensor, cameras, input_size: tuple[int, int] | None = None) -> Tensor:
+    def distance(
+        self,
+        image: Tensor,
+        cameras,
+        input_size: tuple[int, int] | None = None,
+        sources: Sources | None = None,
+    ) -> Tensor:
         """Distance ``[B, 1, H, W]`` (metres) of images ``[B, 3, H, W]`` taken by ``cameras`` (one per image,
         at the images' size). The network runs at ``input_size`` (W, H; default: the images' size) on the
-        image and camera resized alike, and its distance is upsampled back in inverse-distance space."""
+        image and camera resized alike (the ``sources`` of the multi-view network too), and its distance
+        is upsampled back in inverse-distance space."""
         H, W = image.shape[-2:]
+        if sources is not None and input_size is not None:
+            sources = sources.resized(*input_size)
         if self.multi_channel and self.upsample == "logits" and input_size and (W, H) != tuple(input_size):
-            return self.upsampled_expectation(*resized(image, cameras, input_size), (H, W))
+            return self.upsampled_expectation(*resized(image, cameras, input_size), (H, W), sources)
 
         def run(images: Tensor, small_cameras) -> Tensor:
-            return self.for_cameras(images, small_cameras, scales=(0,))["distance"][0]
+            return self.for_cameras(images, small_cameras, scales=(0,), sources=sources)["distance"][0]
 
         return distance_at_size(run, image, cameras, input_size)
 
-    def upsampled_expectation(self, image: Tensor, cameras, size: tuple[int, int]) -> Tensor:
+    def upsampled_expectation(
+        self, image: Tensor, cameras, size: tuple[int, int], sources: Sources | None = None
+    ) -> Tensor:
         """The binned head's scale-0 logits upsampled bilinearly to ``size`` (H, W), then the expectation:
         at an edge between a near and a far surface the interpolated logits keep two peaks and the
         expectation switches between them within a pixel or two, where interpolating distances blends them."""
-        logits = self.head_outputs(image, (0,))[0]
+        logits = self.head_outputs(image, (0,), cameras, sources)[0]
         with torch.autocast(logits.device.type, enabled=False):
             logits = F.interpolate(at_least_float32(logits), size=tuple(size), mode="bilinear")
         scale = self.depth_scale(cameras).to(logits)

@@ -200,12 +200,20 @@ class EfficientNetLiteEncoder(nn.Module):
         """``relu6(bn(conv3x3_stride2(normalise(x))))``: 32 channels at half the size."""
         return F.relu6(self._bn0(self._conv_stem(normalise(x))))
 
-    def forward(self, x: Tensor) -> list[Tensor]:
-        features, h = [], self.stem(x)
-        for i, block in enumerate(self._blocks):
+    def stage(self, k: int, x: Tensor) -> Tensor:
+        """Feature map ``k`` (0..4, after block ``TAPS[k]``) from map ``k - 1`` (from the image for
+        ``k = 0``): the encoder in steps, so that the multi-view network can join its cost volume."""
+        first = 0 if k == 0 else TAPS[k - 1] + 1
+        h = self.stem(x) if k == 0 else x
+        for block in self._blocks[first : TAPS[k] + 1]:
             h = block(h)
-            if i in TAPS:
-                features.append(h)
+        return h
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        features = []
+        for k in range(len(TAPS)):
+            x = self.stage(k, x)
+            features.append(x)
         return features
 
     def classify(self, x: Tensor) -> Tensor:

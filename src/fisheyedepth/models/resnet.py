@@ -157,11 +157,18 @@ class ResNetEncoder(nn.Module):
             f"a resnet{self.depth}", f"a torchvision resnet{self.depth} state dict",
         )  # fmt: skip
 
+    def stage(self, k: int, x: Tensor) -> Tensor:
+        """Feature map ``k`` (0..4, strides 2..32) from map ``k - 1`` (from the image for ``k = 0``): the
+        encoder in steps, so that the multi-view network can join its cost volume after stage 1."""
+        if k == 0:
+            return self.relu(self.bn1(self.conv1((x - 0.45) / 0.225)))  # Monodepth2's input normalisation
+        if k == 1:
+            return self.layer1(self.maxpool(x))
+        return (self.layer2, self.layer3, self.layer4)[k - 2](x)
+
     def forward(self, x: Tensor) -> list[Tensor]:
-        x = (x - 0.45) / 0.225  # Monodepth2's input normalisation
-        f0 = self.relu(self.bn1(self.conv1(x)))
-        f1 = self.layer1(self.maxpool(f0))
-        f2 = self.layer2(f1)
-        f3 = self.layer3(f2)
-        f4 = self.layer4(f3)
-        return [f0, f1, f2, f3, f4]
+        features = []
+        for k in range(5):
+            x = self.stage(k, x)
+            features.append(x)
+        return features

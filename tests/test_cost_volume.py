@@ -1,0 +1,153 @@
+"""The multi-view network's cost volume: matching over metric distance with fisheye warps, and the depth
+network reading it (``net.cost_volume``)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from conftest import kitti02, tiny_batch
+from stereo_world import pose, render, texture_volume
+
+from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.geometry.se3 import invert_pose
+from fisheyedepth.models import DepthNet
+from fisheyedepth.models.cost_volume import CostVolume, Sources, inverse_distances
+from fisheyedepth.module import FisheyeDepthModule
+
+
+def patches(image: torch.Tensor, window: int = 5) -> torch.Tensor:
+    """``[B, window**2, H, W]``: each pixel's neighbourhood as channels (the L1 over them is a SAD)."""
+    r = window // 2
+    return F.unfold(F.pad(image, (r, r, r, r), mode="replicate"), window).reshape(
+        image.shape[0], window * window, *image.shape[-2:]
+    )
+
+
+def test_hypotheses_are_uniform_in_inverse_distance_nearest_first():
+    inverse = inverse_distances(5, 0.5, 80.0)
+    assert inverse[0] == pytest.approx(2.0) and inverse[-1] == pytest.approx(1 / 80)
+    assert torch.allclose(inverse.diff(), torch.full((4,), (1 / 80 - 2.0) / 4))
+
+
+def rig_volume(baseline_scale: float = 1.0) -> tuple[torch.Tensor, torch.Tensor, CostVolume]:
+    """The raw volume's winner (5x5 patches as features, no aggregation) ``[1, H, W]`` metres, the
+    truth and the volume, for two KITTI-360 fisheyes 0.6 m apart and turned 30 degrees in a room with
+    exact distance (a coarse texture, so that 96 px do not alias it); the baseline told to the volume is
+    ``baseline_scale`` times the true one."""
+    camera = kitti02().resize(96, 96)
+    volume = texture_volume(0, cell=0.25)
+    T_a, T_b = pose(), pose(30.0, (0.6, 0.0, 0.0))
+    (image_a, truth), (image_b, _) = render(camera, T_a, volume), render(camera, T_b, volume)
+    T = (invert_pose(T_b) @ T_a).float()
+    T[:3, 3] *= baseline_scale
+    cost = CostVolume(64, 0.5, 20.0)
+    out = cost(patches(image_a), patches(image_b)[:, None], T[None, None], [camera], [[camera]])
+    assert out.shape == (1, 65, 96, 96)
+    fraction = out[:, -1]
+    assert 0.5 < float(fraction[truth > 0].mean()) < 1.0  # the partner sees part of each ray
+    winner = 1 / cost.inverse[out[:, :-1].argmin(1)]
+    return torch.where(fraction == 1, winner, torch.zeros_like(winner)), truth, cost
+
+
+def test_the_cost_is_lowest_at_the_true_distance_on_a_fisheye_rig():
+    winner, truth, _ = rig_volume()
+    kept = (truth > 0) & (winner > 0)
+    ratio = winner[kept] / truth[kept]
+    assert kept.sum() > 4000
+    assert float((torch.maximum(ratio, 1 / ratio) < 1.25).float().mean()) > 0.9
+    assert float((ratio - 1).abs().median()) < 0.04
+
+
+def test_the_volume_is_metric_through_the_poses():
+    """Told twice the baseline, the same images match at twice the distance: the scale is the poses'."""
+    winner, truth, _ = rig_volume(baseline_scale=2.0)
+    kept = (truth > 0) & (winner > 0) & (truth < 8.0)  # twice that stays inside the 20 m range
+    assert float((winner[kept] / truth[kept]).median()) == pytest.approx(2.0, rel=0.06)
+
+
+def test_hypotheses_no_source_sees_take_the_mean_and_are_counted():
+    """A pinhole source at the same place turned round sees nothing of the target's view: every
+    hypothesis is unseen, the fraction channel is 0 and the cost the fill value, not a NaN."""
+    camera = PinholeCamera(width=32, height=32, fx=20.0, fy=20.0, cx=15.5, cy=15.5)
+    turned = pose(180.0, (0.0, 0.0, 0.0)).float()
+    features = torch.rand(1, 4, 32, 32)
+    out = CostVolume(8, 0.5, 20.0)(features, features[:, None], turned[None, None], [camera], [[camera]])
+    assert torch.isfinite(out).all()
+    assert (out[:, -1] == 0).all() and (out[:, :-1] == 0).all()
+
+
+def test_bad_volume_settings_are_refused():
+    with pytest.raises(ValueError, match="hypotheses 1"):
+        CostVolume(1)
+    with pytest.raises(ValueError, match="min_distance < max_distance"):
+        CostVolume(8, 10.0, 5.0)
+
+
+# ------------------------------------------------------------------ the network
+@pytest.fixture(scope="module")
+def batch(kitti_data):
+    return tiny_batch(kitti_data)
+
+
+def mv_net(**options) -> DepthNet:
+    torch.manual_seed(0)
+    return DepthNet(scales=(0, 1), cost_volume=8, base_focal=None, channels_last=False, **options)
+
+
+def test_without_sources_the_network_reads_an_empty_volume(batch):
+    net = mv_net().eval()
+    none = net.for_cameras(batch.image, batch.camera)["distance"][0]
+    empty = Sources(batch.sources[:, :0], batch.poses[:, :0], [[] for _ in batch.camera])
+    assert torch.equal(none, net.for_cameras(batch.image, batch.camera, sources=empty)["distance"][0])
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    with_sources = net.for_cameras(batch.image, batch.camera, sources=sources)["distance"][0]
+    assert (with_sources - none).abs().max() > 1e-4  # the matches change the map
+    assert torch.isfinite(with_sources).all() and (with_sources > 0).all()
+
+
+def test_sources_dropped_in_training_leave_the_image_alone(batch):
+    """``source_dropout`` 1: every sample's volume is withheld, as without sources (train mode both)."""
+    net = mv_net(source_dropout=1.0).train()
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    dropped = net.for_cameras(batch.image, batch.camera, sources=sources)["distance"][0]
+    alone = net.for_cameras(batch.image, batch.camera)["distance"][0]
+    assert torch.allclose(dropped, alone)
+
+
+def test_gradients_reach_the_matching_features(batch):
+    net = mv_net(source_dropout=0.0).train()
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    net.for_cameras(batch.image, batch.camera, sources=sources)["distance"][0].mean().backward()
+    assert net.fuse[0].weight.grad.abs().sum() > 0
+    volume_weights = net.fuse[0].weight.grad[:, net.encoder.channels[1] :]
+    assert volume_weights.abs().sum() > 0  # the cost channels are read
+
+
+def test_the_encoder_in_stages_is_the_encoder():
+    torch.manual_seed(0)
+    for name in ("resnet", "efficientnet_lite0"):
+        net = DepthNet(encoder=name, channels_last=False).eval()
+        image = torch.rand(1, 3, 64, 64)
+        whole = net.encoder(image)
+        x = image
+        for k, feature in enumerate(whole):
+            x = net.encoder.stage(k, x)
+            assert torch.equal(x, feature), (name, k)
+            assert x.shape[1] == net.encoder.channels[k] and x.shape[-1] == 64 // 2 ** (k + 1)
+
+
+def test_the_volume_needs_metric_poses():
+    with pytest.raises(ValueError, match="net.cost_volume.*real_scale"):
+        FisheyeDepthModule(net={"cost_volume": 8}, objective={"real_scale": False})
+
+
+def test_a_module_with_a_volume_reads_the_batch_sources(batch):
+    module = FisheyeDepthModule(net={"cost_volume": 8, "scales": (0, 1), "base_focal": 20.0})
+    assert FisheyeDepthModule(net={"scales": (0, 1)}).sources(batch) is None
+    sources = module.sources(batch, augmented=True)
+    assert sources.images is batch.sources_aug and sources.poses is batch.poses
+    loss, _ = module.objective(batch, module(batch.image, batch.camera, sources))
+    assert math.isfinite(float(loss.detach()))
