@@ -8,14 +8,15 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import kitti02, tiny_batch
-from stereo_world import pose, render, texture_volume
 
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.geometry.se3 import invert_pose
 from fisheyedepth.models import DepthNet
 from fisheyedepth.models.cost_volume import CostVolume, Sources, inverse_distances
 from fisheyedepth.module import FisheyeDepthModule
+from stereo_world import pose, render, texture_volume
+
+from conftest import kitti02, tiny_batch
 
 
 def patches(image: torch.Tensor, window: int = 5) -> torch.Tensor:
