@@ -166,6 +166,27 @@ def test_rig_sources_are_the_other_cameras_warped_with_extrinsics_and_odometry(s
     assert all(gt < min(near, far) and gt < 0.035 for gt, near, far in better)  # 0.014-0.030 at GT
 
 
+def test_the_stereo_rig_overlaps_and_its_other_camera_is_a_source(tmp_path, cache):
+    """The stereo rig: two fisheyes 0.2 m apart, axes 40 degrees apart (on the car; hand-held 0.25 m),
+    whose views overlap: the other camera, warped with the ground truth, explains the target better than
+    at 0.7x or 1.4x the distance, over much of the image."""
+    from fisheyedepth.data.synthetic import generate, make_rig
+
+    for scene, baseline in (("street", 0.2), ("indoor", 0.255)):
+        rig = make_rig("stereo", 64, scene)
+        a, b = rig.cam_to_pose["image_02"], rig.cam_to_pose["image_03"]
+        assert np.linalg.norm(a[:3, 3] - b[:3, 3]) == pytest.approx(baseline, abs=0.001)
+        assert math.degrees(math.acos(a[:3, 2] @ b[:3, 2])) == pytest.approx(40.0)
+    root = generate(tmp_path / "stereo", "stereo", frames=9, size=64, seed=2, lidar=False, progress=False)
+    ds = FisheyeDataset(Kitti360Layout(root), [{"sequence": TRAIN_SEQ}], rig_offsets=(0,), cache_dir=cache)
+    assert len(ds) == 2  # each camera once as the target, the other one its rig source
+    for i in range(len(ds)):
+        s = ds[i]
+        error, coverage = warp_l1(s, 2)
+        assert coverage > 0.4, coverage
+        assert error < 0.025 and error < min(warp_l1(s, 2, 0.7)[0], warp_l1(s, 2, 1.4)[0]), error
+
+
 def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(surround4, cache):
     root = surround4
     dm = FisheyeDataModule(

@@ -7,6 +7,11 @@ into it; the Velodyne pose is ``E_00 @ inv(T_cam0_to_velo)``.
   calibration scaled to the render size and its real extrinsics.
 - ``surround4``: four fisheyes looking left (image_02, Mei), right (image_03, Mei), front (image_04,
   Kannala-Brandt) and back (image_05, Kannala-Brandt), like a robot's surround rig.
+- ``stereo``: a stereo pair of fisheyes whose views overlap, on the car's front like a robot's head:
+  image_02 (left) and image_03 (right), KITTI-360's Mei intrinsics, :data:`STEREO_BASELINE` apart and
+  each turned :data:`STEREO_YAW` degrees outward from straight ahead (their optical axes 40 degrees
+  apart); the rig's other camera is a source at the same instant (``rig_offsets: [0]``) where nothing
+  moves.
 
 In the indoor scene the same cameras look the same ways from a compact hand-held rig: every camera and the
 LiDAR within ``indoor.RIG_RADIUS`` of the body's origin, and no vehicle body in view.
@@ -30,7 +35,9 @@ from ...cameras import CAMERA_MODELS, CameraModel, KannalaBrandtCamera, MeiCamer
 from ...geometry import make_pose, pose_from_3x4
 from ..kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
 
-RIGS = ("kitti360", "surround4")
+RIGS = ("kitti360", "surround4", "stereo")
+STEREO_BASELINE = 0.2  # metres between the stereo rig's two cameras
+STEREO_YAW = 20.0  # degrees each of them is turned outward from straight ahead
 FAMILIES = ("mei", "kannala_brandt", "double_sphere", "fisheye624", "ucm", "eucm", "fov", "opencv")
 # Incidence of the ray at the image's left and right edges (degrees): fisheyes of 150-200 degrees; the
 # pinhole with OpenCV's distortion is a wide-angle lens of 100-124 degrees (it cannot reach 90 degrees).
@@ -109,6 +116,12 @@ def _fixed_rig(name: str, size: int) -> Rig:
             )
             cameras[cam_name] = written[cam_name] = cam
             cam_to_pose[cam_name] = _looking(forward, right, position)
+    if name == "stereo":
+        for cam_name, side in (("image_02", -1.0), ("image_03", 1.0)):  # pose frame: y right
+            yaw = math.radians(STEREO_YAW) * side
+            forward = (math.cos(yaw), math.sin(yaw), 0.0)
+            right = (-math.sin(yaw), math.cos(yaw), 0.0)
+            cam_to_pose[cam_name] = _looking(forward, right, (1.7, side * STEREO_BASELINE / 2, -0.95))
     return Rig(name, cameras, written, cam_to_pose, _pose(KITTI360_CAM0_TO_VELO))
 
 
@@ -120,6 +133,8 @@ def _handheld(rig: Rig) -> Rig:
     for name, T in rig.cam_to_pose.items():
         forward = T[:3, 2] * np.array([1.0, 1.0, 0.0])
         offset = 0.08 * forward / max(np.linalg.norm(forward), 1e-9)
+        if rig.name == "stereo":  # the pair keeps its baseline
+            offset = offset + np.array([0.0, T[1, 3], 0.0])
         if name in ("image_00", "image_01"):  # the perspective pair: not rendered, image_00 anchors the LiDAR
             offset = np.array([0.0, 0.0 if name == "image_00" else 0.1, 0.0])
         cam_to_pose[name] = make_pose(T[:3, :3], offset).numpy()
