@@ -290,7 +290,7 @@ def train_few_steps(kitti_data: Path, path: Path, **net) -> None:
     batch = tiny_batch(kitti_data)
     opt = torch.optim.Adam(module.parameters(), 1e-3)
     for _ in range(3):
-        loss, _ = module.objective(batch, module(batch.image, batch.camera))
+        loss, _ = module.objective(batch, module(batch.image, batch.camera, module.sources(batch)))
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -10,13 +10,16 @@ import torch
 import torch.nn.functional as F
 
 from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.cli.export import export
 from fisheyedepth.geometry.se3 import invert_pose
 from fisheyedepth.models import DepthNet
 from fisheyedepth.models.cost_volume import CostVolume, Sources, inverse_distances
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.runtimes import TorchRuntime
 from stereo_world import pose, render, texture_volume
+from test_faults_export import export_cfg
 
-from conftest import kitti02, tiny_batch
+from conftest import kitti02, tiny_batch, train_few_steps
 
 
 def patches(image: torch.Tensor, window: int = 5) -> torch.Tensor:
@@ -109,6 +112,21 @@ def test_without_sources_the_network_reads_an_empty_volume(batch):
     assert torch.isfinite(with_sources).all() and (with_sources > 0).all()
 
 
+def test_the_volume_joins_the_encoder_map_at_its_stride(batch):
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    for stride, channels in ((2, 64), (4, 64)):
+        net = mv_net(cost_volume_stride=stride).eval()
+        with torch.no_grad():
+            level = net.encoder.stage(0, batch.image)
+            if stride == 4:
+                level = net.encoder.stage(1, level)
+            volume = net.match(level, batch.camera, sources)
+        assert level.shape[1] == channels and volume.shape == (4, 9, 64 // stride, 64 // stride)
+        assert 0 < float(volume[:, -1].mean()) <= 1  # the sources see most hypotheses
+    with pytest.raises(ValueError, match="cost_volume_stride: 8"):
+        mv_net(cost_volume_stride=8)
+
+
 def test_sources_dropped_in_training_leave_the_image_alone(batch):
     """``source_dropout`` 1: every sample's volume is withheld, as without sources (train mode both)."""
     net = mv_net(source_dropout=1.0).train()
@@ -152,3 +170,28 @@ def test_a_module_with_a_volume_reads_the_batch_sources(batch):
     assert sources.images is batch.sources_aug and sources.poses is batch.poses
     loss, _ = module.objective(batch, module(batch.image, batch.camera, sources))
     assert math.isfinite(float(loss.detach()))
+
+
+@pytest.fixture(scope="module")
+def mv_checkpoint(kitti_data, tmp_path_factory):
+    path = tmp_path_factory.mktemp("mv") / "mv.ckpt"
+    train_few_steps(kitti_data, path, cost_volume=8)
+    return path
+
+
+def test_a_multiview_checkpoint_runs_with_its_sources_and_refuses_what_cannot_take_them(
+    mv_checkpoint, batch, tmp_path
+):
+    runtime = TorchRuntime(FisheyeDepthModule.from_checkpoint(mv_checkpoint))
+    assert runtime.sources == ((-1, 1), ())  # the frames its loss warped: what evaluation reads
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    matched, alone = (
+        runtime.distance(batch.image, batch.camera, sources),
+        runtime.distance(batch.image, batch.camera),
+    )
+    assert matched.shape == alone.shape == (4, 1, 64, 64) and (matched - alone).abs().max() > 1e-4
+    with pytest.raises(ValueError, match="post_process: 'flip'.*sources"):
+        TorchRuntime(FisheyeDepthModule.from_checkpoint(mv_checkpoint), post_process="flip")
+    with pytest.raises(ValueError, match="net.cost_volume.*export a monocular checkpoint"):
+        export(export_cfg(mv_checkpoint, tmp_path / "mv.onnx"))
+    assert not (tmp_path / "mv.onnx").exists()

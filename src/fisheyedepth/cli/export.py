@@ -41,6 +41,11 @@ def export(cfg: DictConfig) -> dict[str, Any]:
         raise ValueError("calibration: quantize=int8 needs a folder of training images, calibration=DIR")
     ckpt_path = checkpoint_path(cfg)
     module = TrainedDepthNet.from_checkpoint(ckpt_path)
+    if module.depth_net.cost_volume is not None:
+        raise ValueError(
+            f"{ckpt_path}: net.cost_volume: the multi-view network reads source frames and poses, which an "
+            "exported file does not take yet; export a monocular checkpoint, or run this one in PyTorch"
+        )
     size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
     if len(size) != 2:
         raise ValueError(

@@ -135,6 +135,7 @@ class DepthNet(nn.Module):
         encoder: str = "resnet",
         cost_volume: int = 0,
         cost_volume_max: float = 80.0,
+        cost_volume_stride: int = 4,
         source_dropout: float = 0.2,
     ):
         super().__init__()
@@ -150,9 +151,12 @@ class DepthNet(nn.Module):
         self.multi_channel, self.scales = multi_channel, tuple(scales)  # a config's list too
         self.decoder = DepthDecoder(self.encoder.channels, self.scales, widths)
         self.cost_volume, self.source_dropout = None, float(source_dropout)
-        if cost_volume:  # the multi-view network: matches joined to the encoder's stride-4 features
+        if cost_volume_stride not in VOLUME_STRIDES:
+            raise ValueError(f"cost_volume_stride: {cost_volume_stride!r} is not one of {VOLUME_STRIDES}")
+        self.volume_level = VOLUME_STRIDES.index(cost_volume_stride)  # the encoder map it joins
+        if cost_volume:  # the multi-view network: matches joined to the encoder's features
             self.cost_volume = CostVolume(int(cost_volume), min_distance, cost_volume_max)
-            matched = self.encoder.channels[1]
+            matched = self.encoder.channels[self.volume_level]
             self.fuse = nn.Sequential(
                 nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1), nn.ReLU(inplace=True)
             )
@@ -207,19 +211,20 @@ class DepthNet(nn.Module):
         return {s: self.heads[str(s)](x) for s, x in features.items() if scales is None or s in scales}
 
     def encode(self, image: Tensor, cameras=None, sources: Sources | None = None) -> list[Tensor]:
-        """The encoder's 5 feature maps; with a cost volume, the stride-4 map is fused with the matching
-        cost of ``sources`` over metric distance before the deeper stages read it."""
+        """The encoder's 5 feature maps; with a cost volume, the map at ``cost_volume_stride`` is fused with
+        the matching cost of ``sources`` over metric distance before the deeper stages read it."""
         if self.cost_volume is None:
             return self.encoder(image)
-        f0 = self.encoder.stage(0, image)
-        f1 = self.encoder.stage(1, f0)
-        features = [f0, self.fuse(torch.cat([f1, self.match(f1, cameras, sources)], 1))]
-        for k in range(2, 5):
-            features.append(self.encoder.stage(k, features[-1]))
+        features, x = [], image
+        for k in range(5):
+            x = self.encoder.stage(k, x)
+            if k == self.volume_level:
+                x = self.fuse(torch.cat([x, self.match(x, cameras, sources)], 1))
+            features.append(x)
         return features
 
     def match(self, target: Tensor, cameras, sources: Sources | None) -> Tensor:
-        """``[B, D + 1, h, w]`` cost volume of the target's stride-4 features against the sources' (zeros,
+        """``[B, D + 1, h, w]`` cost volume of the target's features against the sources' (zeros,
         with nothing seen, without sources). In training each sample's sources are withheld with
         probability ``source_dropout``, so that one image alone still gives a usable map."""
         batch, _, height, width = target.shape
@@ -232,7 +237,9 @@ class DepthNet(nn.Module):
         flat = sources.images.reshape(batch * n, *sources.images.shape[2:]).to(target.dtype)
         if self.channels_last:
             flat = flat.contiguous(memory_format=torch.channels_last)
-        theirs = self.encoder.stage(1, self.encoder.stage(0, flat))
+        theirs = flat
+        for k in range(self.volume_level + 1):
+            theirs = self.encoder.stage(k, theirs)
         theirs = theirs.reshape(batch, n, *theirs.shape[1:])
         small = [c.resize(width, height) for c in cameras]
         source_cameras = [[c.resize(width, height) for c in cams] for cams in sources.cameras]
@@ -319,6 +326,7 @@ class DepthNet(nn.Module):
 
 
 UPSAMPLING = ("distance", "logits")
+VOLUME_STRIDES = (2, 4)  # the encoder maps a cost volume can join (levels 0 and 1)
 
 
 def scale_focal(camera):
