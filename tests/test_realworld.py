@@ -328,9 +328,9 @@ def test_malformed_files_are_named_with_the_field(root, tmp_path):
 
 # ------------------------------------------------------------------ the published anchors
 def test_the_readme_prints_the_anchors_the_command_prints():
-    """README.md, "Real photographs": the published anchors, as the command prints them."""
-    readme = (ROOT / "README.md").read_text()
-    section = readme.split("### Real photographs", 1)[1].split("\n### ", 1)[0]
+    """docs/real-data.md, "Real photographs": the published anchors, as the command prints them."""
+    readme = (ROOT / "docs" / "real-data.md").read_text()
+    section = readme.split("## Real photographs", 1)[1].split("\n## ", 1)[0]
     assert "\n".join(rw.anchors_table()) in section
     assert "python scripts/real_world.py" in section and "constant map" in section
     assert "real_frame" not in readme
