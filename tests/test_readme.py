@@ -8,11 +8,12 @@ import shlex
 from pathlib import Path
 
 import pytest
-from conftest import ROOT
 from hydra import compose, initialize_config_dir
 
 from fisheyedepth.cameras import KannalaBrandtCamera, load_camera
 from fisheyedepth.cli import model_file_alias
+
+from conftest import ROOT
 
 README = (ROOT / "README.md").read_text()
 ENTRY_POINTS = {"train.py": "train", "eval.py": "eval", "predict.py": "predict", "export.py": "export"}

@@ -33,7 +33,9 @@ from _compose import compose_config  # noqa: E402
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("checkpoints", nargs="+")
     parser.add_argument("--rig", default="kitti360")
     parser.add_argument("--seed", type=int, default=2001)
@@ -57,7 +59,9 @@ def main(argv=None) -> int:
         for label, sources in ways:
             runtime.sources = sources
             loader = datamodule.scoring_loader("test", offsets=args.offsets, rig_offsets=args.rig_offsets)
-            scores = evaluate(runtime, loader, runtime.input_size, ["full", "kitti360"], ["none"], n_pictures=0)
+            scores = evaluate(
+                runtime, loader, runtime.input_size, ["full", "kitti360"], ["none"], n_pictures=0
+            )
             full, near = scores["full"]["none"], scores["kitti360"]["none"]
             print(f"| {ckpt} | {label} | {full['images']} | {full['abs_rel']:.4f} | {full['a1']:.3f} "
                   f"| {near['abs_rel']:.4f} |", flush=True)  # fmt: skip
