@@ -503,12 +503,14 @@ def test_eval_names_the_row_by_the_checkpoints_run(tmp_path):
 
 
 def test_two_job_sweep_gets_two_output_folders(workdir):
-    """Two jobs of a sweep, each in its folder; the Monodepth2 baseline (PoseNet, sigmoid head, no
-    fisheye warp) runs a step through train.py as the first."""
+    """Two jobs of a sweep, each in its folder, launched through Hydra's submitit launcher with its local
+    executor (the SLURM launcher's path, ``hydra/launcher=slurm``, without a cluster); the Monodepth2
+    baseline (PoseNet, sigmoid head, no fisheye warp) runs a step through train.py as the first."""
     sweep = workdir / "sweep"
     proc = run(
         "train.py",
         "-m",
+        "hydra/launcher=submitit_local",
         "+experiment=ablation_baseline,ablation_fft_only",
         "trainer.fast_dev_run=true",
         f"paths.data_dir={workdir}/data",
@@ -519,6 +521,8 @@ def test_two_job_sweep_gets_two_output_folders(workdir):
     assert len(jobs) == 2 and all((j / ".hydra" / "config.yaml").is_file() for j in jobs)
     names = {(j / ".hydra" / "overrides.yaml").read_text().count("ablation_baseline") for j in jobs}
     assert names == {0, 1}
+    submitted = list((sweep / ".submitit").glob("*/*_result.pkl"))
+    assert len(submitted) == 2  # each job ran as a submitit job and returned
     assert "Warning" not in proc.stderr and "deprecated" not in proc.stderr, proc.stderr[-2000:]
 
 
@@ -558,8 +562,7 @@ def test_cpu_ddp_with_two_gloo_processes(workdir):
     assert "distributed_backend=gloo" in text and "All distributed processes registered" in text
 
 
-def test_slurm_launcher_config_composes_when_the_plugin_is_installed():
-    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="optional: hydra-submitit-launcher")
+def test_slurm_launcher_config_composes():
     cfg = compose_train(["hydra/launcher=slurm", "+experiment=ablation_full"])
     assert cfg.hydra.launcher.gpus_per_node == 1
     assert (ROOT / "conf" / "hydra" / "launcher" / "slurm.yaml").is_file()
