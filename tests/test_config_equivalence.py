@@ -1,7 +1,7 @@
 """The model options in groups (``net``, ``objective``, ``optimizer``, ``scheduler``) are the flat options
 they replaced, value for value: every experiment, model and schedule resolves to the hyper-parameters
 recorded before the change (``tests/data/config_before_groups.json``), moved by its key map; the
-checkpoint translation (:func:`~fisheyedepth.checkpoints.nested_hparams`) moves them the same way; and
+checkpoint translation (:func:`~fisheyedepth.migration.nested_hparams`) moves them the same way; and
 the default and Monodepth2 models give the recorded losses on a fixed batch. Options added since the
 recording (:data:`ADDED_SINCE_RECORDING`) are not in the fixture: every config must resolve each of them
 to the one value that keeps the recorded behaviour, and old checkpoints must load with that value."""
@@ -14,9 +14,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from fisheyedepth.checkpoints import ADDED_HPARAMS, FLAT_KEYS, nested_hparams
 from fisheyedepth.cli.train import build_model
 from fisheyedepth.config import check_sizes, configured_model, source_offsets
+from fisheyedepth.migration import ADDED_HPARAMS, FLAT_KEYS, nested_hparams
 
 from conftest import ROOT, tiny_batch
 
@@ -31,6 +31,10 @@ ADDED_SINCE_RECORDING = {
     "objective.outliers": 0.0,
     "objective.truth_weight": 0.0,  # the supervised ceiling probe came later again
     "objective.photometric_weight": 1.0,
+    "net.cost_volume": 0,  # the multi-view network came last: 0 is the monocular one
+    "net.cost_volume_max": 80.0,
+    "net.cost_volume_stride": 4,
+    "net.source_dropout": 0.2,
 }
 
 

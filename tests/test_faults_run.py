@@ -214,7 +214,8 @@ def test_a_checkpoint_with_flat_hyper_parameters_loads_and_resumes_into_groups(c
     """A checkpoint written before the option groups (flat ``lr``, ``multi_channel``, ...) loads with
     every option in its group, predicts what the grouped one predicts, and is checked for a resume
     against a grouped config (``model.net.n_bins`` named when it differs)."""
-    from fisheyedepth.checkpoints import nested_hparams, network_differences
+    from fisheyedepth.checkpoints import network_differences
+    from fisheyedepth.migration import nested_hparams
 
     ckpt = torch.load(checkpoint, weights_only=True)
     grouped = FisheyeDepthModule.from_checkpoint(checkpoint)

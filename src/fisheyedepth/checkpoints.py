@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from .migration import current_hparams, nested_hparams
 from .utils import pid_alive
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
@@ -124,85 +125,13 @@ def release_checkpoint(ckpt: dict[str, Any]) -> dict[str, Any]:
     return slim
 
 
-# 2026-11-23: clipping is the trainer's gradient_clip_val only; 2026-11-24: the distance search (a
-# training-only loss, commit a350cf1) was measured and removed (BENCHMARKS.md, "Time to accuracy");
-# 2026-11-25: the same for the hint search (commit c54b83b, another training-only loss), and for the
-# plane-sweep hints (commit cca14f3, hint_weight)
-RETIRED_HPARAMS = (
-    *("grad_clip", "bin_search", "bin_search_scale"),
-    *("hints", "hint_candidates", "hint_spread", "hint_margin", "hint_weight"),
-)
-# 2026-11-23: one name for the evaluation cap, as in the protocols and DepthMetrics
-RENAMED_HPARAMS = {("eval_min", "eval_max"): "eval_cap"}
-
-
-# Checkpoints written before the options came in groups store them flat: each flat key and where it
-# lives now (``lr_schedule`` picks the scheduler: "step" StepLR, "cosine" CosineAnnealingLR)
-NET_KEYS = ("resnet", "weights", "multi_channel", "n_bins", "attention", "min_distance", "max_distance")
-NET_KEYS += ("base_focal", "scales", "channels_last", "upsample", "decoder_width")
-OBJECTIVE_KEYS = ("fisheye_projection", "pinhole_focal", "real_scale", "pose_translation_scale")
-OBJECTIVE_KEYS += ("source_offsets", "rig_offsets", "automask", "rim_margin", "smoothness", "loss_resolution")
-FLAT_KEYS = {
-    **{k: f"net.{k}" for k in NET_KEYS},
-    **{k: f"objective.{k}" for k in OBJECTIVE_KEYS},
-    **{"lr": "optimizer.lr", "weight_decay": "optimizer.weight_decay"},
-    **{"lr_step": "scheduler.step_size", "lr_gamma": "scheduler.gamma"},
-}
-# Options added after checkpoints had been written, each with the value that those checkpoints were trained
-# with: a checkpoint without one loads as it was trained (net.encoder: every encoder was a ResNet)
-# (objective.truth_weight and photometric_weight: every checkpoint before them was self-supervised)
-ADDED_HPARAMS = {"net.encoder": "resnet", "objective.brightness": "none", "objective.outliers": 0.0}
-ADDED_HPARAMS |= {"objective.truth_weight": 0.0, "objective.photometric_weight": 1.0}
-ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
-STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
-COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}
-
-
-def nested_hparams(hparams: dict[str, Any]) -> dict[str, Any]:
-    """Hyper-parameters in groups (``net``, ``objective``, ``optimizer``, ``scheduler``): flat ones (a
-    checkpoint written before the groups) moved by :data:`FLAT_KEYS`, grouped ones as they are; the
-    options of :data:`ADDED_HPARAMS` a checkpoint predates set to the value it was trained with. The
-    flat cosine schedule annealed to ``lr * lr_gamma`` over the run's epochs, which the checkpoint does
-    not record: its scheduler keeps ``eta_min`` alone (evaluation builds none)."""
-    out = dict(hparams) if "net" in hparams else _grouped(hparams)
-    for name, value in ADDED_HPARAMS.items():
-        group, key = name.split(".")
-        if key not in (out.get(group) or {}):
-            out[group] = {**(out.get(group) or {}), key: value}
-    return out
-
-
-def _grouped(hparams: dict[str, Any]) -> dict[str, Any]:
-    """Flat hyper-parameters in their groups (see :func:`nested_hparams`)."""
-    out: dict[str, Any] = {"net": {}, "objective": {}, "optimizer": dict(ADAM), "scheduler": {}}
-    for key, value in hparams.items():
-        if key in FLAT_KEYS:
-            group, name = FLAT_KEYS[key].split(".")
-            out[group][name] = value
-        elif key != "lr_schedule":
-            out[key] = value
-    schedule = out.pop("scheduler")
-    if hparams.get("lr_schedule") == "cosine":
-        eta_min = out["optimizer"].get("lr", 1e-4) * schedule.get("gamma", 0.1)
-        out["scheduler"] = COSINE_LR | {"eta_min": eta_min}
-    else:
-        out["scheduler"] = STEP_LR | schedule
-    return out
-
-
 def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str, Any]:
     """The checkpoint's hyper-parameters as constructor arguments (retired keys dropped, flat ones in
     their groups)."""
     missing = [k for k in ("state_dict", "hyper_parameters") if k not in ckpt]
     if missing:
         raise CheckpointError(path, f"not a FisheyeDepth checkpoint (no {' / '.join(missing)})")
-    hparams = dict(ckpt["hyper_parameters"])
-    for key in RETIRED_HPARAMS:  # checkpoints written before a key was retired still load
-        hparams.pop(key, None)
-    for old, new in RENAMED_HPARAMS.items():
-        if all(k in hparams for k in old):
-            hparams[new] = tuple(hparams.pop(k) for k in old)
-    hparams = nested_hparams(hparams)
+    hparams = current_hparams(ckpt["hyper_parameters"])
     # the ImageNet file of the training machine is not needed: weights follow
     hparams["net"] = {**hparams["net"], "weights": None}
     return hparams
