@@ -108,7 +108,7 @@ def test_a_second_run_into_a_finished_runs_folder_is_refused(first_run, world, c
     assert json.loads((run / "results.json").read_text())["checkpoint"] == str(
         run / "checkpoints" / "last.ckpt"
     )
-    from fisheyedepth.callbacks import check_run_folder
+    from fisheyedepth.cli.run_folder import check_run_folder
 
     check_run_folder(run, run / "checkpoints" / "last.ckpt")  # a resume continues in its own folder
     with pytest.raises(FileExistsError, match="holds another run's checkpoints"):
@@ -132,7 +132,7 @@ def test_a_refused_run_leaves_the_earlier_runs_hydra_folder_and_log(world, tmp_p
 
 
 def test_a_run_into_a_folder_another_run_has_locked_is_refused(world, tmp_path, capsys, caplog):
-    from fisheyedepth.callbacks import LOCK, acquire, release
+    from fisheyedepth.cli.run_folder import LOCK, acquire, release
 
     run, host = tmp_path / "run", socket.gethostname()
     ready_r, ready_w = os.pipe()
@@ -176,8 +176,8 @@ def test_checkpoints_are_written_beside_their_target(first_run):
 
 
 def test_a_kill_during_a_save_keeps_the_previous_checkpoint(tmp_path, caplog):
-    from fisheyedepth.callbacks import run_folder
     from fisheyedepth.checkpoints import write_checkpoint
+    from fisheyedepth.cli.run_folder import run_folder
 
     run = tmp_path / "run"
     last = write_checkpoint({"epoch": 0, "w": torch.arange(20_000.0)}, run / "checkpoints" / "last.ckpt")

@@ -12,7 +12,6 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from ..callbacks import run_folder
 from ..checkpoints import CheckpointError, check_resumable, weights_mismatch
 from ..config import (
     check_options,
@@ -24,6 +23,7 @@ from ..config import (
     source_offsets,
 )
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
+from .run_folder import run_folder
 
 log = logging.getLogger("fisheyedepth")
 SELECT = ("last", "best")

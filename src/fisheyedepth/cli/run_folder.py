@@ -23,7 +23,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from .checkpoints import remove_stale_temporaries
+from ..checkpoints import remove_stale_temporaries
 
 log = logging.getLogger("fisheyedepth")
 
@@ -140,7 +140,7 @@ class RunFolderGuard(Callback):
     folder: Path | None = None
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        from .cli import run_command
+        from . import run_command  # the entry points' error handling, in this package
 
         folder = Path(str(OmegaConf.select(config, "hydra.run.dir")))
         ckpt_path = OmegaConf.select(config, "ckpt_path", default=None)
