@@ -145,17 +145,31 @@ def test_gradients_reach_the_matching_features(batch):
     assert volume_weights.abs().sum() > 0  # the cost channels are read
 
 
-def test_the_encoder_in_stages_is_the_encoder():
+def test_the_encoder_in_stages_is_the_encoder_layer_by_layer():
+    """The stages the cost volume joins between are the encoders' layers in order: ResNet's stem,
+    max-pool + layer1, layer2-4; EfficientNet-Lite0's stem and the blocks up to each tap."""
+    from fisheyedepth.models.efficientnet import TAPS
+
     torch.manual_seed(0)
-    for name in ("resnet", "efficientnet_lite0"):
-        net = DepthNet(encoder=name, channels_last=False).eval()
-        image = torch.rand(1, 3, 64, 64)
-        whole = net.encoder(image)
-        x = image
-        for k, feature in enumerate(whole):
-            x = net.encoder.stage(k, x)
-            assert torch.equal(x, feature), (name, k)
-            assert x.shape[1] == net.encoder.channels[k] and x.shape[-1] == 64 // 2 ** (k + 1)
+    image = torch.rand(1, 3, 64, 64)
+    resnet = DepthNet(encoder="resnet", channels_last=False).eval().encoder
+    x = resnet.relu(resnet.bn1(resnet.conv1((image - 0.45) / 0.225)))
+    expected = [x, resnet.layer1(resnet.maxpool(x))]
+    for layer in (resnet.layer2, resnet.layer3, resnet.layer4):
+        expected.append(layer(expected[-1]))
+    effnet = DepthNet(encoder="efficientnet_lite0", channels_last=False).eval().encoder
+    h, taps = effnet.stem(image), []
+    for i, block in enumerate(effnet._blocks):
+        h = block(h)
+        if i in TAPS:
+            taps.append(h)
+    for encoder, reference in ((resnet, expected), (effnet, taps)):
+        with torch.no_grad():
+            features, x = encoder(image), image
+            for k in range(5):
+                x = encoder.stage(k, x)
+                assert torch.equal(x, reference[k]) and torch.equal(features[k], reference[k])
+                assert x.shape[1] == encoder.channels[k] and x.shape[-1] == 64 // 2 ** (k + 1)
 
 
 def test_the_volume_needs_metric_poses():
