@@ -32,6 +32,7 @@ ADDED_SINCE_RECORDING = {
     "objective.truth_weight": 0.0,  # the supervised ceiling probe came later again
     "objective.photometric_weight": 1.0,
     "net.cost_volume": 0,  # the multi-view network came last: 0 is the monocular one
+    "net.cost_volume_min": 0.5,
     "net.cost_volume_max": 80.0,
     "net.cost_volume_stride": 4,
     "net.source_dropout": 0.2,

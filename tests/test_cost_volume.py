@@ -127,6 +127,14 @@ def test_the_volume_joins_the_encoder_map_at_its_stride(batch):
         mv_net(cost_volume_stride=8)
 
 
+def test_the_network_volume_spans_its_own_range():
+    net = mv_net(cost_volume_min=1.5, cost_volume_max=60.0)
+    assert net.cost_volume.inverse[0] == pytest.approx(1 / 1.5) and net.cost_volume.inverse[
+        -1
+    ] == pytest.approx(1 / 60)
+    assert net.min_distance == 0.5  # the head's range is its own
+
+
 def test_sources_dropped_in_training_leave_the_image_alone(batch):
     """``source_dropout`` 1: every sample's volume is withheld, as without sources (train mode both)."""
     net = mv_net(source_dropout=1.0).train()

@@ -172,6 +172,7 @@ NET_OPTIONS: dict[str, Kind] = {  # fisheyedepth.models.DepthNet
     "channels_last": SWITCH,
     "decoder_width": Number(0.0, 4.0, above=True, note="a factor on Monodepth2's channels"),
     "cost_volume": Number(low=0, whole=True, note="distance hypotheses; 0: the monocular network"),
+    "cost_volume_min": POSITIVE,
     "cost_volume_max": POSITIVE,
     "cost_volume_stride": Number(2, 4, whole=True, note="2 or 4: the encoder map the volume joins"),
     "source_dropout": Number(0.0, 1.0),

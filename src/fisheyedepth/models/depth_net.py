@@ -134,6 +134,7 @@ class DepthNet(nn.Module):
         decoder_width: float = 1.0,
         encoder: str = "resnet",
         cost_volume: int = 0,
+        cost_volume_min: float = 0.5,
         cost_volume_max: float = 80.0,
         cost_volume_stride: int = 4,
         source_dropout: float = 0.2,
@@ -155,7 +156,7 @@ class DepthNet(nn.Module):
             raise ValueError(f"cost_volume_stride: {cost_volume_stride!r} is not one of {VOLUME_STRIDES}")
         self.volume_level = VOLUME_STRIDES.index(cost_volume_stride)  # the encoder map it joins
         if cost_volume:  # the multi-view network: matches joined to the encoder's features
-            self.cost_volume = CostVolume(int(cost_volume), min_distance, cost_volume_max)
+            self.cost_volume = CostVolume(int(cost_volume), cost_volume_min, cost_volume_max)
             matched = self.encoder.channels[self.volume_level]
             self.fuse = nn.Sequential(
                 nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1), nn.ReLU(inplace=True)
