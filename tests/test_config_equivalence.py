@@ -35,6 +35,7 @@ ADDED_SINCE_RECORDING = {
     "net.cost_volume_min": 0.5,
     "net.cost_volume_max": 80.0,
     "net.cost_volume_stride": 4,
+    "net.cost_volume_fusion": "replace",
     "net.source_dropout": 0.2,
 }
 

@@ -135,6 +135,22 @@ def test_the_network_volume_spans_its_own_range():
     assert net.min_distance == 0.5  # the head's range is its own
 
 
+def test_a_residual_volume_changes_nothing_at_the_start(batch):
+    """``cost_volume_fusion: residual``: the correction starts at zero, so the pretrained deeper stages
+    first see the features they were trained on; ``replace`` passes a fresh map on instead."""
+    sources = Sources(batch.sources, batch.poses, batch.source_camera)
+    for fusion, same in (("residual", True), ("replace", False)):
+        net = mv_net(cost_volume_fusion=fusion).eval()
+        with torch.no_grad():
+            matched = net.for_cameras(batch.image, batch.camera, sources=sources)["distance"][0]
+            alone = net.for_cameras(batch.image, batch.camera)["distance"][0]
+            features = net.encoder.stage(1, net.encoder.stage(0, batch.image))
+            fused = net.encode(batch.image, batch.camera, sources)[1]
+        assert torch.equal(matched, alone) == same and torch.equal(fused, features) == same
+    with pytest.raises(ValueError, match="cost_volume_fusion: 'sum'"):
+        mv_net(cost_volume_fusion="sum")
+
+
 def test_sources_dropped_in_training_leave_the_image_alone(batch):
     """``source_dropout`` 1: every sample's volume is withheld, as without sources (train mode both)."""
     net = mv_net(source_dropout=1.0).train()

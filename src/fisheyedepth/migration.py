@@ -43,6 +43,8 @@ ADDED_HPARAMS |= {"objective.truth_weight": 0.0, "objective.photometric_weight":
 # do nothing without a cost volume)
 ADDED_HPARAMS |= {"net.cost_volume": 0, "net.cost_volume_max": 80.0, "net.cost_volume_stride": 4}
 ADDED_HPARAMS |= {"net.cost_volume_min": 0.5, "net.source_dropout": 0.2}
+# (the first multi-view checkpoints passed the fused map on in place of the encoder's)
+ADDED_HPARAMS |= {"net.cost_volume_fusion": "replace"}
 ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}
 STEP_LR = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True}
 COSINE_LR = {"_target_": "torch.optim.lr_scheduler.CosineAnnealingLR", "_partial_": True}

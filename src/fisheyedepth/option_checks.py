@@ -175,6 +175,7 @@ NET_OPTIONS: dict[str, Kind] = {  # fisheyedepth.models.DepthNet
     "cost_volume_min": POSITIVE,
     "cost_volume_max": POSITIVE,
     "cost_volume_stride": Number(2, 4, whole=True, note="2 or 4: the encoder map the volume joins"),
+    "cost_volume_fusion": Choice(("residual", "replace")),
     "source_dropout": Number(0.0, 1.0),
 }
 OBJECTIVE_OPTIONS: dict[str, Kind] = {  # fisheyedepth.losses.objective.SelfSupervisedObjective

@@ -137,6 +137,7 @@ class DepthNet(nn.Module):
         cost_volume_min: float = 0.5,
         cost_volume_max: float = 80.0,
         cost_volume_stride: int = 4,
+        cost_volume_fusion: str = "replace",
         source_dropout: float = 0.2,
     ):
         super().__init__()
@@ -157,10 +158,24 @@ class DepthNet(nn.Module):
         self.volume_level = VOLUME_STRIDES.index(cost_volume_stride)  # the encoder map it joins
         if cost_volume:  # the multi-view network: matches joined to the encoder's features
             self.cost_volume = CostVolume(int(cost_volume), cost_volume_min, cost_volume_max)
+            if cost_volume_fusion not in FUSIONS:
+                raise ValueError(
+                    f"cost_volume_fusion: {cost_volume_fusion!r} is not one of {', '.join(FUSIONS)}"
+                )
+            self.fusion = cost_volume_fusion
             matched = self.encoder.channels[self.volume_level]
             self.fuse = nn.Sequential(
                 nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1), nn.ReLU(inplace=True)
             )
+            if cost_volume_fusion == "residual":  # a correction of the encoder's map, zero at the start:
+                # the deeper (ImageNet) stages first see the features they were trained on
+                self.fuse = nn.Sequential(
+                    nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1),
+                    nn.ReLU(inplace=True),
+                    nn.Conv2d(matched, matched, 1),
+                )
+                nn.init.zeros_(self.fuse[2].weight)
+                nn.init.zeros_(self.fuse[2].bias)
         self.min_distance, self.max_distance = min_distance, max_distance
         bins = distance_bins(n_bins, min_distance, max_distance)
         # Both heads start at the same distance, the binned head's (equal logits: the bins' mean, 26 m
@@ -220,7 +235,8 @@ class DepthNet(nn.Module):
         for k in range(5):
             x = self.encoder.stage(k, x)
             if k == self.volume_level:
-                x = self.fuse(torch.cat([x, self.match(x, cameras, sources)], 1))
+                fused = self.fuse(torch.cat([x, self.match(x, cameras, sources)], 1))
+                x = x + fused if self.fusion == "residual" else fused
             features.append(x)
         return features
 
@@ -328,6 +344,9 @@ class DepthNet(nn.Module):
 
 UPSAMPLING = ("distance", "logits")
 VOLUME_STRIDES = (2, 4)  # the encoder maps a cost volume can join (levels 0 and 1)
+# how the volume joins the encoder's map: "residual" adds a correction that starts at zero (the
+# pretrained deeper stages keep their input); "replace" passes the fused map on instead (ManyDepth's)
+FUSIONS = ("residual", "replace")
 
 
 def scale_focal(camera):
