@@ -87,3 +87,41 @@ def test_the_docs_the_readme_left_are_linked_from_it():
     for doc in ("training", "inference", "real-data", "package", "data-format", "faults", "geometry"):
         assert f"(docs/{doc}.md)" in README
         assert Path(ROOT / "docs" / f"{doc}.md").is_file()
+
+
+def benchmark_commands(text: str) -> list[tuple[str, list[str]]]:
+    """``(config name, overrides)`` of BENCHMARKS.md's inline commands (``python train.py ...``,
+    ``make train ARGS="..."``; a ``...`` placeholder left out) and of its tables' override cells."""
+    out = []
+    for command in re.findall(
+        r"`((?:python (?:train|eval|predict|export)\.py|make train ARGS=\")[^`]*)`", text
+    ):
+        words = shlex.split(" ".join(command.split()))
+        if words[0] == "make":
+            out.append(("train", shlex.split(words[2].split("=", 1)[1])))
+        else:
+            name = ENTRY_POINTS[words[1]]
+            overrides = [w for w in words[2:] if w != "..."]
+            out.append((name, overrides if name == "train" else model_file_alias(overrides)))
+    section = text.split("### What did not help", 1)[1]
+    levers = next(part for part in section.split("\n\n") if part.startswith("| change |"))  # train.py's
+    for cell in re.findall(r"^\| [^|\n]* \| `([^`|]+=[^`|]*)` \|", levers, re.M):
+        if not cell.startswith("python "):
+            out.append(("train", shlex.split(cell)))
+    return out
+
+
+BENCHMARK_COMMANDS = benchmark_commands((ROOT / "BENCHMARKS.md").read_text())
+
+
+@pytest.mark.parametrize(
+    "name, overrides", BENCHMARK_COMMANDS, ids=[" ".join(o) or n for n, o in BENCHMARK_COMMANDS]
+)
+def test_every_hydra_command_of_benchmarks_composes(name, overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+        cfg = compose(config_name=name, overrides=overrides)
+    assert cfg is not None
+
+
+def test_benchmarks_commands_are_found():
+    assert len(BENCHMARK_COMMANDS) >= 20
