@@ -233,3 +233,18 @@ def test_a_multiview_checkpoint_runs_with_its_sources_and_refuses_what_cannot_ta
     with pytest.raises(ValueError, match="net.cost_volume.*export a monocular checkpoint"):
         export(export_cfg(mv_checkpoint, tmp_path / "mv.onnx"))
     assert not (tmp_path / "mv.onnx").exists()
+
+
+def test_predicting_single_images_with_a_multiview_checkpoint_says_so(mv_checkpoint, batch, caplog):
+    """predict.py has no source frames: the multi-view network runs in its one-image mode, and says so."""
+    from fisheyedepth.inference import DistancePredictor
+
+    with caplog.at_level("WARNING", logger="fisheyedepth.inference"):
+        predictor = DistancePredictor(FisheyeDepthModule.from_checkpoint(mv_checkpoint), batch.camera[0])
+    assert "multi-view checkpoint" in caplog.text and "without the source frames" in caplog.text
+    distance = predictor(batch.image[:1])
+    assert distance.shape == (1, 1, 64, 64) and (distance[torch.isfinite(distance)] > 0).all()
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="fisheyedepth.inference"):
+        DistancePredictor(FisheyeDepthModule(net={"scales": (0, 1)}, input_size=(64, 64)), batch.camera[0])
+    assert "multi-view" not in caplog.text

@@ -9,6 +9,7 @@ inverse-distance space). ``ExportableNet`` freezes one input size and camera int
 from __future__ import annotations
 
 import io
+import logging
 import os
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from .utils import atomic_write_bytes
 from .viz import colourise
 
 PNG_SCALES = {"mm": 1000.0, "256": 256.0}  # uint16 PNG value per metre
+log = logging.getLogger(__name__)
 
 
 class ExportableNet(nn.Module):
@@ -54,6 +56,11 @@ class DistancePredictor:
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera
         self.has_ray = compute_rays(camera, torch.device("cpu")).valid  # [H, W]: pixels the model gives a ray
+        if getattr(self.runtime, "sources", None):  # a multi-view network, here without its source frames
+            log.warning(
+                "a multi-view checkpoint (net.cost_volume) predicts single images here, without the source "
+                "frames and poses it was trained to match: its one-image mode (as with sources withheld)"
+            )
 
     def __call__(self, images: Tensor) -> Tensor:
         """``[B, 3, H, W]`` float RGB at the camera's size -> distance ``[B, 1, H, W]`` in metres; NaN at
