@@ -60,10 +60,7 @@ def main(argv=None) -> int:
         cams = sample.get("source_camera", [sample["camera"]] * sample["sources"].shape[0])
         sources = Sources(sample["sources"][None], sample["poses"][None], [cams])
         with torch.no_grad():
-            x = image
-            for k in range(net.volume_level + 1):
-                x = net.encoder.stage(k, x)
-            volume = net.match(x, cameras, sources)[0]
+            volume = net.match(net.volume_map(image), cameras, sources)[0]
             distance = net.for_cameras(image, cameras, sources=sources)["distance"][0][0, 0]
         winner = 1 / net.cost_volume.inverse[volume[:-1].argmin(0)]
         truth = sample["distance"][0]

@@ -289,11 +289,8 @@ def evaluate(
             continue
         if batch.distance is None:
             raise ValueError("the evaluation split has no ground truth (distance maps or LiDAR)")
-        if getattr(model, "sources", None):  # a multi-view network: the frames it matches against
-            views = Sources(batch.sources, batch.poses, batch.source_camera)
-            pred = model.distance(batch.image, batch.camera, views).float()
-        else:
-            pred = model.distance(batch.image, batch.camera).float()
+        views = Sources.of(batch) if model.sources else None  # a multi-view network's frames to match
+        pred = model.distance(batch.image, batch.camera, views).float()
         gt, mask = batch.distance.to(pred), batch.mask.to(pred) > 0.5
         names = batch.camera_name or [None] * len(batch)
         sources = batch.distance_source or [None] * len(batch)

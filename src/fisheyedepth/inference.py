@@ -56,7 +56,7 @@ class DistancePredictor:
         self.input_size = (int(size[0]), int(size[1]))
         self.camera = camera
         self.has_ray = compute_rays(camera, torch.device("cpu")).valid  # [H, W]: pixels the model gives a ray
-        if getattr(self.runtime, "sources", None):  # a multi-view network, here without its source frames
+        if self.runtime.sources:  # a multi-view network, here without its source frames
             log.warning(
                 "a multi-view checkpoint (net.cost_volume) predicts single images here, without the source "
                 "frames and poses it was trained to match: its one-image mode (as with sources withheld)"

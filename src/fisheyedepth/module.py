@@ -106,10 +106,7 @@ class FisheyeDepthModule(L.LightningModule):
     def sources(self, batch: Batch, augmented: bool = False) -> Sources | None:
         """The batch's sources as the multi-view network reads them (real-scale poses); None for the
         monocular network."""
-        if self.depth_net.cost_volume is None:
-            return None
-        images = batch.sources_aug if augmented else batch.sources
-        return Sources(images, batch.poses, batch.source_camera)
+        return None if self.depth_net.cost_volume is None else Sources.of(batch, augmented)
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
         """Move tensors only: cameras are immutable values (frozen dataclasses) that live on no device."""

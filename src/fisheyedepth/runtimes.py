@@ -255,6 +255,8 @@ class OnnxRuntime:
     """A file written by ``export.py`` in ONNX Runtime. The file's ``depth_scale`` (frozen at export) is
     replaced by each camera's own, from the base focal the file carries."""
 
+    sources = None  # an exported file takes one image (export refuses the multi-view network)
+
     def __init__(self, path: str | os.PathLike, threads: int | None = None, post_process: str = "none"):
         self.path = Path(path)
         self.post_process = one_of("post_process", post_process, POST_PROCESSING)
@@ -326,7 +328,10 @@ class OnnxRuntime:
         array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
         return torch.from_numpy(self.session.run(None, {self.input_name: array})[0])
 
-    def distance(self, images: Tensor, cameras) -> Tensor:
+    def distance(self, images: Tensor, cameras, sources=None) -> Tensor:
+        if sources is not None:
+            raise ValueError(f"{self.path}: an exported file takes one image, not source frames")
+
         def run(small: Tensor, small_cameras) -> Tensor:
             scale = depth_scale(small_cameras, self.base_focal) / self.file_scale
             return self.run(small) * scale.reshape(-1, 1, 1, 1)

@@ -80,7 +80,7 @@ def run_evaluation(
     if runtime.input_size is None and datamodule.size:  # a checkpoint that stored no input size
         runtime.input_size = tuple(datamodule.size)
     train_size = runtime.input_size
-    offsets, rig = getattr(runtime, "sources", None) or ((), ())
+    offsets, rig = runtime.sources or ((), ())
     loader = datamodule.scoring_loader(split, offsets=offsets, rig_offsets=rig)
     results = evaluate(
         runtime,

@@ -34,6 +34,12 @@ class Sources(NamedTuple):
     poses: Tensor
     cameras: Sequence[Sequence[CameraModel]]
 
+    @classmethod
+    def of(cls, batch, augmented: bool = False) -> Sources:
+        """A training batch's sources (:class:`~fisheyedepth.data.batch.Batch`): its real-scale poses, and
+        its colour-jittered source images when ``augmented`` (what the network sees in training)."""
+        return cls(batch.sources_aug if augmented else batch.sources, batch.poses, batch.source_camera)
+
     def resized(self, width: int, height: int) -> Sources:
         """The same sources with images area-resized to ``(width, height)`` and cameras alike."""
         b, s = self.images.shape[:2]

@@ -164,18 +164,16 @@ class DepthNet(nn.Module):
                 )
             self.fusion = cost_volume_fusion
             matched = self.encoder.channels[self.volume_level]
-            self.fuse = nn.Sequential(
-                nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1), nn.ReLU(inplace=True)
-            )
+            layers = [
+                nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1),
+                nn.ReLU(inplace=True),
+            ]
             if cost_volume_fusion == "residual":  # a correction of the encoder's map, zero at the start:
                 # the deeper (ImageNet) stages first see the features they were trained on
-                self.fuse = nn.Sequential(
-                    nn.Conv2d(matched + self.cost_volume.channels, matched, 3, padding=1),
-                    nn.ReLU(inplace=True),
-                    nn.Conv2d(matched, matched, 1),
-                )
-                nn.init.zeros_(self.fuse[2].weight)
-                nn.init.zeros_(self.fuse[2].bias)
+                layers.append(nn.Conv2d(matched, matched, 1))
+                nn.init.zeros_(layers[-1].weight)
+                nn.init.zeros_(layers[-1].bias)
+            self.fuse = nn.Sequential(*layers)
         self.min_distance, self.max_distance = min_distance, max_distance
         bins = distance_bins(n_bins, min_distance, max_distance)
         # Both heads start at the same distance, the binned head's (equal logits: the bins' mean, 26 m
@@ -240,6 +238,12 @@ class DepthNet(nn.Module):
             features.append(x)
         return features
 
+    def volume_map(self, images: Tensor) -> Tensor:
+        """The encoder's map of ``images`` that the cost volume compares (at ``cost_volume_stride``)."""
+        for k in range(self.volume_level + 1):
+            images = self.encoder.stage(k, images)
+        return images
+
     def match(self, target: Tensor, cameras, sources: Sources | None) -> Tensor:
         """``[B, D + 1, h, w]`` cost volume of the target's features against the sources' (zeros,
         with nothing seen, without sources). In training each sample's sources are withheld with
@@ -254,9 +258,7 @@ class DepthNet(nn.Module):
         flat = sources.images.reshape(batch * n, *sources.images.shape[2:]).to(target.dtype)
         if self.channels_last:
             flat = flat.contiguous(memory_format=torch.channels_last)
-        theirs = flat
-        for k in range(self.volume_level + 1):
-            theirs = self.encoder.stage(k, theirs)
+        theirs = self.volume_map(flat)
         theirs = theirs.reshape(batch, n, *theirs.shape[1:])
         small = [c.resize(width, height) for c in cameras]
         source_cameras = [[c.resize(width, height) for c in cams] for cams in sources.cameras]
