@@ -43,12 +43,10 @@ class Sources(NamedTuple):
     def resized(self, width: int, height: int) -> Sources:
         """The same sources with images area-resized to ``(width, height)`` and cameras alike."""
         b, s = self.images.shape[:2]
-        if s == 0 or tuple(self.images.shape[-2:]) == (height, width):
-            images = self.images.new_zeros(b, s, 3, height, width) if s == 0 else self.images
-        else:
-            flat = self.images.reshape(b * s, *self.images.shape[2:])
-            images = nn.functional.interpolate(flat, size=(height, width), mode="area")
-            images = images.reshape(b, s, 3, height, width)
+        images = self.images
+        if s and tuple(images.shape[-2:]) != (height, width):
+            flat = nn.functional.interpolate(images.flatten(0, 1), size=(height, width), mode="area")
+            images = flat.reshape(b, s, 3, height, width)
         cameras = [[c.resize(width, height) for c in cams] for cams in self.cameras]
         return Sources(images, self.poses, cameras)
 
