@@ -336,3 +336,50 @@ def load_cfg(name: str, **values):
     for hydra_only in ("defaults", "hydra"):
         cfg.pop(hydra_only, None)
     return OmegaConf.merge(cfg, {k: str(v) if isinstance(v, Path) else v for k, v in values.items()})
+
+
+# ---------------------------------------------------------------------------------------- small modules
+# The unit tests' module: the YAML's options (fisheyedepth.options) with what a test on a few 64 px frames
+# needs instead of the training recipe's: no depth scale (no training cameras resolve ``base_focal:
+# auto``), nothing compiled, NCHW weights, the loss at the input size, sources one frame either side, and
+# Monodepth2's learning rate and schedule. A test states any other option it depends on.
+TEST_NET = {"base_focal": None, "channels_last": False}
+TEST_OBJECTIVE = {"source_offsets": (-1, 1), "loss_resolution": "full"}
+TEST_MODULE = {"compile_kernels": False, "optimizer": {"lr": 1e-4}, "scheduler": {"step_size": 8}}
+
+
+def bare_net(**net):
+    """A :class:`~fisheyedepth.models.DepthNet` with the YAML's options, :data:`TEST_NET` and ``net``."""
+    from fisheyedepth.models import DepthNet
+    from fisheyedepth.options import net_options
+
+    return DepthNet(**net_options(**TEST_NET | net))
+
+
+def bare_objective(**objective):
+    """A :class:`~fisheyedepth.losses.objective.SelfSupervisedObjective` with the YAML's options,
+    :data:`TEST_OBJECTIVE` and ``objective``."""
+    from fisheyedepth.losses.objective import SelfSupervisedObjective
+    from fisheyedepth.options import objective_options
+
+    return SelfSupervisedObjective(**objective_options(**TEST_OBJECTIVE | objective))
+
+
+def bare_options(**options) -> dict:
+    """The module's keywords for a unit test: :data:`TEST_NET`, :data:`TEST_OBJECTIVE` and
+    :data:`TEST_MODULE` under ``options`` (groups merged key by key)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in TEST_MODULE.items()}
+    out["net"], out["objective"] = dict(TEST_NET), dict(TEST_OBJECTIVE)
+    for key, value in options.items():
+        merge = (
+            isinstance(value, dict) and key in out and "_target_" not in value
+        )  # a class of its own: as given
+        out[key] = {**out[key], **value} if merge else value
+    return out
+
+
+def bare_module(**options):
+    """A :class:`~fisheyedepth.module.FisheyeDepthModule` with :func:`bare_options`."""
+    from fisheyedepth.module import FisheyeDepthModule
+
+    return FisheyeDepthModule(**bare_options(**options))

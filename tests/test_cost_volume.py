@@ -19,7 +19,7 @@ from fisheyedepth.runtimes import TorchRuntime
 from stereo_world import pose, render, texture_volume
 from test_faults_export import export_cfg
 
-from conftest import kitti02, tiny_batch, train_few_steps
+from conftest import bare_module, bare_net, kitti02, tiny_batch, train_few_steps
 
 
 def patches(image: torch.Tensor, window: int = 5) -> torch.Tensor:
@@ -98,7 +98,7 @@ def batch(kitti_data):
 
 def mv_net(**options) -> DepthNet:
     torch.manual_seed(0)
-    return DepthNet(scales=(0, 1), cost_volume=8, base_focal=None, channels_last=False, **options)
+    return bare_net(scales=(0, 1), cost_volume=8, base_focal=None, channels_last=False, **options)
 
 
 def test_without_sources_the_network_reads_an_empty_volume(batch):
@@ -176,12 +176,12 @@ def test_the_encoder_in_stages_is_the_encoder_layer_by_layer():
 
     torch.manual_seed(0)
     image = torch.rand(1, 3, 64, 64)
-    resnet = DepthNet(encoder="resnet", channels_last=False).eval().encoder
+    resnet = bare_net(encoder="resnet", channels_last=False).eval().encoder
     x = resnet.relu(resnet.bn1(resnet.conv1((image - 0.45) / 0.225)))
     expected = [x, resnet.layer1(resnet.maxpool(x))]
     for layer in (resnet.layer2, resnet.layer3, resnet.layer4):
         expected.append(layer(expected[-1]))
-    effnet = DepthNet(encoder="efficientnet_lite0", channels_last=False).eval().encoder
+    effnet = bare_net(encoder="efficientnet_lite0", channels_last=False).eval().encoder
     h, taps = effnet.stem(image), []
     for i, block in enumerate(effnet._blocks):
         h = block(h)
@@ -198,12 +198,12 @@ def test_the_encoder_in_stages_is_the_encoder_layer_by_layer():
 
 def test_the_volume_needs_metric_poses():
     with pytest.raises(ValueError, match="net.cost_volume.*real_scale"):
-        FisheyeDepthModule(net={"cost_volume": 8}, objective={"real_scale": False})
+        bare_module(net={"cost_volume": 8}, objective={"real_scale": False})
 
 
 def test_a_module_with_a_volume_reads_the_batch_sources(batch):
-    module = FisheyeDepthModule(net={"cost_volume": 8, "scales": (0, 1), "base_focal": 20.0})
-    assert FisheyeDepthModule(net={"scales": (0, 1)}).sources(batch) is None
+    module = bare_module(net={"cost_volume": 8, "scales": (0, 1), "base_focal": 20.0})
+    assert bare_module(net={"scales": (0, 1)}).sources(batch) is None
     sources = module.sources(batch, augmented=True)
     assert sources.images is batch.sources_aug and sources.poses is batch.poses
     loss, _ = module.objective(batch, module(batch.image, batch.camera, sources))
@@ -246,5 +246,5 @@ def test_predicting_single_images_with_a_multiview_checkpoint_says_so(mv_checkpo
     assert distance.shape == (1, 1, 64, 64) and (distance[torch.isfinite(distance)] > 0).all()
     caplog.clear()
     with caplog.at_level("WARNING", logger="fisheyedepth.inference"):
-        DistancePredictor(FisheyeDepthModule(net={"scales": (0, 1)}, input_size=(64, 64)), batch.camera[0])
+        DistancePredictor(bare_module(net={"scales": (0, 1)}, input_size=(64, 64)), batch.camera[0])
     assert "multi-view" not in caplog.text

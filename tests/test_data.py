@@ -33,9 +33,8 @@ from fisheyedepth.data.kitti360 import (
 )
 from fisheyedepth.geometry import sample as grid_sample_image
 from fisheyedepth.geometry import warp_to_source
-from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ, quaternion_xyzw
+from conftest import TRAIN_SEQ, bare_module, quaternion_xyzw
 
 
 @pytest.fixture
@@ -118,7 +117,7 @@ def test_mixed_cameras_and_models_in_one_batch(surround4, cache):
     assert len(focals) == 4 and max(focals.values()) / min(focals.values()) > 1.05  # the cameras differ
     base = dm.base_focal("train")
     assert base == pytest.approx(sum(focals.values()) / 4, rel=1e-9)
-    module = FisheyeDepthModule(net={"scales": (0,), "base_focal": base})
+    module = bare_module(net={"scales": (0,), "base_focal": base})
     scale = module.depth_net.depth_scale(batch.camera)
     assert torch.allclose(scale, torch.tensor([min(c.paraxial_focal()) / base for c in batch.camera]))
     loss, _ = module.objective(batch, module(batch.image, batch.camera))
@@ -203,7 +202,7 @@ def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(surroun
         "MeiCamera",
         "KannalaBrandtCamera",
     }
-    module = FisheyeDepthModule(
+    module = bare_module(
         net={"scales": (0, 1), "base_focal": dm.base_focal("train")}, objective={"rig_offsets": (0,)}
     )
     loss, _ = module.objective(batch, module(batch.image, batch.camera))
@@ -211,7 +210,7 @@ def test_rig_sources_train_the_full_model_and_a_posenet_row_refuses_them(surroun
     grads = [p.grad for p in module.depth_net.parameters() if p.grad is not None]
     assert torch.isfinite(loss) and grads and all(torch.isfinite(g).all() for g in grads)
     with pytest.raises(ValueError, match="rig_offsets.*real_scale=true"):
-        FisheyeDepthModule(objective={"real_scale": False, "rig_offsets": (0,)})
+        bare_module(objective={"real_scale": False, "rig_offsets": (0,)})
 
 
 def test_rig_frames_are_paired_by_nearest_timestamp_and_a_missing_one_drops_the_target(
@@ -637,7 +636,7 @@ def test_bad_images_name_the_file_or_are_skipped_and_counted(broken, cache, dama
     # frame 3 is the target of one sample and a neighbour of two others, for the damaged camera
     assert len(batch.skipped_frames) == 3 and all(str(path) in r for r in batch.skipped_frames)
     assert batch.image.shape[0] == len(ds) - 3 and torch.isfinite(batch.image).all()
-    module = FisheyeDepthModule(net={"scales": (0,)})
+    module = bare_module(net={"scales": (0,)})
     module._count_skipped(batch)
     with pytest.warns(UserWarning, match="3 frames skipped"):
         module.on_train_epoch_end()

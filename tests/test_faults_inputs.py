@@ -32,9 +32,8 @@ from fisheyedepth.data.synthetic import generate
 from fisheyedepth.data.synthetic.cli import main as synthetic_main
 from fisheyedepth.data.synthetic.writer import NoSpaceLeft
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
-from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import aria_fisheye624, kitti02, load_script
+from conftest import aria_fisheye624, bare_module, kitti02, load_script
 from test_faults_run import one_line_error, predict_cfg
 
 SIZE = 64
@@ -282,7 +281,7 @@ def test_broken_and_looping_links_are_counted_as_skipped(tmp_path):
     ]
 
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(SIZE, SIZE))
+    module = bare_module(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(SIZE, SIZE))
     ckpt = tmp_path / "untrained.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
     calib = save_camera(kitti02().resize(SIZE, SIZE), tmp_path / "cam.yaml")

@@ -16,10 +16,9 @@ from hydra import compose, initialize_config_dir
 from fisheyedepth.cli.train import train
 from fisheyedepth.config import check_options as check_config
 from fisheyedepth.data.synthetic import GENERATE_OPTIONS
-from fisheyedepth.losses.objective import SelfSupervisedObjective
 from fisheyedepth.option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Group, Number, check_options
 
-from conftest import ROOT, TINY
+from conftest import ROOT, TINY, bare_module, bare_objective
 from test_faults_run import one_line_error
 
 EFFECTS = "exposure, white_balance, vignetting, noise, motion_blur"
@@ -127,18 +126,17 @@ def test_the_classes_that_read_the_options_check_them_too(tmp_path):
     """Without a config (a script, a notebook) the module, the objective and the data module refuse the
     same values under their own names."""
     from fisheyedepth.data import Augment, FisheyeDataModule
-    from fisheyedepth.module import FisheyeDepthModule
 
     with pytest.raises(
         ValueError, match=r"^objective\.automask: 'maybe' is not a boolean \(true or false\)$"
     ):
-        FisheyeDepthModule(objective={"automask": "maybe"})
+        bare_module(objective={"automask": "maybe"})
     with pytest.raises(ValueError, match=r"^truth_weight: nan is not a finite number >= 0$"):
-        SelfSupervisedObjective(truth_weight=math.nan)
+        bare_objective(truth_weight=math.nan)
     with pytest.raises(ValueError, match=r"^outliers: 'abc' is not a number$"):  # was a TypeError
-        SelfSupervisedObjective(outliers="abc")
+        bare_objective(outliers="abc")
     with pytest.raises(ValueError, match="truth_weight 0.0, photometric_weight 0.0"):  # the two weights
-        SelfSupervisedObjective(truth_weight=0.0, photometric_weight=0.0)
+        bare_objective(truth_weight=0.0, photometric_weight=0.0)
     with pytest.raises(ValueError, match=r"^batch_size: 0 is not a whole number >= 1$"):
         FisheyeDataModule(tmp_path, batch_size=0)
     with pytest.raises(ValueError, match=r"^augment\.hue: 0\.7 is not a number in \[0, 0\.5\]"):

@@ -32,7 +32,7 @@ from fisheyedepth.cli.train import train
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import OnnxRuntime, onnx_metadata
 
-from conftest import ROOT, copy_tiny_world
+from conftest import ROOT, bare_module, copy_tiny_world
 from test_faults_run import TINY_RUN, images_of, one_line_error, predict_cfg, python
 
 # one epoch of two steps, one validation batch: a run takes a few seconds
@@ -260,9 +260,9 @@ def test_a_non_numeric_option_is_named(world, tmp_path, capsys):
         "error: model.optimizer.lr: 'abc' is not a number"
     )
     with pytest.raises(ValueError, match=r"^net\.n_bins: 32\.5 is not a whole number$"):
-        FisheyeDepthModule(net={"n_bins": 32.5})
+        bare_module(net={"n_bins": 32.5})
     with pytest.raises(ValueError, match=r"^optimizer\.weight_decay: True is not a number$"):
-        FisheyeDepthModule(optimizer={"weight_decay": True})
+        bare_module(optimizer={"weight_decay": True})
 
 
 def tiny_onnx(path: Path, graph_size: int, metadata_size: int, out_channels: int = 1) -> Path:

@@ -19,9 +19,8 @@ from fisheyedepth.cli.evaluate import eval_checkpoint
 from fisheyedepth.data import FisheyeDataset, RigLayout, collate
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.metrics import DepthMetrics
-from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import kitti02
+from conftest import bare_module, kitti02
 from test_faults_data import write_tiny_rig
 from test_faults_run import one_line_error
 
@@ -212,7 +211,7 @@ def eval_cfg(root: Path, ckpt: Path, out: Path):
 
 def test_eval_counts_an_unscored_image_and_refuses_a_split_in_millimetres(rig, tmp_path, capsys):
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0,), "base_focal": 20.0}, input_size=(64, 64))
+    module = bare_module(net={"scales": (0,), "base_focal": 20.0}, input_size=(64, 64))
     ckpt = tmp_path / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, ckpt)
     np.save(gt_path(rig, STAMPS[0]), np.full((64, 64), 5000.0, np.float32))

@@ -24,7 +24,7 @@ from fisheyedepth.inference import DistancePredictor, distance_png, point_cloud,
 from fisheyedepth.models import upsample_inverse
 from fisheyedepth.module import FisheyeDepthModule
 
-from conftest import TRAIN_SEQ, load_cfg, printed
+from conftest import TRAIN_SEQ, bare_module, load_cfg, printed
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -199,7 +199,7 @@ def test_every_caller_gets_its_distance_from_one_path(kitti_data):
     torch.manual_seed(0)
     camera = load_camera(kitti_data / "calibration" / "image_02.yaml")  # 256x256
     focal = min(camera.resize(64, 64).paraxial_focal())
-    module = FisheyeDepthModule(net={"base_focal": focal / 2, "scales": (0,)}, input_size=(64, 64)).eval()
+    module = bare_module(net={"base_focal": focal / 2, "scales": (0,)}, input_size=(64, 64)).eval()
     image = torch.rand(1, 3, 256, 256)
     with torch.no_grad():
         net = module.depth_net(F.interpolate(image, size=(64, 64), mode="area"), 2.0, scales=(0,))

@@ -7,7 +7,6 @@ import torch
 
 from fisheyedepth.geometry import invert_pose
 from fisheyedepth.models import (
-    DepthNet,
     PoseNet,
     ResNetEncoder,
     WeightsError,
@@ -17,6 +16,8 @@ from fisheyedepth.models import (
     distance_bins,
     sigmoid_to_distance,
 )
+
+from conftest import bare_module, bare_net
 
 # torchvision's resnet parameter counts minus the 1000-way fc layer
 TORCHVISION_PARAMS = {18: 11_689_512 - 513_000, 34: 21_797_672 - 513_000, 50: 25_557_032 - 2_049_000}
@@ -69,7 +70,7 @@ def test_bad_weights_name_the_file_and_key(tmp_path):
 
 @pytest.mark.parametrize("multi_channel", [True, False])
 def test_depth_net_shapes_ranges_and_gradients(multi_channel):
-    net = DepthNet(multi_channel=multi_channel, n_bins=16, min_distance=0.5, max_distance=150.0)
+    net = bare_net(multi_channel=multi_channel, n_bins=16, min_distance=0.5, max_distance=150.0)
     image = torch.rand(2, 3, 64, 96)
     scale = torch.tensor([1.0, 2.5])
     out = net(image, scale)
@@ -90,8 +91,8 @@ def test_lite_variant_is_the_same_network_with_fewer_channels_and_bins(tmp_path)
     back as itself (the width is a stored hyperparameter)."""
     from fisheyedepth.module import FisheyeDepthModule
 
-    full = FisheyeDepthModule()
-    lite = FisheyeDepthModule(net={"decoder_width": 0.5, "n_bins": 32})
+    full = bare_module()
+    lite = bare_module(net={"decoder_width": 0.5, "n_bins": 32})
     assert lite.depth_net.decoder.channels == (8, 16, 32, 64, 128)
     assert full.depth_net.decoder.channels == (16, 32, 64, 128, 256)
     assert lite.depth_net.heads["0"].logits[1].out_channels == 32
@@ -107,7 +108,7 @@ def test_lite_variant_is_the_same_network_with_fewer_channels_and_bins(tmp_path)
     back = FisheyeDepthModule.from_checkpoint(path)
     assert back.depth_net.decoder.channels == (8, 16, 32, 64, 128)
     with pytest.raises(ValueError, match="decoder_width: 0"):
-        FisheyeDepthModule(net={"decoder_width": 0})
+        bare_module(net={"decoder_width": 0})
 
 
 def test_gather_output_is_a_monotone_expectation_within_the_bins():
@@ -209,7 +210,7 @@ def test_posenet_outputs_rigid_motion_and_inverts_for_earlier_sources():
 @pytest.mark.parametrize("bad", ["auto", 0.0, -3.0])
 def test_base_focal_must_be_a_positive_focal_or_none(bad):
     with pytest.raises(ValueError, match=r"base_focal=.*expected a focal length in pixels > 0"):
-        DepthNet(base_focal=bad)
+        bare_net(base_focal=bad)
 
 
 class _FixedLogits(torch.nn.Module):
@@ -236,7 +237,7 @@ def test_upsampling_logits_keeps_edges_sharp_where_upsampling_distance_blends_th
     image = torch.rand(1, 3, 256, 256)
     results = {}
     for upsample in ("distance", "logits"):
-        net = DepthNet(scales=(0,), upsample=upsample).eval()
+        net = bare_net(scales=(0,), upsample=upsample).eval()
         net.heads["0"] = _FixedLogits(64, 10, 50, 64)
         with torch.no_grad():
             results[upsample] = net.distance(image, [camera], (64, 64))[0, 0]
@@ -248,4 +249,4 @@ def test_upsampling_logits_keeps_edges_sharp_where_upsampling_distance_blends_th
     between = {k: int(((d[0] > lo) & (d[0] < hi)).sum()) for k, d in results.items()}
     assert between["logits"] <= 1 and between["distance"] >= 3, between
     with pytest.raises(ValueError, match="upsample: 'nearest' is not one of distance, logits"):
-        DepthNet(upsample="nearest")
+        bare_net(upsample="nearest")

@@ -15,11 +15,10 @@ from torch.utils.data import DataLoader
 
 from fisheyedepth.cameras import MeiCamera, PinholeCamera, erode_field_of_view, pinhole_like
 from fisheyedepth.data.batch import collate
-from fisheyedepth.losses.objective import SelfSupervisedObjective
 from fisheyedepth.models import MultiChannelHead, PoseNet, SigmoidHead
 from fisheyedepth.module import FisheyeDepthModule, count_parameters
 
-from conftest import ROOT, tiny_batch, tiny_samples
+from conftest import ROOT, bare_module, bare_objective, tiny_batch, tiny_samples
 
 
 def photometric_after(module, batch, steps, lr):
@@ -38,7 +37,7 @@ def photometric_after(module, batch, steps, lr):
 @pytest.mark.parametrize("real_scale,lr,factor", [(True, 3e-4, 0.8), (False, 3e-4, 0.8)])
 def test_overfitting_a_batch_cuts_the_photometric_loss(kitti_data, real_scale, lr, factor):
     torch.manual_seed(0)
-    module = FisheyeDepthModule(objective={"real_scale": real_scale, "automask": False}, log_images_every=0)
+    module = bare_module(objective={"real_scale": real_scale, "automask": False}, log_images_every=0)
     # 25 steps: the ratio is 0.58-0.73 over seeds 0-2 for both rows (40 steps: 0.50-0.54)
     history = photometric_after(module, tiny_batch(kitti_data), 25, lr)
     assert history[-1] < factor * history[0], history[::5]
@@ -51,7 +50,7 @@ def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
     results = {}
     for channels_last in (False, True):
         torch.manual_seed(0)
-        module = FisheyeDepthModule(net={"channels_last": channels_last}, log_images_every=0)
+        module = bare_module(net={"channels_last": channels_last}, log_images_every=0)
         conv = module.depth_net.encoder.conv1.weight
         assert conv.is_contiguous(memory_format=torch.channels_last) == channels_last
         loss, _ = module.objective(batch, module(batch.image, batch.camera))
@@ -68,7 +67,7 @@ def test_channels_last_changes_the_memory_order_not_the_numbers(kitti_data):
     assert float(total / torch.cat([g.flatten() for g in grads_a.values()]).norm()) < 1e-3
     worst = max(float((grads_b[n] - g).norm() / g.norm().clamp_min(1e-12)) for n, g in grads_a.items())
     assert worst < 1e-2, worst
-    FisheyeDepthModule(net={"channels_last": False}).load_state_dict(state_b)
+    bare_module(net={"channels_last": False}).load_state_dict(state_b)
 
 
 def test_channels_last_posenet_gives_the_same_poses_and_gradients():
@@ -93,7 +92,7 @@ def test_channels_last_posenet_gives_the_same_poses_and_gradients():
 
 def test_the_loss_measures_geometry(kitti_data):
     """Ground-truth distance as the prediction beats a wrong constant distance, for every camera."""
-    module = FisheyeDepthModule(net={"scales": (0,)}, objective={"automask": False})
+    module = bare_module(net={"scales": (0,)}, objective={"automask": False})
     batch = tiny_batch(kitti_data, size=None)  # at 256 px: at 64 px mixed pixels swamp the parallax
     gt = batch.distance
 
@@ -124,7 +123,7 @@ def test_the_pinhole_stand_in_prefers_no_motion_to_the_truth(kitti_data):
     still = dataclasses.replace(batch, poses=torch.eye(4).expand_as(batch.poses).clone())
     errors = {}
     for fisheye in (True, False):
-        module = FisheyeDepthModule(
+        module = bare_module(
             net={"scales": (0,)}, objective={"fisheye_projection": fisheye, "automask": False}
         )
         with torch.no_grad():
@@ -137,8 +136,8 @@ def test_the_pinhole_stand_in_prefers_no_motion_to_the_truth(kitti_data):
 
 
 def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
-    full = FisheyeDepthModule()
-    pin = FisheyeDepthModule(objective={"fisheye_projection": False})
+    full = bare_module()
+    pin = bare_module(objective={"fisheye_projection": False})
     pin.load_state_dict(full.state_dict())
     batch = tiny_batch(kitti_data)
     cam = batch.camera[0]
@@ -146,13 +145,13 @@ def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
     assert pin.objective.warp_model(cam) == pinhole_like(cam) and isinstance(
         pin.objective.warp_model(cam), PinholeCamera
     )
-    gamma = FisheyeDepthModule(
+    gamma = bare_module(
         objective={"fisheye_projection": False, "pinhole_focal": "calibration"}
     ).objective.warp_model(cam)
     assert (gamma.fx, gamma.fy, gamma.cx, gamma.cy) == (cam.gamma1, cam.gamma2, cam.u0, cam.v0)
     assert pin.objective.warp_model(cam).fx == pytest.approx(cam.gamma1 / (1 + cam.xi))  # paraxial
     with pytest.raises(ValueError, match="pinhole_focal: 'fov' is not one of paraxial, calibration"):
-        FisheyeDepthModule(objective={"fisheye_projection": False, "pinhole_focal": "fov"})
+        bare_module(objective={"fisheye_projection": False, "pinhole_focal": "fov"})
     with torch.no_grad():
         out = full(batch.image, batch.camera)
         assert torch.equal(out["distance"][0], pin(batch.image, batch.camera)["distance"][0])
@@ -160,7 +159,7 @@ def test_fisheye_projection_switch_replaces_only_the_warp_camera(kitti_data):
 
 
 def test_multi_channel_switch_replaces_only_the_heads():
-    mc, single = FisheyeDepthModule(), FisheyeDepthModule(net={"multi_channel": False})
+    mc, single = bare_module(), bare_module(net={"multi_channel": False})
     assert all(isinstance(h, MultiChannelHead) for h in mc.depth_net.heads.values())
     assert all(isinstance(h, SigmoidHead) for h in single.depth_net.heads.values())
     for part in ("encoder", "decoder"):
@@ -173,8 +172,8 @@ def test_multi_channel_switch_replaces_only_the_heads():
     assert mc.pose_net is None and single.pose_net is None
     # with a PoseNet, its translation unit follows the head's first distance (Monodepth2's ratio)
     mc_pose, single_pose = (
-        FisheyeDepthModule(objective={"real_scale": False}),
-        FisheyeDepthModule(net={"multi_channel": False}, objective={"real_scale": False}),
+        bare_module(objective={"real_scale": False}),
+        bare_module(net={"multi_channel": False}, objective={"real_scale": False}),
     )
     # both heads start at the binned head's first distance (26 m), not Monodepth2's 1 m
     assert mc_pose.depth_net.initial_distance == pytest.approx(float(mc_pose.depth_net.bins.mean()))
@@ -195,8 +194,8 @@ def test_real_scale_switch_replaces_only_the_poses(kitti_data):
     moved = dataclasses.replace(batch, poses=batch.poses.clone())
     moved.poses[..., :3, 3] *= 1.5
     real, learned = (
-        FisheyeDepthModule(objective={"automask": False}),
-        FisheyeDepthModule(objective={"real_scale": False, "automask": False}),
+        bare_module(objective={"automask": False}),
+        bare_module(objective={"real_scale": False, "automask": False}),
     )
     assert learned.pose_net is not None and real.pose_net is None
     assert count_parameters(real.depth_net) == count_parameters(learned.depth_net)
@@ -210,7 +209,7 @@ def test_real_scale_switch_replaces_only_the_poses(kitti_data):
 def test_mixed_cameras_in_one_batch(kitti_data):
     batch = tiny_batch(kitti_data, frames=(4,), cameras=("image_02", "image_03"))
     assert batch.camera[0] != batch.camera[1]
-    module = FisheyeDepthModule(net={"scales": (0, 1)})
+    module = bare_module(net={"scales": (0, 1)})
     loss, logs = module.objective(batch, module(batch.image, batch.camera))
     assert torch.isfinite(loss) and 0.1 < logs["used_pixels/0"].item() <= 1.0  # sky, body, corners: out
 
@@ -225,7 +224,7 @@ def test_lightning_fit_validate_predict_and_skip_non_finite_batches(kitti_data, 
     poisoned["image"][:] = float("nan")
     train = DataLoader([poisoned, *flat], batch_size=2, collate_fn=collate)
     val = DataLoader(flat, batch_size=3, collate_fn=collate)
-    module = FisheyeDepthModule(net={"scales": (0, 1)}, log_images_every=1)
+    module = bare_module(net={"scales": (0, 1)}, log_images_every=1)
     logger = L.pytorch.loggers.CSVLogger(tmp_path, name="run")
     trainer = L.Trainer(
         max_epochs=1,
@@ -264,7 +263,7 @@ def test_a_posenet_row_learns_its_poses_on_a_tiny_world(kitti_data, multi_channe
     both heads: loss ratio 0.40-0.48, direction error 3.0-11.5 degrees, rotation under 1 degree, scale
     13-54x)."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(
+    module = bare_module(
         net={"multi_channel": multi_channel, "scales": (0,)}, objective={"real_scale": False}
     )
     batch = tiny_batch(kitti_data, frames=(1, 2, 3, 4))
@@ -296,7 +295,7 @@ def test_a_posenet_predicts_the_body_motion_and_each_camera_follows_its_extrinsi
             j = 0 if source_is_earlier else 1
             return body[:, j].to(target)
 
-    objective = SelfSupervisedObjective(scales=(0,), real_scale=False, pose_net=Oracle())
+    objective = bare_objective(scales=(0,), real_scale=False, pose_net=Oracle())
     for b in (batch, flipped):
         assert torch.allclose(objective.relative_poses(b).double(), b.poses.double(), atol=1e-5)
 
@@ -309,7 +308,7 @@ def test_bf16_autocast_runs_the_networks_in_bf16_and_the_geometry_in_float32(
     loss in float32, and the loss stays within bf16 rounding of the float32 loss."""
     batch = tiny_batch(kitti_data)
     torch.manual_seed(0)
-    module = FisheyeDepthModule(
+    module = bare_module(
         net={"multi_channel": multi_channel},
         objective={"real_scale": real_scale, "automask": False},
         log_images_every=0,
@@ -337,7 +336,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     loader = DataLoader(flat, batch_size=2, collate_fn=collate)
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0, 1)}, log_images_every=0)
+    module = bare_module(net={"scales": (0, 1)}, log_images_every=0)
     before = copy.deepcopy(module.state_dict())
     trainer = L.Trainer(
         max_epochs=1,
@@ -364,7 +363,7 @@ def test_lightning_trains_with_bf16_mixed_precision(kitti_data, tmp_path):
 def test_the_module_clips_gradients_as_torch_does(algorithm):
     """By the norm that the non-finite test took (once per step), or by value: torch's own numbers."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0,)})
+    module = bare_module(net={"scales": (0,)})
     optimizer = module.configure_optimizers()["optimizer"]
     params = list(module.parameters())
     expected = []
@@ -400,7 +399,7 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     batch = tiny_batch(kitti_data, size=None)  # 256 px: scales 1-2 at 128 and 64 px
     gt = torch.where(batch.distance > 0, batch.distance, torch.full_like(batch.distance, 1e4))
     modules = {
-        r: FisheyeDepthModule(net={"scales": (0, 1, 2)}, objective={"automask": False, "loss_resolution": r})
+        r: bare_module(net={"scales": (0, 1, 2)}, objective={"automask": False, "loss_resolution": r})
         for r in ("full", "native")
     }
 
@@ -429,7 +428,7 @@ def test_native_loss_resolution_warps_each_scale_at_its_own_size(kitti_data):
     assert inside and not level.mask[:, 50, 18].any() and level.source_mask[:, :, :, 50, 18].eq(0).all()
     assert level.source_mask[:, :, :, 50, 19].eq(1).all() and level.mask[:, 50, 19].all()
     with pytest.raises(ValueError, match="loss_resolution: 'half' is not one of full, native"):
-        FisheyeDepthModule(objective={"loss_resolution": "half"})
+        bare_module(objective={"loss_resolution": "half"})
 
 
 def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(kitti_data):
@@ -439,7 +438,7 @@ def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(k
     masks are kept; the loss still measures geometry; a negative margin is refused."""
     batch = tiny_batch(kitti_data, size=None)  # 256 px
     plain, rim0, rim2 = (
-        FisheyeDepthModule(objective={"rim_margin": m, "automask": False, "loss_resolution": "native"})
+        bare_module(objective={"rim_margin": m, "automask": False, "loss_resolution": "native"})
         for m in (None, 0, 2)
     )
     full = plain.objective.level(batch, None)
@@ -472,7 +471,7 @@ def test_the_rim_margin_drops_the_image_circles_edge_from_scoring_and_sampling(k
 
     assert photometric(gt) < 0.85 * photometric(torch.where(batch.distance > 0, torch.full_like(gt, 5.0), gt))
     with pytest.raises(ValueError, match="rim_margin: -1 pixels is negative"):
-        FisheyeDepthModule(objective={"rim_margin": -1})
+        bare_module(objective={"rim_margin": -1})
 
 
 def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after_fitting(kitti_data):
@@ -486,7 +485,7 @@ def test_compiled_kernels_give_the_plain_loss_and_gradients_and_are_undone_after
     results = []
     for compiled in (False, True):
         torch.manual_seed(0)
-        module = FisheyeDepthModule(net={"scales": (0, 1)}, compile_kernels=compiled, log_images_every=0)
+        module = bare_module(net={"scales": (0, 1)}, compile_kernels=compiled, log_images_every=0)
         module.on_fit_start()
         assert (module.depth_net.expectation is bin_expectation) != compiled
         assert (module.objective.reprojection.error_fn is photometric_error) != compiled
@@ -515,7 +514,7 @@ def test_cosine_schedule_anneals_to_a_tenth_of_the_lr_over_the_run():
     scheduler = configured_model(cfg)["scheduler"]
     assert scheduler["_target_"] == "torch.optim.lr_scheduler.CosineAnnealingLR"
     assert scheduler["T_max"] == 4 and scheduler["eta_min"] == pytest.approx(1e-4)
-    module = FisheyeDepthModule(optimizer={"lr": 1e-3}, scheduler=scheduler)
+    module = bare_module(optimizer={"lr": 1e-3}, scheduler=scheduler)
     config = module.configure_optimizers()
     optimizer, scheduler = config["optimizer"], config["lr_scheduler"]["scheduler"]
     lrs = []
@@ -528,14 +527,14 @@ def test_cosine_schedule_anneals_to_a_tenth_of_the_lr_over_the_run():
     assert lrs[2] == pytest.approx(1e-4 + 0.5 * (1e-3 - 1e-4))  # half way: the mean of the two
     assert all(a > b for a, b in zip(lrs, lrs[1:], strict=False))
     sgd = {"_target_": "torch.optim.SGD", "_partial_": True, "lr": 0.1, "momentum": 0.9}
-    optimizer = FisheyeDepthModule(optimizer=sgd).configure_optimizers()["optimizer"]
+    optimizer = bare_module(optimizer=sgd).configure_optimizers()["optimizer"]
     assert type(optimizer) is torch.optim.SGD and optimizer.param_groups[0]["momentum"] == 0.9
 
 
 def test_adam_is_fused_on_cpu_and_steps_like_the_foreach_kernel():
     """The fused Adam (a speed lever) takes the steps the per-tensor kernels take, weight decay included."""
     torch.manual_seed(0)
-    module = FisheyeDepthModule(optimizer={"lr": 1e-3, "weight_decay": 1e-2})
+    module = bare_module(optimizer={"lr": 1e-3, "weight_decay": 1e-2})
     optimizer = module.configure_optimizers()["optimizer"]
     assert optimizer.param_groups[0]["fused"] is True
     params = list(module.parameters())
@@ -586,7 +585,7 @@ def test_non_finite_gradients_after_a_finite_loss_skip_the_step(kitti_data, tmp_
     is restored, the skip is counted."""
     flat = tiny_samples(kitti_data, frames=(1, 2, 3))
     train = DataLoader(flat, batch_size=2, collate_fn=collate)
-    module = FisheyeDepthModule(net={"scales": (0,)})
+    module = bare_module(net={"scales": (0,)})
     probe = _NanGradientOnce(step=1, value=value)
     trainer = L.Trainer(
         max_steps=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
@@ -608,7 +607,7 @@ import os, sys, warnings
 import torch, lightning as L
 from torch.utils.data import DataLoader
 sys.path.insert(0, sys.argv[2])
-from conftest import tiny_samples
+from conftest import bare_module, tiny_samples
 from fisheyedepth.data import collate
 from fisheyedepth.module import FisheyeDepthModule
 
@@ -624,7 +623,7 @@ def faulty(objective, args, result):
 warnings.simplefilter("ignore")
 torch.manual_seed(0)
 samples = tiny_samples(sys.argv[1], frames=(1, 2, 3))
-module = FisheyeDepthModule(net={"scales": (0,)})
+module = bare_module(net={"scales": (0,)})
 module.objective.register_forward_hook(faulty)
 
 class Report(L.Callback):  # runs in each rank's process (forked from this one)
@@ -707,17 +706,17 @@ def test_the_truth_probe_scores_the_log_ratio_where_the_truth_is_known_and_learn
     truth = batch.distance
     known = (truth > 0) & (batch.mask > 0.5)
     assert 0.2 < float(known.float().mean()) < 0.9  # the rim, sky and body: pixels left out
-    objective = SelfSupervisedObjective(scales=(0, 1), truth_weight=1.0, photometric_weight=0.0)
+    objective = bare_objective(scales=(0, 1), truth_weight=1.0, photometric_weight=0.0)
     wrong = torch.where(known, truth * 2.0, torch.full_like(truth, 1e4))  # far off where unknown
     outputs = {"distance": {0: wrong, 1: F.avg_pool2d(wrong, 2)}}
     loss, logs = objective.train()(batch, outputs)
     assert not any(k.startswith("photometric") for k in logs)
     # scale 0 is exactly log 2; scale 1 is upsampled, so pixels beside unknown ones pull it up
-    scale0 = SelfSupervisedObjective(scales=(0,), truth_weight=1.0, photometric_weight=0.0)
+    scale0 = bare_objective(scales=(0,), truth_weight=1.0, photometric_weight=0.0)
     assert float(scale0.train()(batch, {"distance": {0: wrong}})[0]) == pytest.approx(0.693147, abs=1e-5)
     assert float(logs["truth"]) == float(loss) and float(loss) > 0.69
     # both terms: the photometric loss and the truth term add up with their weights
-    module = FisheyeDepthModule(objective={"truth_weight": 0.5}, log_images_every=0)
+    module = bare_module(objective={"truth_weight": 0.5}, log_images_every=0)
     module.train()
     out = module(batch.image, batch.camera)
     both, parts = module.objective(batch, out)
@@ -732,7 +731,7 @@ def test_the_truth_probe_scores_the_log_ratio_where_the_truth_is_known_and_learn
     assert {"automasked/0", "truth"} <= set(parts)
     # a few steps of the probe fit the truth
     torch.manual_seed(0)
-    probe = FisheyeDepthModule(objective={"truth_weight": 1.0, "photometric_weight": 0.0}, log_images_every=0)
+    probe = bare_module(objective={"truth_weight": 1.0, "photometric_weight": 0.0}, log_images_every=0)
     opt = torch.optim.Adam(probe.parameters(), 3e-4)
     history = []
     for _ in range(20):  # 1.16 -> 0.30 (at 1e-3 the bins saturate and it stalls at 0.84)
@@ -746,4 +745,4 @@ def test_the_truth_probe_scores_the_log_ratio_where_the_truth_is_known_and_learn
     with pytest.raises(ValueError, match="truth_weight.*ground_truth_splits"):
         objective.train()(dataclasses.replace(batch, distance=None), outputs)
     with pytest.raises(ValueError, match="truth_weight 0.0, photometric_weight 0.0"):
-        SelfSupervisedObjective(truth_weight=0.0, photometric_weight=0.0)
+        bare_objective(truth_weight=0.0, photometric_weight=0.0)

@@ -23,7 +23,7 @@ from fisheyedepth.stereo import SweepStereo, View
 from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
 from stereo_world import pose, render, scores, texture_volume
 
-from conftest import kitti02, load_script, realdata_dir
+from conftest import bare_module, kitti02, load_script, realdata_dir
 
 
 # ------------------------------------------------------------------ the rig refined from its images
@@ -245,7 +245,6 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
     Middlebury pair, checked and dense, the constant map and each model on the same overlap pixels,
     pictures ``multiview_<frame>.png``; every number in the JSON too."""
     pytest.importorskip("skimage")
-    from fisheyedepth.module import FisheyeDepthModule
     from fisheyedepth.stereo import realpairs
 
     # for time: frame 0's two references (refined once, by the fixture), a window of Middlebury's pair,
@@ -264,7 +263,7 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
     small = dataclasses.replace(realpairs.MIDDLEBURY_SWEEP, hypotheses=16)
     monkeypatch.setattr(realpairs, "MIDDLEBURY_SWEEP", small)
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
+    module = bare_module(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
     tiny = tmp_path / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, tiny)
     pictures, out = tmp_path / "pictures", tmp_path / "scores.json"

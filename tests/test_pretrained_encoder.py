@@ -26,7 +26,7 @@ from fisheyedepth.models import (
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import onnx_export, onnx_session
 
-from conftest import ROOT
+from conftest import ROOT, bare_module, bare_net
 
 # scikit-image's photographs and the ImageNet classes that name them
 PHOTOGRAPHS = {
@@ -58,7 +58,7 @@ def classifier() -> EfficientNetLiteEncoder:
 
 @pytest.fixture(scope="module")
 def depth_net() -> DepthNet:
-    return DepthNet(encoder="efficientnet_lite0")
+    return bare_net(encoder="efficientnet_lite0")
 
 
 def probabilities(encoder: EfficientNetLiteEncoder, images: torch.Tensor) -> torch.Tensor:
@@ -173,7 +173,7 @@ def test_wrong_weights_name_the_file_and_the_key(tmp_path):
     with pytest.raises(WeightsError, match=r"resnet18.pth: key '_blocks\.0\._bn1\.bias' missing"):
         EfficientNetLiteEncoder(pretrained=resnet)
     with pytest.raises(WeightsError, match=r"resnet18.pth: key '_blocks"):  # threaded through DepthNet
-        DepthNet(encoder="efficientnet_lite0", weights=resnet)
+        bare_net(encoder="efficientnet_lite0", weights=resnet)
     state = torch.load(efficientnet.packaged_weights(), map_location="cpu", weights_only=True)
     state["_blocks.3._depthwise_conv.weight"] = torch.zeros(144, 1, 3, 3)
     torch.save(state, tmp_path / "reshaped.pth")
@@ -185,7 +185,7 @@ def test_wrong_weights_name_the_file_and_the_key(tmp_path):
     with pytest.raises(WeightsError, match="junk.pth: cannot read"):
         EfficientNetLiteEncoder(pretrained=tmp_path / "junk.pth")
     with pytest.raises(ValueError, match="encoder: 'vgg' is not one of resnet, efficientnet_lite0"):
-        DepthNet(encoder="vgg")
+        bare_net(encoder="vgg")
 
 
 def test_onnx_export_matches_torch(depth_net):
@@ -209,14 +209,14 @@ def test_the_effnet_model_config_builds_both_networks_on_it():
         cfg = compose(config_name="train", overrides=["model=fisheyedepth_effnet"])
     options = configured_model(cfg)
     assert options["net"]["encoder"] == "efficientnet_lite0"
-    module = FisheyeDepthModule(net={"encoder": "efficientnet_lite0"}, objective={"real_scale": False})
+    module = bare_module(net={"encoder": "efficientnet_lite0"}, objective={"real_scale": False})
     assert isinstance(module.depth_net.encoder, EfficientNetLiteEncoder)
     assert isinstance(module.pose_net.encoder, EfficientNetLiteEncoder)
     assert module.pose_net.encoder._conv_stem.in_channels == 6
 
 
 def test_a_checkpoint_from_before_the_encoder_option_loads_as_a_resnet(tmp_path):
-    module = FisheyeDepthModule(net={"scales": [0], "decoder_width": 0.25})
+    module = bare_module(net={"scales": [0], "decoder_width": 0.25})
     hparams = dict(module.hparams)
     hparams["net"] = {k: v for k, v in hparams["net"].items() if k != "encoder"}
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": hparams}, tmp_path / "old.ckpt")

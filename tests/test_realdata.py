@@ -12,6 +12,8 @@ import torch
 from fisheyedepth.cameras import KannalaBrandtCamera, RayCache, load_camera
 from fisheyedepth.geometry import make_pose, quaternion_to_matrix, relative_pose, sample, warp_to_source
 
+from conftest import bare_module
+
 cv2 = pytest.importorskip("cv2")
 D64 = torch.float64
 
@@ -208,11 +210,10 @@ def test_a_short_finetune_on_the_real_rig_lowers_its_photometric_loss(aria_rig):
     Fisheye624 model, extrinsic and interpolated poses): the self-supervised loss of the last five
     steps is below that of the first five. Slowly: with 1.3 cm between frames the warp depends little
     on the distance, and a moving hand fills much of the view (3.5-5 %, measured at 1 and 2 threads)."""
-    from fisheyedepth.module import FisheyeDepthModule
 
     torch.manual_seed(0)
     batch = aria_batch(aria_rig[1], size=96)
-    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 45.0}, input_size=(96, 96))
+    module = bare_module(net={"scales": (0, 1), "base_focal": 45.0}, input_size=(96, 96))
     optimiser = torch.optim.Adam(module.parameters(), 1e-3)
     losses = []
     for _ in range(20):

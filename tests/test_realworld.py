@@ -17,7 +17,7 @@ from fisheyedepth.data.kitti360 import OCCLUSION
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.images import read_image
 
-from conftest import load_script, realdata_dir
+from conftest import bare_module, load_script, realdata_dir
 
 cv2 = pytest.importorskip("cv2")
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,10 +53,9 @@ def frames(root) -> dict[str, rw.RealFrame]:
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory) -> Path:
     """A randomly initialised full model at 64x64, saved as a checkpoint."""
-    from fisheyedepth.module import FisheyeDepthModule
 
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
+    module = bare_module(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
     path = tmp_path_factory.mktemp("realworld") / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, path)
     return path

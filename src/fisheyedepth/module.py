@@ -30,7 +30,7 @@ from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
 from .models.cost_volume import Sources
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
-from .options import check_numbers, model_options
+from .options import check_numbers, keywords, model_options
 from .training import StepGuard, build_optimizer, build_scheduler
 from .viz import panel
 
@@ -38,29 +38,21 @@ from .viz import panel
 class FisheyeDepthModule(L.LightningModule):
     options = staticmethod(model_options)
 
-    def __init__(
-        self,
-        *,
-        net: dict[str, Any] | None = None,
-        objective: dict[str, Any] | None = None,
-        optimizer: dict[str, Any] | None = None,
-        scheduler: dict[str, Any] | None = None,
-        eval_cap: tuple[float, float] = (1e-3, 80.0),
-        log_images_every: int = 200,
-        input_size: tuple[int, int] | None = None,
-        compile_kernels: bool = False,
-    ):
-        """``eval_cap``: the validation metrics' ground-truth range (metres).
+    def __init__(self, **options: Any):
+        """Keywords: the option groups ``net``, ``objective``, ``optimizer``, ``scheduler`` (dicts, each
+        over the YAML's, :func:`~fisheyedepth.options.model_options`) and the module's own:
+        ``eval_cap``: the validation metrics' ground-truth range (metres).
         ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference.
         ``compile_kernels``: while fitting, the bin expectation (its bin sums as channel reductions, which
         the compiler fuses with their backward) and the photometric error run as ``torch.compile``'d
         kernels (fused, the same numbers; compiled once per process, about a minute on 2 CPU cores);
-        evaluation after fitting, prediction and export use the plain functions."""
+        evaluation after fitting, prediction and export use the plain functions.
+        ``log_images_every``: steps between the distance maps written to the logger (0: none)."""
         super().__init__()
-        hp = model_options(
-            net=net, objective=objective, optimizer=optimizer, scheduler=scheduler, eval_cap=eval_cap,
-            log_images_every=log_images_every, input_size=input_size, compile_kernels=compile_kernels,
-        )  # fmt: skip
+        unknown = sorted(set(options) - set(keywords()))
+        if unknown:
+            raise TypeError(f"FisheyeDepthModule: unexpected {', '.join(unknown)}")
+        hp = model_options(**options)
         check_numbers(hp)
         self.save_hyperparameters(hp)
         net, objective = dict(hp["net"]), dict(hp["objective"])
@@ -81,8 +73,8 @@ class FisheyeDepthModule(L.LightningModule):
             )  # fmt: skip
         self.objective = SelfSupervisedObjective(**objective, scales=net["scales"], pose_net=self.pose_net)
         self.scales = self.objective.scales
-        self.val_metrics = DepthMetrics(tuple(eval_cap))
-        self.val_metrics_scaled = DepthMetrics(tuple(eval_cap), median_scaling=True)
+        self.val_metrics = DepthMetrics(tuple(hp["eval_cap"]))
+        self.val_metrics_scaled = DepthMetrics(tuple(hp["eval_cap"]), median_scaling=True)
         self.guard = StepGuard(self)
         self.skipped_frames: list[str] = []
 

@@ -2,32 +2,65 @@
 ``net`` (the :class:`~fisheyedepth.models.DepthNet`'s keywords), ``objective`` (the
 :class:`~fisheyedepth.losses.objective.SelfSupervisedObjective`'s, and the PoseNet's
 ``pose_translation_scale``), ``optimizer`` and ``scheduler`` (``_target_`` configs), and the module's
-own; their defaults (:func:`model_options`) and the check of each switch and number by kind and range
-(:func:`check_numbers`, on :data:`fisheyedepth.option_checks.MODEL_OPTIONS`)."""
+own.
+
+Their defaults live in one place, the model's YAML (``conf/model/fisheyedepth.yaml`` and the optimiser
+and scheduler it names in its ``defaults`` list): :func:`model_defaults` reads it, :func:`model_options`
+fills what a caller leaves out from it. The classes declare their keywords without defaults; each
+switch and number is checked by kind and range (:func:`check_numbers`, on
+:data:`fisheyedepth.option_checks.MODEL_OPTIONS`). Adding an option: a keyword of its class and a line
+of the YAML."""
 
 from __future__ import annotations
 
-import inspect
+import copy
+import functools
+from pathlib import Path
 from typing import Any
 
-from .losses.objective import SelfSupervisedObjective
-from .models import DepthNet
+import yaml
+
 from .option_checks import MODEL_OPTIONS, check_options
 
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"  # the Hydra configs of the entry points
+MODEL_CONFIG = CONF_DIR / "model" / "fisheyedepth.yaml"
+GROUPS = ("net", "objective", "optimizer", "scheduler")
 
-def _defaults(function, *leave_out: str) -> dict[str, Any]:
-    params = inspect.signature(function).parameters.values()
-    return {p.name: p.default for p in params if p.default is not p.empty and p.name not in leave_out}
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        with open(path, encoding="utf-8") as f:
+            loaded = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as exc:
+        raise FileNotFoundError(f"{path}: the model's default options cannot be read ({exc})") from None
+    if not isinstance(loaded, dict):
+        raise ValueError(f"{path}: not a mapping of options")
+    return loaded
 
 
-NET = _defaults(DepthNet.__init__)
-# pose_translation_scale: the PoseNet's metres per raw output unit; None keeps Monodepth2's ratio to the
-# depth head's initial distance (0.01 m per 0.2 m), so that the PoseNet starts with Monodepth2's parallax
-OBJECTIVE = _defaults(SelfSupervisedObjective.__init__, "scales", "pose_net") | {
-    "pose_translation_scale": None
-}
-OPTIMIZER = {"_target_": "torch.optim.Adam", "_partial_": True, "lr": 1e-4, "weight_decay": 1e-5}
-SCHEDULER = {"_target_": "torch.optim.lr_scheduler.StepLR", "_partial_": True, "step_size": 8, "gamma": 0.1}
+@functools.lru_cache(maxsize=1)
+def _defaults() -> dict[str, Any]:
+    model = _read(MODEL_CONFIG)
+    out: dict[str, Any] = {}
+    for entry in model.pop("defaults", []):
+        if isinstance(entry, dict):  # ``- optimizer: adam``: conf/model/optimizer/adam.yaml
+            (group, name), = entry.items()  # fmt: skip
+            out[group] = _read(MODEL_CONFIG.parent / group / f"{name}.yaml")
+    model.pop("_target_", None)
+    for key, value in model.items():
+        # an interpolation (``input_size: ${data.datamodule.size}``) is the entry point's to fill in
+        out[key] = None if isinstance(value, str) and value.startswith("${") else value
+    missing = [g for g in GROUPS if not isinstance(out.get(g), dict)]
+    if missing:
+        raise ValueError(f"{MODEL_CONFIG}: no {', '.join(missing)} group of options")
+    return out
+
+
+def model_defaults() -> dict[str, Any]:
+    """The module's options as ``conf/model/fisheyedepth.yaml`` sets them (a fresh copy): the groups
+    and the module's own options. ``net.base_focal`` is ``auto`` there, which ``train.py`` resolves from
+    the training cameras; a network built without them names its ``base_focal`` (None: depth scale 1)."""
+    return copy.deepcopy(_defaults())
 
 
 def _group(defaults: dict[str, Any], given: dict[str, Any] | None) -> dict[str, Any]:
@@ -38,18 +71,31 @@ def _group(defaults: dict[str, Any], given: dict[str, Any] | None) -> dict[str, 
     return defaults | given
 
 
-# the module's own options beside the groups, with their defaults
-TOP = {"eval_cap": (1e-3, 80.0), "log_images_every": 200, "input_size": None, "compile_kernels": False}
-# every keyword of the module (what a checkpoint's hyper_parameters may hold)
-KEYWORDS = ("net", "objective", "optimizer", "scheduler", *TOP)
-
-
 def model_options(*, net=None, objective=None, optimizer=None, scheduler=None, **rest: Any) -> dict[str, Any]:
-    """The module's options with the defaults where ``net``, ``objective``, ``optimizer``, ``scheduler``
-    and the other keywords are silent: what ``module.hparams`` holds."""
-    groups = {"net": (NET, net), "objective": (OBJECTIVE, objective), "optimizer": (OPTIMIZER, optimizer)}
-    groups["scheduler"] = (SCHEDULER, scheduler)
-    return {k: _group(*v) for k, v in groups.items()} | TOP | rest
+    """The module's options with :func:`model_defaults` where ``net``, ``objective``, ``optimizer``,
+    ``scheduler`` and the other keywords are silent: what ``module.hparams`` holds."""
+    defaults = model_defaults()
+    given = {"net": net, "objective": objective, "optimizer": optimizer, "scheduler": scheduler}
+    groups = {g: _group(defaults.pop(g), given[g]) for g in GROUPS}
+    return groups | defaults | rest
+
+
+def net_options(**given: Any) -> dict[str, Any]:
+    """:class:`~fisheyedepth.models.DepthNet`'s keywords: the YAML's, with ``given`` over them."""
+    return model_defaults()["net"] | given
+
+
+def objective_options(**given: Any) -> dict[str, Any]:
+    """:class:`~fisheyedepth.losses.objective.SelfSupervisedObjective`'s keywords: the YAML's (less the
+    PoseNet's ``pose_translation_scale``), with ``given`` over them; ``scales`` are the network's."""
+    objective = model_defaults()["objective"]
+    objective.pop("pose_translation_scale")
+    return objective | {"scales": net_options()["scales"]} | given
+
+
+def keywords() -> tuple[str, ...]:
+    """Every keyword of the module (what a checkpoint's hyper-parameters may hold)."""
+    return tuple(_defaults())
 
 
 def check_numbers(options: dict[str, Any]) -> None:
@@ -59,4 +105,12 @@ def check_numbers(options: dict[str, Any]) -> None:
     check_options(options, MODEL_OPTIONS)
 
 
-__all__ = ["KEYWORDS", "check_numbers", "model_options"]
+__all__ = [
+    "CONF_DIR",
+    "check_numbers",
+    "keywords",
+    "model_defaults",
+    "model_options",
+    "net_options",
+    "objective_options",
+]

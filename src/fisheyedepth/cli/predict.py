@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import logging
 import time
-from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
@@ -18,6 +17,7 @@ from tqdm import tqdm
 from ..cameras import load_camera
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
+from ..options import CONF_DIR
 from ..runtimes import OnnxRuntime
 from ..utils import atomic_write_text, check_writable
 from . import free_path, load_runtime, model_file_alias, run_command
@@ -100,7 +100,6 @@ def main() -> None:
     import hydra
 
     sys.argv = model_file_alias(sys.argv)  # model=FILE.onnx (runtime=onnx)
-    conf = Path(__file__).resolve().parents[3] / "conf"
-    hydra.main(config_path=str(conf), config_name="predict", version_base="1.3")(
+    hydra.main(config_path=str(CONF_DIR), config_name="predict", version_base="1.3")(
         lambda cfg: run_command(predict, cfg)
     )()
