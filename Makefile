@@ -41,7 +41,7 @@ train: install
 
 # Tables 1 and 2 on the synthetic world at a CPU budget; results into BENCHMARKS.md.
 reproduce: install
-	$(PY) scripts/reproduce.py $(ARGS)
+	$(PY) scripts/research/reproduce.py $(ARGS)
 
 # A checkpoint (or an exported .onnx) scored on every real frame with ground truth (FISHEYEDEPTH_REALDATA,
 # default ../shared/realdata) beside a constant map: make realscore CKPT=RUN/checkpoints/last.ckpt
