@@ -27,12 +27,12 @@ lint: install
 	$(PY) -m ruff format --no-cache --check src tests scripts train.py eval.py predict.py export.py
 
 # The CPU benchmarks that need no trained checkpoint; each writes its section of BENCHMARKS.md.
-# ARGS=--quick: the smallest sizes, to check that they run (nothing written). scripts/bench_*.py: the rest.
+# ARGS=--quick: the smallest sizes, to check that they run (nothing written). scripts/bench/: the rest.
 bench: install
-	$(PY) scripts/bench_geometry.py $(ARGS)
-	$(PY) scripts/bench_synthetic.py $(ARGS)
-	$(PY) scripts/bench_training.py $(ARGS)
-	$(PY) scripts/bench_inference.py $(ARGS)
+	$(PY) scripts/bench/bench_geometry.py $(ARGS)
+	$(PY) scripts/bench/bench_synthetic.py $(ARGS)
+	$(PY) scripts/bench/bench_training.py $(ARGS)
+	$(PY) scripts/bench/bench_inference.py $(ARGS)
 
 # The main job: render the default synthetic dataset if missing, train the full model (CPU budget),
 # evaluate it on the test split, print the metric table, write colourised distance maps.
@@ -41,7 +41,7 @@ train: install
 
 # Tables 1 and 2 on the synthetic world at a CPU budget; results into BENCHMARKS.md.
 reproduce: install
-	$(PY) scripts/reproduce.py $(ARGS)
+	$(PY) scripts/research/reproduce.py $(ARGS)
 
 # A checkpoint (or an exported .onnx) scored on every real frame with ground truth (FISHEYEDEPTH_REALDATA,
 # default ../shared/realdata) beside a constant map: make realscore CKPT=RUN/checkpoints/last.ckpt

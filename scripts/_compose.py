@@ -3,7 +3,7 @@ data module and model it describes, built as ``train.py`` builds them. A script 
 Hydra overrides (``data=kitti360``, ``model=fisheyedepth_lite``, ``data.datamodule.size=[96,96]``), never
 a copy of a config's keys, so a renamed or regrouped key changes nothing here.
 
-The scripts under ``scripts/research/`` put ``scripts/`` on ``sys.path`` to import this module. The
+The scripts in the folders of ``scripts/`` put ``scripts/`` on ``sys.path`` to import this module. The
 library is imported where it is used, so that a benchmark's child process can run another checkout's.
 """
 

@@ -160,31 +160,41 @@ TRAIN_SEQ = "2013_05_28_drive_0000_sync"
 
 
 def load_script(name: str):
-    """``scripts/<name>.py`` as a module (``research/error_bands``: one in a folder of scripts/), to test
-    its functions without a subprocess."""
+    """``scripts/<name>.py`` as a module (``bench/bench_fit``, ``research/error_bands``: a script in its
+    folder of scripts/), to test its functions without a subprocess. Its folder is on ``sys.path`` while
+    it loads, as when it runs, for the siblings it imports."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location(Path(name).name, ROOT / "scripts" / f"{name}.py")
+    path = ROOT / "scripts" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(path.stem, path)
     script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    with script_folder(name):
+        spec.loader.exec_module(script)
     return script
+
+
+@contextlib.contextmanager
+def script_folder(name: str):
+    """``scripts/<name>.py``'s folder on ``sys.path`` (first) for the block, as Python puts it there
+    for a script it runs: the scripts import their siblings as top-level modules."""
+    folder = str((ROOT / "scripts" / f"{name}.py").parent)
+    added = folder not in sys.path
+    if added:
+        sys.path.insert(0, folder)
+    try:
+        yield
+    finally:
+        if added:
+            sys.path.remove(folder)
 
 
 def printed(script: str, argv: list[str]) -> str:
     """What ``scripts/<script>.py`` prints for ``argv`` (its ``main`` must return 0), run in this process:
-    a script tested without a second interpreter's start (seconds each). The scripts import each other
-    as top-level modules, as they do when run from scripts/."""
-    scripts = str(ROOT / "scripts")
-    added = scripts not in sys.path
-    if added:
-        sys.path.insert(0, scripts)
+    a script tested without a second interpreter's start (seconds each), its folder on ``sys.path`` as
+    when it runs."""
     out = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(out):
-            assert load_script(script).main(argv) == 0
-    finally:
-        if added:
-            sys.path.remove(scripts)
+    with script_folder(script), contextlib.redirect_stdout(out):
+        assert load_script(script).main(argv) == 0
     return out.getvalue()
 
 

@@ -193,9 +193,9 @@ def test_table_experiments_keep_the_papers_loss_frames_and_float32(experiment):
 
 def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, monkeypatch):
     """The held-out worlds were named as 200-frame renders; a training default of 600 frames must not
-    make scripts/heldout.py render and score other worlds (the 200-frame world 0 is the first third
-    of the 600-frame one, so the same slip on world 0 would score training frames)."""
-    heldout = load_script("heldout")
+    make scripts/research/heldout.py render and score other worlds (the 200-frame world 0 is the first
+    third of the 600-frame one, so the same slip on world 0 would score training frames)."""
+    heldout = load_script("research/heldout")
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "last.ckpt").touch()
     commands = []
@@ -235,7 +235,7 @@ def test_heldout_scores_the_200_frame_worlds_unless_told_otherwise(tmp_path, mon
 
 
 def test_heldout_refuses_the_world_the_run_trained_on(tmp_path, monkeypatch):
-    heldout = load_script("heldout")
+    heldout = load_script("research/heldout")
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "last.ckpt").touch()
     (tmp_path / ".hydra").mkdir()
@@ -385,17 +385,17 @@ def test_train_eval_resume_tables(workdir):
 
     curves = workdir / "curves"
     out = ["--out", f"{curves}.png", "--csv", f"{curves}.csv"]
-    printed("plot_curves", [str(first), str(resumed), *out])
+    printed("research/plot_curves", [str(first), str(resumed), *out])
     rows = [line.split(",") for line in Path(f"{curves}.csv").read_text().splitlines()[1:]]
     val_loss = {(r[0], int(r[2])) for r in rows if r[1] == "val/loss"}
     assert {e for _, e in val_loss} == {0, 1} and all(float(r[3]) > 0 for r in rows if r[1] == "val/loss")
     assert Path(f"{curves}.png").stat().st_size > 10_000
 
-    tables = printed("make_tables", [str(first), str(resumed), "--latex"])
+    tables = printed("research/make_tables", [str(first), str(resumed), "--latex"])
     assert "FFT + RS + MC" in tables and "| 2 |" in tables and "\\begin{tabular}" in tables
 
     reproduced = printed(
-        "reproduce",
+        "research/reproduce",
         [
             "--runs",
             str(first),
@@ -415,7 +415,8 @@ def test_train_eval_resume_tables(workdir):
 
     # last: its results.json files inside run1 would be collected by the table scripts above
     heldout = printed(
-        "heldout", [str(first), "--seeds", "5", "--set", f"paths.data_dir={workdir}/data", *tiny_data]
+        "research/heldout",
+        [str(first), "--seeds", "5", "--set", f"paths.data_dir={workdir}/data", *tiny_data],
     )
     assert (workdir / "data" / "synthetic_kitti360_64_seed5_f12" / "synthetic.json").is_file()
     row = next(line for line in heldout.splitlines() if line.startswith("| run1 |")).split(" | ")

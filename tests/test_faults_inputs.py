@@ -33,7 +33,7 @@ from fisheyedepth.data.synthetic.cli import main as synthetic_main
 from fisheyedepth.data.synthetic.writer import NoSpaceLeft
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
 
-from conftest import aria_fisheye624, bare_module, kitti02, load_script
+from conftest import aria_fisheye624, bare_module, kitti02
 from test_faults_run import one_line_error, predict_cfg
 
 SIZE = 64
@@ -138,7 +138,9 @@ def test_two_aria_frames_with_one_capture_time_are_an_error(tmp_path, capsys):
     with pytest.raises(ValueError, match="one image would replace the other"):
         aria_to_rig(src, out, overwrite=True)  # where one image silently replaced the other
     assert not out.exists()
-    assert load_script("aria_to_rig").main(["--src", str(src), "--out", str(out)]) == 2
+    from fisheyedepth.data.aria import main
+
+    assert main(["--src", str(src), "--out", str(out)]) == 2
     assert capsys.readouterr().err.strip() == f"error: {info.value}"
 
 

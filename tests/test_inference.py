@@ -184,7 +184,7 @@ def test_predictor_and_png_units(checkpoint, kitti_data):
 
 def test_visualize_writes_panels_and_the_angle_plot(kitti_data, checkpoint, tmp_path):
     args = ["--ckpt", str(checkpoint), "--ckpt", str(checkpoint), "--data", str(kitti_data)]
-    printed("visualize", [*args, "--out", str(tmp_path / "viz"), "--panels", "2"])
+    printed("tools/visualize", [*args, "--out", str(tmp_path / "viz"), "--panels", "2"])
     plot = cv2.imread(str(tmp_path / "viz" / "abs_rel_by_angle.png"))
     assert plot is not None and plot.shape[0] > 200
     assert len(list((tmp_path / "viz").glob("panel_*.png"))) == 2

@@ -299,12 +299,11 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
 
 
 # ------------------------------------------------------------------ held-out worlds: what parallax resolves
-def test_a_camera_moving_forward_resolves_nothing_at_its_focus_of_expansion(monkeypatch):
-    """scripts/sweep_heldout.py's resolvable pixels: a 10 % change of the distance moves the point by a
-    pixel in a source 1 m ahead wherever it lies 45-78 degrees off the motion at 3 m, but not along the
+def test_a_camera_moving_forward_resolves_nothing_at_its_focus_of_expansion():
+    """scripts/research/sweep_heldout.py's resolvable pixels: a 10 % change of the distance moves the point
+    by a pixel in a source 1 m ahead wherever it lies 45-78 degrees off the motion at 3 m, but not along the
     motion itself (the image centre of a camera moving along its optical axis); nowhere without motion."""
-    monkeypatch.syspath_prepend(str(Path(__file__).parents[1] / "scripts"))  # its sibling _compose
-    resolvable = load_script("sweep_heldout").resolvable
+    resolvable = load_script("research/sweep_heldout").resolvable
     camera = kitti02().resize(192, 192)
     truth = torch.full((192, 192), 3.0)
     ahead = View(torch.zeros(1, 1, 192, 192), camera, make_pose(torch.eye(3), torch.tensor([0.0, 0.0, -1.0])))

@@ -123,7 +123,7 @@ ARIA_CAMERAS = ("slam-front-left", "slam-front-right", "slam-side-left", "slam-s
 
 @pytest.fixture(scope="module")
 def aria_rig(tmp_path_factory):
-    """``realdata/aria_gen2_rig`` converted into the rig layout once (scripts/aria_to_rig.py's function)."""
+    """``realdata/aria_gen2_rig`` converted into the rig layout once (fisheyedepth-import-aria's function)."""
     from fisheyedepth.data.aria import aria_to_rig
 
     from conftest import realdata_dir

@@ -16,7 +16,7 @@ from conftest import load_script, printed
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "docs" / "records"
 BENCHMARKS = (ROOT / "BENCHMARKS.md").read_text()
-# a published table: <!-- table: NAME; python scripts/SCRIPT.py ARGS --> table lines <!-- /table -->
+# a published table: <!-- table: NAME; python scripts/[FOLDER/]SCRIPT.py ARGS --> table lines <!-- /table -->
 TABLE = re.compile(
     r"<!-- table: (?P<name>[\w-]+); (?P<command>[^\n]*?) -->\n(?P<body>.*?)<!-- /table -->", re.S
 )
@@ -25,8 +25,9 @@ RECORD_FILES = sorted(RECORDS.rglob("*.json"))
 
 @pytest.fixture(autouse=True)
 def scripts_importable(monkeypatch):
-    """The scripts import each other as top-level modules, as they do when run from scripts/."""
-    monkeypatch.syspath_prepend(str(ROOT / "scripts"))
+    """The record-reading scripts import each other as top-level modules, as they do when run from their
+    folder, scripts/research/."""
+    monkeypatch.syspath_prepend(str(ROOT / "scripts" / "research"))
     monkeypatch.chdir(ROOT)
 
 
@@ -85,29 +86,31 @@ def test_benchmarks_publishes_marked_tables_with_their_commands():
 @pytest.mark.parametrize("name, command, body", published_tables())
 def test_a_published_table_is_what_its_command_prints_from_the_records(name, command, body):
     words = shlex.split(command)
-    scripts = ("make_tables.py", "heldout.py", "real_world.py")
+    scripts = ("research/make_tables.py", "research/heldout.py", "real_world.py")
     assert words[0] == "python" and words[1] in [f"scripts/{s}" for s in scripts], command
     if not words[1].endswith("make_tables.py"):
         assert "--from-records" in words  # never re-scored here
     assert any(w.startswith("docs/records") for w in words[2:]), "tables are built from the records"
-    expected = table_rows(printed(Path(words[1]).stem, words[2:]))
+    expected = table_rows(printed(str(Path(words[1]).relative_to("scripts").with_suffix("")), words[2:]))
     assert table_rows(body) == expected, name
 
 
 def test_the_reproduce_section_is_what_reproduce_prints_from_the_records():
-    """The Tables 1 and 2 block (scripts/reproduce.py writes it between its markers): its tables, the
-    budget overrides and the tested checkpoints, rebuilt from the records it names."""
+    """The Tables 1 and 2 block (scripts/research/reproduce.py writes it between its markers): its tables,
+    the budget overrides and the tested checkpoints, rebuilt from the records it names."""
     block = BENCHMARKS.split("<!-- reproduce:start -->", 1)[1].split("<!-- reproduce:end -->", 1)[0]
-    command = re.search(r"Command: `python scripts/reproduce.py --runs (\S+) --tables ([\d ]+)`", block)
+    command = re.search(
+        r"Command: `python scripts/research/reproduce.py --runs (\S+) --tables ([\d ]+)`", block
+    )
     assert command and command[1].startswith("docs/records/")
     sources, tables = [command[1]], command[2].split()
     expected = []
     for protocol in ("full", "kitti360"):
         expected += table_rows(
-            printed("make_tables", [*sources, "--tables", *tables, "--protocol", protocol])
+            printed("research/make_tables", [*sources, "--tables", *tables, "--protocol", protocol])
         )
     assert table_rows(block) == expected
-    reproduce = load_script("reproduce")
+    reproduce = load_script("research/reproduce")
     assert f"Budget overrides of every run: `{' '.join(reproduce._shared_overrides(sources))}`." in block
     assert f"Tested checkpoints (selected without ground truth): {reproduce._tested(sources)}." in block
 
@@ -117,10 +120,10 @@ def test_the_record_reading_scripts_agree_with_the_records():
     record_file = RECORDS / "table2_world34_e20" / "ablation_full_s0.json"
     record = json.loads(record_file.read_text())
     held = record["heldout"]["heldout_kitti360_seed1001"]["results"]
-    row = table_rows(printed("heldout", ["--from-records", str(record_file), "--seeds", "1001"]))[-1]
+    row = table_rows(printed("research/heldout", ["--from-records", str(record_file), "--seeds", "1001"]))[-1]
     assert row == [
         "ablation_full_s0",
-        load_script("heldout").formatted(record["results"]["results"]),
+        load_script("research/heldout").formatted(record["results"]["results"]),
         f"{held['full']['none']['abs_rel']:.3f}, {held['full']['none']['a1']:.3f} / "
         f"{held['kitti360']['none']['abs_rel']:.3f}",
     ]

@@ -93,7 +93,7 @@ def test_a_damaged_missing_or_unlisted_copy_is_refused_naming_the_file(tmp_path)
 
 
 def test_release_writes_float16_weights_and_their_checksum_and_keeps_an_existing_file(tmp_path):
-    script = load_script("release_weights")
+    script = load_script("tools/release_weights")
     ckpt = torch.load(released_checkpoint(), map_location="cpu", weights_only=True)
     ckpt["optimizer_states"] = [{"state": {}}]  # a training checkpoint's extra state is dropped
     ckpt["state_dict"] = {k: v.float() if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}

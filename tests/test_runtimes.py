@@ -480,7 +480,7 @@ def test_bench_inference_measures_every_runtime_and_scores_each_path(checkpoint,
     threads = torch.get_num_threads()
     try:  # in-process: the benchmark sets torch's threads
         stdout = printed(
-            "bench_inference",
+            "bench/bench_inference",
             ["--size", "64", "--rounds", "1", "--threads", "1", "--ckpt", str(checkpoint), "--data",
              str(kitti_data), "--calibration", str(kitti_data / "data_2d_raw"), "--no-write"],
         )  # fmt: skip
@@ -576,10 +576,10 @@ def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summar
 
 
 def test_bench_gpu_step_times_its_variants_side_by_side():
-    """scripts/bench_gpu_step.py (BENCHMARKS.md, "Time to accuracy"), tiny and on the CPU: every variant asked
-    for gets a row with a positive step time; the first is the reference of the ratios."""
+    """scripts/bench/bench_gpu_step.py (BENCHMARKS.md, "Time to accuracy"), tiny and on the CPU: every
+    variant asked for gets a row with a positive step time; the first is the reference of the ratios."""
     stdout = printed(
-        "bench_gpu_step",
+        "bench/bench_gpu_step",
         ["--device", "cpu", "--size", "64", "--batch", "1", "--steps", "1", "--rounds", "2", "--warmup", "1",
          "--variants", "float32", "bf16 autocast (gpu_10min)"],
     )  # fmt: skip

@@ -284,8 +284,8 @@ def _turn_deg(poses: np.ndarray) -> float:
 
 
 def test_the_table2_world_turns_in_training_and_validation():
-    """``scripts/reproduce.py`` trains on world 34 because its training segment turns: in the default
-    world 0 it drives straight while validation turns, so a PoseNet never learns a rotation there."""
+    """``scripts/research/reproduce.py`` trains on world 34 because its training segment turns: in the
+    default world 0 it drives straight while validation turns, so a PoseNet never learns a rotation there."""
     ranges = writer_module.split_frames(200)
     turns = {}
     for seed in (0, 34):

@@ -13,12 +13,12 @@
 # on every core and the held-out worlds render while the variants train.
 # Run it under setsid: it outlives the shell that started it, and OUT is collected afterwards.
 # Writes OUT/sweep.tar.gz (each run's results, held-out results, metrics.csv and config; no checkpoints)
-# and OUT/summary.md (one row per run, scripts/heldout.py's format).
+# and OUT/summary.md (one row per run, scripts/research/heldout.py's format).
 set -u -o pipefail
 VARIANTS=$1
 SEEDS=${SEEDS:-1001 1002 1003}
 RIG=${RIG:-kitti360}
-FRAMES=${FRAMES:-200}            # the held-out worlds' renders (scripts/heldout.py)
+FRAMES=${FRAMES:-200}            # the held-out worlds' renders (scripts/research/heldout.py)
 TRAIN_FRAMES=${TRAIN_FRAMES:-600}  # world 0 as train.py's default renders it (conf/data/synthetic.yaml)
 WORKERS=${WORKERS:-2}
 PY=${PY:-python3}
@@ -53,7 +53,7 @@ while read -r name overrides; do
       hydra.run.dir="$RUNS/$name" logger=csv $overrides >"$RUNS/$name.log" 2>&1
     echo "$name trained rc=$? in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
     while [ ! -f "$RUNS/.rendered" ]; do sleep 5; done
-    $PY scripts/heldout.py "$RUNS/$name" --rig "$RIG" --seeds $SEEDS --set device=cuda \
+    $PY scripts/research/heldout.py "$RUNS/$name" --rig "$RIG" --seeds $SEEDS --set device=cuda \
       >"$RUNS/$name.row" 2>>"$RUNS/$name.log"
     echo "$name scored in $(($(date +%s) - start)) s" | tee -a "$RUNS/$name.log"
   ) &

@@ -16,7 +16,8 @@ Nothing reaches ``out`` unchecked: the export gets the checks the rig layout and
 they read the result back (each camera's model and extrinsic, the poses, one image per capture time, every
 image whole and of its camera's size), then the output is written into a hidden folder beside ``out`` and
 loaded back through :class:`~fisheyedepth.data.layouts.RigLayout` before it is moved into place. A
-refused export leaves nothing behind.
+refused export leaves nothing behind. The console script ``fisheyedepth-import-aria`` (:func:`main`)
+converts one from the command line.
 """
 
 from __future__ import annotations
@@ -189,3 +190,43 @@ def aria_to_rig(
         "poses": len(poses),
         "out": str(out),
     }
+
+
+def main(argv=None) -> int:
+    """Convert a Project Aria export (Fisheye624 calibration JSON, VIO poses CSV, one image folder per
+    camera) into the robot-rig layout that ``train.py data=rig`` reads.
+
+        fisheyedepth-import-aria --src ../shared/realdata/aria_gen2_rig --out data/aria_gen2_rig
+            [--overwrite]
+        RIG_ROOT=data/aria_gen2_rig python train.py data=rig ...
+
+    An export the rig layout would refuse once converted (a camera whose model gives no pixel a ray, a size
+    that is not whole pixels, two images with one capture time, ...) is refused with one line naming the
+    file, and nothing is written.
+    """
+    import argparse
+    import inspect
+    import json
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog="fisheyedepth-import-aria",
+        description=inspect.cleandoc(main.__doc__ or ""),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--src", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--sequence", default="seq0")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
+    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -106,7 +106,7 @@ class DepthNet(nn.Module):
     ``depth_scale`` (per sample, ``paraxial focal / base_focal``) multiplies the distance, so cameras of
     different focal lengths can share one network.
     ``channels_last``: weights and input in NHWC memory order (the same numbers); a speed lever that
-    ``scripts/bench_training.py`` measures, slower than NCHW on the 2-core CPU of BENCHMARKS.md.
+    ``scripts/bench/bench_training.py`` measures, slower than NCHW on the 2-core CPU of BENCHMARKS.md.
 
     - ``forward(image, depth_scale)``: the network itself, every scale (export traces it);
     - :meth:`for_cameras`: the same with each sample's camera (training);

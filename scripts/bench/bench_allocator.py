@@ -10,7 +10,7 @@ of child alternate for ``--rounds`` rounds (the order swapped every round) and t
 median over rounds of the paired ratio. Page faults (minor, per step) and the peak resident set say
 why. Reads world 0 of ``make train`` (rendered on first use, like ``make train`` does).
 
-Usage: python scripts/bench_allocator.py [--rounds 4] [--steps 8] [--no-write] [--quick]
+Usage: python scripts/bench/bench_allocator.py [--rounds 4] [--steps 8] [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -85,9 +85,9 @@ def main(argv=None) -> int:
     ratio = paired_ratio(results[KINDS[0]], results[KINDS[1]], "step")
     lines = [
         START,
-        "## Memory allocator (`scripts/bench_allocator.py`)",
+        "## Memory allocator (`scripts/bench/bench_allocator.py`)",
         "",
-        f"Command: `python scripts/bench_allocator.py --rounds {args.rounds} --steps {args.steps}`  ",
+        f"Command: `python scripts/bench/bench_allocator.py --rounds {args.rounds} --steps {args.steps}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), {platform.libc_ver()[0]} "
         f"{platform.libc_ver()[1]}, 2 threads; {time.strftime('%Y-%m-%d')}. The `cpu_30min` training "
         f"step (batch 4 at 256x256, two sources, bf16, channels_last, native-resolution loss, compiled "

@@ -2,8 +2,8 @@
 """Write a trained run's checkpoint as the released weights: its weights in float16 and its
 hyper-parameters (no optimiser or loop state), atomically, beside an updated ``SHA256SUMS``.
 
-    python scripts/release_weights.py RUN/checkpoints/last.ckpt [--out weights] [--name FILE.ckpt]
-                                      [--overwrite]
+    python scripts/tools/release_weights.py RUN/checkpoints/last.ckpt [--out weights] [--name FILE.ckpt]
+                                            [--overwrite]
 
 ``predict.py``, ``eval.py`` and ``export.py`` load ``weights/fisheyedepth_mobile_mixed.ckpt`` when no
 ``ckpt_path`` is given, after checking it against ``weights/SHA256SUMS``. An existing file is kept

@@ -9,7 +9,8 @@
 2. A 640x480 fisheye pair (two KITTI-360-like Mei cameras 0.2 m apart, turned 30 degrees, the sweep's
    test room): the sweep's seconds with the same settings.
 
-Usage: python scripts/bench_stereo.py [--hypotheses 128] [--rounds 2] [--threads 1] [--no-write] [--quick]
+Usage: python scripts/bench/bench_stereo.py [--hypotheses 128] [--rounds 2] [--threads 1]
+           [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from fisheyedepth.stereo.pairs import MOTORCYCLE, motorcycle
 from _benchmarks import bench_parser, interleaved, markers, parse_args, publish
 
 START, END = markers("bench_stereo")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the sweep tests' textured room
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))  # the sweep tests' textured room
 
 from stereo_world import pair as room_pair  # noqa: E402
 from stereo_world import pose, scores  # noqa: E402
@@ -95,7 +96,7 @@ def main(argv=None) -> None:
         START,
         f"### Sweep stereo beside StereoSGBM ({today}, {platform.machine()}, {args.threads} thread(s))",
         "",
-        f"`python scripts/bench_stereo.py --hypotheses {args.hypotheses} --threads {args.threads}`: "
+        f"`python scripts/bench/bench_stereo.py --hypotheses {args.hypotheses} --threads {args.threads}`: "
         "Middlebury 2014 Motorcycle, 741x500 (real photographs, scikit-image), scored against its exact "
         "disparity; each method's kept pixels, seconds the median of the rounds taken in turns.",
         "",

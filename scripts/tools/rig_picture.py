@@ -2,7 +2,7 @@
 """One picture of a rig: for every camera of a rig layout, one frame and the checkpoint's metric distance
 for it (log colour scale, black = no ray in the camera model), side by side with a colour bar.
 
-    python scripts/rig_picture.py --ckpt RUN/checkpoints/last.ckpt --rig data/aria_gen2_rig \\
+    python scripts/tools/rig_picture.py --ckpt RUN/checkpoints/last.ckpt --rig data/aria_gen2_rig \\
         --out docs/figures/aria_rig_predictions.png [--frame 4] [--vmin 0.3] [--vmax 10] [--scale 0.5]
         [--overwrite]
 """

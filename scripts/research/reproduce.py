@@ -1,9 +1,10 @@
 #!/usr/bin/env python
 """Reproduce Tables 1 and 2 on the synthetic world at a CPU budget, and write them into BENCHMARKS.md.
 
-    python scripts/reproduce.py [--epochs 20] [--size 96] [--tables 1 2] [--seeds 0 1] [--world-seed 34]
-    python scripts/reproduce.py --runs RUN_OR_SWEEP... [--tables 2]   # rows already trained elsewhere
-    python scripts/reproduce.py --runs docs/records/table2_world34_e20   # the kept runs' records
+    python scripts/research/reproduce.py [--epochs 20] [--size 96] [--tables 1 2] [--seeds 0 1]
+        [--world-seed 34]
+    python scripts/research/reproduce.py --runs RUN_OR_SWEEP... [--tables 2]   # trained elsewhere
+    python scripts/research/reproduce.py --runs docs/records/table2_world34_e20   # the kept runs' records
 
 Runs ``train.py -m`` over the experiments and seeds (each trains, then evaluates its last checkpoint,
 selected without ground truth, on the test split into results.json), then ``make_tables.py`` on the
@@ -43,9 +44,10 @@ import make_tables
 import plot_curves
 from make_tables import find, is_record, load_results
 
-from _benchmarks import publish
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))  # scripts/bench/, for _benchmarks
+from _benchmarks import publish  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 START, END = "<!-- reproduce:start -->", "<!-- reproduce:end -->"
 FIGURE = ROOT / "docs" / "figures" / "reproduce_curves.png"
 TABLES = {
@@ -127,12 +129,12 @@ def main(argv=None) -> int:
     tables_arg = " ".join(args.tables)
     seeds = " ".join(map(str, args.seeds))
     if args.runs:
-        command = f"python scripts/reproduce.py --runs {' '.join(sources)} --tables {tables_arg}"
+        command = f"python scripts/research/reproduce.py --runs {' '.join(sources)} --tables {tables_arg}"
         where = "tables and curves of runs trained beforehand with the overrides below"
     else:
         command = (
-            f"python scripts/reproduce.py --epochs {args.epochs} --lr-step {lr_step} --size {args.size} "
-            f"--tables {tables_arg} --seeds {seeds} --world-seed {args.world_seed}"
+            f"python scripts/research/reproduce.py --epochs {args.epochs} --lr-step {lr_step} "
+            f"--size {args.size} --tables {tables_arg} --seeds {seeds} --world-seed {args.world_seed}"
         )
         where = f"{minutes:.0f} min, 2 CPU cores; runs in `{_shown(sweep)}`"
     if args.extra and not args.runs:
@@ -143,7 +145,7 @@ def main(argv=None) -> int:
         "\n".join(
             [
                 START,
-                "## Tables 1 and 2 on the synthetic world (`scripts/reproduce.py`)",
+                "## Tables 1 and 2 on the synthetic world (`scripts/research/reproduce.py`)",
                 "",
                 f"Command: `{command}` ({where}).",
                 f"Budget overrides of every run: `{' '.join(budget)}`.",

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Look at what a model sees: panels for a dataset split, and abs_rel against the angle of incidence.
 
-    python scripts/visualize.py --ckpt outputs/train/<run>/checkpoints/last.ckpt [--ckpt OTHER ...] \\
+    python scripts/tools/visualize.py --ckpt outputs/train/<run>/checkpoints/last.ckpt [--ckpt OTHER ...] \\
         --data data/synthetic_kitti360_256_seed0_f200 [--data-config synthetic] [--split test] [--out viz] \\
         [--panels 8] [--set KEY=VALUE ...]
 
@@ -17,6 +17,7 @@ and one bar per checkpoint. Comparing a fisheye model with a pinhole one shows w
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -27,6 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
 from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
 from _compose import ROOT, build_datamodule, compose_config  # noqa: E402
 
 DATA_CONFIGS = sorted(p.stem for p in (ROOT / "conf" / "data").glob("*.yaml"))

@@ -4,9 +4,9 @@ test frame of the world rendered with ``--seed`` (the 200-frame world ``heldout.
 is the reference; its sources are the frames the model warps (``model.source_offsets``: the odometry's
 motion between instants) and, with ``--rig-sources``, the rig's other cameras at the same instant.
 
-    python scripts/sweep_heldout.py [--seed 2001] [--rig kitti360] [--rig-sources] [--frames 16]
-                                    [--hypotheses 128] [--cost zncc] [--min-distance 0.5] [--max-distance 80]
-                                    [--world-frames 200]
+    python scripts/research/sweep_heldout.py [--seed 2001] [--rig kitti360] [--rig-sources] [--frames 16]
+                                             [--hypotheses 128] [--cost zncc] [--min-distance 0.5]
+                                             [--max-distance 80] [--world-frames 200]
 
 Prints, over the frames, on the pixels ``eval.py`` scores (the ``full`` protocol): the checked output's
 abs_rel and a1 on the pixels it keeps and its coverage; the same on the *resolvable* pixels only (where a
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import torch
 
@@ -32,7 +33,8 @@ from fisheyedepth.geometry.se3 import transform_points
 from fisheyedepth.stereo import SweepStereo, View
 from fisheyedepth.stereo.recording import score
 
-from _compose import build_datamodule, compose_config
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
+from _compose import build_datamodule, compose_config  # noqa: E402
 
 FRAMES = 200  # the held-out worlds' length, as heldout.py renders them (--world-frames)
 RAYS = RayCache()

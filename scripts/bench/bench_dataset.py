@@ -6,7 +6,8 @@ Measures, in a fresh process per size, the time and peak resident memory of ``Fi
 training sample and the first scored (test) sample; then extrapolates to 80,000 frames (BENCHMARKS.md
 "Dataset at scale").
 
-Usage: python scripts/bench_dataset.py [--frames 200 2000] [--baseline OLD_CHECKOUT] [--no-write] [--quick]
+Usage: python scripts/bench/bench_dataset.py [--frames 200 2000] [--baseline OLD_CHECKOUT]
+           [--no-write] [--quick]
 
 The datasets use the KITTI-360 layout with the sizes that matter, the counts: pose rows, images and
 Velodyne scans, 80 % in a training drive, 10 % in a validation drive (every 10th row of the left camera)
@@ -231,7 +232,7 @@ def main(argv=None) -> int:
             for name, src in codes.items():
                 results[name][n] = measure(root, src)
                 print(name, n, results[name][n], file=sys.stderr)
-    command = "python scripts/bench_dataset.py --frames " + " ".join(map(str, args.frames))
+    command = "python scripts/bench/bench_dataset.py --frames " + " ".join(map(str, args.frames))
     if args.baseline:
         command += " --baseline <a worktree of the commit before>"
     publish(report(results, args.frames, command), args.output, START, END, not args.no_write)

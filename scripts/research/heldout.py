@@ -2,9 +2,9 @@
 """Score trained runs on synthetic worlds they never saw, one Markdown row per run (BENCHMARKS.md,
 "Time to accuracy").
 
-    python scripts/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
-                              [--post-process flip] [--lane left] [--traffic] [--set KEY=VALUE ...]
-    python scripts/heldout.py --from-records RECORD_OR_FOLDER [...] [--seeds ...] [--rig ...] [...]
+    python scripts/research/heldout.py RUN [RUN ...] [--seeds 1001 1002] [--rig kitti360] [--upsample logits]
+                                       [--post-process flip] [--lane left] [--traffic] [--set KEY=VALUE ...]
+    python scripts/research/heldout.py --from-records RECORD_OR_FOLDER [...] [--seeds ...] [--rig ...] [...]
 
 RUN is a ``train.py`` output folder. Its ``results.json`` gives the score on its own world's test
 split; its ``checkpoints/last.ckpt`` (the end of the schedule, no ground truth used to pick it) is then
@@ -39,7 +39,7 @@ import yaml
 from fisheyedepth.runtimes import POST_PROCESSING
 from fisheyedepth.utils import run_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 FRAMES = 200  # the held-out worlds as they were named, whatever the training default (--set may differ)
 
 

@@ -7,7 +7,8 @@
    camera, interleaved round by round in one run so that machine noise hits all alike. Target: the
    fisheye/pinhole ratio <= 1.05 (fisheye projection costs nothing once rays are cached).
 
-Usage: python scripts/bench_geometry.py [--threads 2] [--rounds 15] [--device cpu] [--no-write] [--quick]
+Usage: python scripts/bench/bench_geometry.py [--threads 2] [--rounds 15] [--device cpu]
+           [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -113,9 +114,9 @@ def render(cache_rows, warp_times, args, device) -> str:
     cpu = platform.processor() or platform.machine()
     lines = [
         START,
-        "## Geometry (`scripts/bench_geometry.py`)",
+        "## Geometry (`scripts/bench/bench_geometry.py`)",
         "",
-        f"Command: `python scripts/bench_geometry.py --threads {args.threads} --rounds {args.rounds}"
+        f"Command: `python scripts/bench/bench_geometry.py --threads {args.threads} --rounds {args.rounds}"
         f" --device {args.device}`  ",
         f"Machine: {os.cpu_count()} CPUs ({cpu}), torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads, device {device}; {time.strftime('%Y-%m-%d')}.",

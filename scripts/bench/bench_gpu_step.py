@@ -6,7 +6,8 @@ turns within every round, on one batch of a small rendered world (batch 4 at 256
 4 scales, channels_last, loss at native resolution: ``cpu_30min``'s model; Adam as
 ``bench_training.py`` makes it, not the fused one that training uses on a GPU).
 
-    python scripts/bench_gpu_step.py [--device cuda] [--rounds 5] [--steps 20] [--variants NAME ...] [--quick]
+    python scripts/bench/bench_gpu_step.py [--device cuda] [--rounds 5] [--steps 20] [--variants NAME ...]
+        [--quick]
 
 Prints a Markdown table: each variant's warm-up (its compilation included) and its median time per
 step; the ratios are against the first variant measured. Nothing is written: paste the table into

@@ -17,7 +17,7 @@ each a module switch, and the compiled expectation's bin sums as channel reducti
 fuses, instead of the 1x1 convolution whose backward it calls as an external kernel (always on with
 ``compile_kernels``).
 
-Usage: python scripts/bench_training.py [--rounds 5] [--size 256] [--batch 4] [--no-write] [--quick]
+Usage: python scripts/bench/bench_training.py [--rounds 5] [--size 256] [--batch 4] [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -199,9 +199,9 @@ def main(argv=None) -> int:
     posenet_speedup = paired("FFT + MC", "FFT + RS + MC (full)")
     lines = [
         START,
-        "## Training step (`scripts/bench_training.py`)",
+        "## Training step (`scripts/bench/bench_training.py`)",
         "",
-        f"Command: `python scripts/bench_training.py --rounds {args.rounds} --size {args.size} "
+        f"Command: `python scripts/bench/bench_training.py --rounds {args.rounds} --size {args.size} "
         f"--batch {args.batch}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}, "
         f"{torch.backends.cpu.get_cpu_capability()}, bf16 "

@@ -1,8 +1,10 @@
 #!/usr/bin/env python
 """Collect results.json files into the paper's Table 1 and Table 2 (Markdown, and LaTeX with --latex).
 
-    python scripts/make_tables.py outputs/ multirun/ [--protocol full] [--tables 1 2] [--latex] [--out F]
-    python scripts/make_tables.py docs/records/table2_world34_e20 [--heldout heldout_kitti360_seed1001]
+    python scripts/research/make_tables.py outputs/ multirun/ [--protocol full] [--tables 1 2] [--latex]
+        [--out F]
+    python scripts/research/make_tables.py docs/records/table2_world34_e20
+        [--heldout heldout_kitti360_seed1001]
 
 Each argument is a results.json file, a run record (``docs/records/**/*.json``: one JSON per kept run,
 its final results, held-out results, overrides and per-epoch curves) or a folder searched recursively

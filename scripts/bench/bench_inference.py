@@ -18,7 +18,7 @@ An untrained network is the one ``model=fisheyedepth`` (or ``model=fisheyedepth_
 ``base_focal`` unset: no training cameras to take it from. ``--data`` is read as ``data=synthetic``
 reads its dataset (a KITTI-360-layout folder with split files).
 
-Usage: python scripts/bench_inference.py [--size 384] [--threads 2] [--rounds 20]
+Usage: python scripts/bench/bench_inference.py [--size 384] [--threads 2] [--rounds 20]
            [--ckpt CKPT --data DATASET [--split test]] [--effnet-ckpt CKPT] [--mobile-ckpt CKPT]
            [--calibration DIR] [--no-write] [--quick]
 """
@@ -254,7 +254,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     medians, notes, parity = speed(args)
     base = medians["PyTorch eager, before (NCHW, softmax expectation)"]
-    command = "python scripts/bench_inference.py"
+    command = "python scripts/bench/bench_inference.py"
     command += f" --size {args.size} --threads {args.threads} --rounds {args.rounds}"
     if args.ckpt:
         command += f" --ckpt {args.ckpt}"
@@ -266,7 +266,7 @@ def main(argv=None) -> int:
         command += f" --data {args.data} --split {args.split}"
     lines = [
         START,
-        "## Inference (`scripts/bench_inference.py`)",
+        "## Inference (`scripts/bench/bench_inference.py`)",
         "",
         f"Command: `{command}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}, "

@@ -3,7 +3,7 @@
 short and a long clip of the same frames, in each runtime; its fps and its peak resident memory, which
 must not grow with the video's length (BENCHMARKS.md "Streaming").
 
-Usage: python scripts/bench_streaming.py --ckpt CKPT [--frames 50 1000] [--size 384] [--threads 2]
+Usage: python scripts/bench/bench_streaming.py --ckpt CKPT [--frames 50 1000] [--size 384] [--threads 2]
            [--calibration DIR] [--no-write] [--quick]
 
 The clip repeats rendered frames of the synthetic default world (rendered on first use by ``make train``)
@@ -97,10 +97,10 @@ def main(argv=None) -> int:
     short, long = args.frames
     lines = [
         START,
-        "## Streaming (`scripts/bench_streaming.py`)",
+        "## Streaming (`scripts/bench/bench_streaming.py`)",
         "",
-        f"Command: `python scripts/bench_streaming.py --ckpt CKPT --frames {short} {long} --size {args.size} "
-        f"--threads {args.threads}`  ",
+        f"Command: `python scripts/bench/bench_streaming.py --ckpt CKPT --frames {short} {long} "
+        f"--size {args.size} --threads {args.threads}`  ",
         f"{time.strftime('%Y-%m-%d')}; `predict.py` end to end on an MJPG clip at {args.size}x{args.size} "
         "(decode, network at the same size, and every output of every frame written: distance .npy and "
         "uint16 .png, colour .png), batch 1 as for a live camera. Peak RSS of the whole process.",

@@ -3,7 +3,7 @@
 gradient clipping, the non-finite-gradient check, Adam), before and after the trims outside the network;
 results go into BENCHMARKS.md.
 
-``scripts/bench_training.py`` times forward, loss, backward and a plain Adam step on one batch; a real
+``scripts/bench/bench_training.py`` times forward, loss, backward and a plain Adam step on one batch; a real
 training step also waits for the loader (whose worker shares the 2 cores), checks the gradients, clips
 them and logs. Each measurement here is a fresh ``train.py +experiment=cpu_30min`` process (world 0 of
 ``make train``, rendered on first use) that trains ``--steps`` steps of one epoch and reports the median
@@ -18,7 +18,7 @@ cycle (one batch start to the next: the loader's wait plus the step) after ``--w
 The two kinds alternate for ``--rounds`` rounds (the order swapped every round); the speed-up is the
 median of the paired per-round ratios.
 
-Usage: python scripts/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no-write] [--quick]
+Usage: python scripts/bench/bench_fit.py [--rounds 3] [--steps 60] [--warmup 15] [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -190,9 +190,9 @@ def main(argv=None) -> int:
     ratio = paired_ratio(results[KINDS[0]], results[KINDS[1]], "cycle")
     lines = [
         START,
-        "## Training loop (`scripts/bench_fit.py`)",
+        "## Training loop (`scripts/bench/bench_fit.py`)",
         "",
-        f"Command: `python scripts/bench_fit.py --rounds {args.rounds} --steps {args.steps} "
+        f"Command: `python scripts/bench/bench_fit.py --rounds {args.rounds} --steps {args.steps} "
         f"--warmup {args.warmup}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), 2 threads; {time.strftime('%Y-%m-%d')}. "
         f"`train.py +experiment=cpu_30min` (batch 4 at 256x256, two sources, the loader's worker on the "

@@ -8,7 +8,7 @@ Camera-frames per second at 256x256 with 2x2 supersampling on 2 CPU cores (targe
 3. the same with traffic (density 1), and with traffic and every camera effect (motion blur renders
    each frame's colour 5 times), beside the still street in the same run, with each dataset's size.
 
-Usage: python scripts/bench_synthetic.py [--frames 24] [--size 256] [--no-write] [--quick]
+Usage: python scripts/bench/bench_synthetic.py [--frames 24] [--size 256] [--no-write] [--quick]
 """
 
 from __future__ import annotations
@@ -72,9 +72,9 @@ def main(argv=None) -> int:
     ]
     lines = [
         START,
-        "## Synthetic world (`scripts/bench_synthetic.py`)",
+        "## Synthetic world (`scripts/bench/bench_synthetic.py`)",
         "",
-        f"Command: `python scripts/bench_synthetic.py --frames {args.frames} --size {args.size}"
+        f"Command: `python scripts/bench/bench_synthetic.py --frames {args.frames} --size {args.size}"
         f" --supersample {args.supersample}`  ",
         f"Machine: {os.cpu_count()} CPUs ({platform.machine()}), torch {torch.__version__}; "
         f"{time.strftime('%Y-%m-%d')}. kitti360 rig (2 Mei cameras), {args.size}x{args.size}, "

@@ -1,4 +1,4 @@
-"""The skeleton every ``scripts/bench_*.py`` shares; each benchmark owns one marked section of
+"""The skeleton every ``scripts/bench/bench_*.py`` shares; each benchmark owns one marked section of
 BENCHMARKS.md (``<!-- bench_NAME:start -->`` ... ``<!-- bench_NAME:end -->``).
 
 - :func:`bench_parser` and :func:`parse_args`: the common flags (``--no-write``, ``--output``, ``--quick``:
@@ -11,6 +11,9 @@ BENCHMARKS.md (``<!-- bench_NAME:start -->`` ... ``<!-- bench_NAME:end -->``).
   :func:`paired_ratio` for two kinds measured by child processes;
 - :func:`peak_rss_kb` and :func:`peak_rss_of`: the peak resident set of this process or of a command;
 - :func:`markers` and :func:`publish`: a section printed and written between its markers.
+
+Importing it puts ``scripts/`` on ``sys.path``: the benchmarks import ``_compose`` from there, as the
+other scripts do.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ from typing import Any
 
 from fisheyedepth.utils import atomic_write_text
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "scripts"))  # for _compose
 BENCHMARKS = ROOT / "BENCHMARKS.md"
 # The world `make train` renders (conf/data/synthetic.yaml): benchmarks read its frames.
 WORLD = ROOT / "data" / "synthetic_kitti360_256_seed0_f600"

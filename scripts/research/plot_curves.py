@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Per-epoch validation curves of training runs: does every row learn, and has it flattened?
 
-    python scripts/plot_curves.py RUN_OR_SWEEP_OR_RECORD [...] --out curves.png [--csv curves.csv]
+    python scripts/research/plot_curves.py RUN_OR_SWEEP_OR_RECORD [...] --out curves.png [--csv curves.csv]
 
 Reads each run's ``logs/version_*/metrics.csv`` (a resumed run's versions are joined) and its
 ``.hydra/config.yaml`` for the experiment name, or a kept run's record (``docs/records/**/*.json``,
