@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 
 from bench_training import make_batch, make_module, step
-from fisheyedepth.data.synthetic import generate
+from fisheyedepth.synthetic import generate
 
 from _benchmarks import bench_parser, interleaved, parse_args, timed
 

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
-from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, make_world
-from fisheyedepth.data.synthetic.raycast import scene_tensors
-from fisheyedepth.data.synthetic.render import CameraRenderer
+from fisheyedepth.synthetic import generate, make_rig, make_trajectory, make_world
+from fisheyedepth.synthetic.raycast import scene_tensors
+from fisheyedepth.synthetic.render import CameraRenderer
 
 from _benchmarks import bench_parser, markers, parse_args, publish, timed
 

@@ -35,9 +35,9 @@ from torch.nn import functional as F
 
 import fisheyedepth.losses.photometric as photometric
 from fisheyedepth.data import collate
-from fisheyedepth.data.synthetic import generate
 from fisheyedepth.models import bin_expectation
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.synthetic import generate
 
 from _benchmarks import (
     bench_parser,

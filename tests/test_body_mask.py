@@ -26,7 +26,7 @@ CAMERAS = ("image_02", "image_03")
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> tuple[Path, dict[str, np.ndarray]]:
     """A 128 x 128 kitti360 world (30 frames) whose exact body masks are moved aside, and those masks."""
-    from fisheyedepth.data.synthetic import generate
+    from fisheyedepth.synthetic import generate
 
     root = generate(
         tmp_path_factory.mktemp("body") / "w",

@@ -28,11 +28,11 @@ from fisheyedepth.cli.predict import predict
 from fisheyedepth.data.aria import CALIBRATION, POSES, aria_to_rig
 from fisheyedepth.data.body_mask import estimate_body_mask
 from fisheyedepth.data.body_mask import main as estimate_mask_main
-from fisheyedepth.data.synthetic import generate
-from fisheyedepth.data.synthetic.cli import main as synthetic_main
-from fisheyedepth.data.synthetic.writer import NoSpaceLeft
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.synthetic import generate
+from fisheyedepth.synthetic.cli import main as synthetic_main
+from fisheyedepth.synthetic.writer import NoSpaceLeft
 
 from conftest import aria_fisheye624, kitti02, load_script
 from test_faults_run import one_line_error, predict_cfg

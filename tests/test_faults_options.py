@@ -15,9 +15,9 @@ from hydra import compose, initialize_config_dir
 
 from fisheyedepth.cli.train import train
 from fisheyedepth.config import check_options as check_config
-from fisheyedepth.data.synthetic import GENERATE_OPTIONS
 from fisheyedepth.losses.objective import SelfSupervisedObjective
 from fisheyedepth.option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Group, Number, check_options
+from fisheyedepth.synthetic import GENERATE_OPTIONS
 
 from conftest import ROOT, TINY
 from test_faults_run import one_line_error
@@ -176,8 +176,8 @@ def test_the_tables_name_the_options_of_their_readers():
     """A misspelt key in a table would check nothing: each names an argument its reader takes, and the
     readers' defaults pass."""
     from fisheyedepth.data import Augment, FisheyeDataModule, PoseNoise
-    from fisheyedepth.data.synthetic import ensure_dataset
     from fisheyedepth.options import model_options
+    from fisheyedepth.synthetic import ensure_dataset
 
     def arguments(function) -> set[str]:
         return set(inspect.signature(function).parameters)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from fisheyedepth.data.synthetic import (
+from fisheyedepth.synthetic import (
     MARKER,
     DatasetMismatch,
     NotASyntheticDataset,
@@ -27,9 +27,9 @@ from fisheyedepth.data.synthetic import (
     is_complete,
     made_by_generator,
 )
-from fisheyedepth.data.synthetic import writer as writer_module
-from fisheyedepth.data.synthetic.cli import main as cli_main
-from fisheyedepth.data.synthetic.sensor import check_effects
+from fisheyedepth.synthetic import writer as writer_module
+from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.sensor import check_effects
 
 TINY = {"frames": 9, "size": 16, "supersample": 1, "lidar": False, "progress": False}
 # long enough to be killed mid-render on two cores: ~15 s of rendering after the first image
@@ -314,7 +314,7 @@ def render_in_python(out: Path) -> subprocess.Popen:
     args = ", ".join(f"{k}={v}" for k, v in SLOW.items())
     code = (
         "import sys\n"
-        "from fisheyedepth.data.synthetic import ensure_dataset\n"
+        "from fisheyedepth.synthetic import ensure_dataset\n"
         f"ensure_dataset(sys.argv[1], {args}, workers=2, lidar=False, progress=False)\n"
     )
     return subprocess.Popen([sys.executable, "-c", code, str(out)], stderr=subprocess.PIPE)
@@ -323,7 +323,7 @@ def render_in_python(out: Path) -> subprocess.Popen:
 @linux_only
 def test_sigterm_of_make_synthetic_stops_the_workers_and_removes_the_partial_folder(tmp_path):
     out = tmp_path / "d"
-    cmd = [sys.executable, "-m", "fisheyedepth.data.synthetic.cli", "--out", str(out)]
+    cmd = [sys.executable, "-m", "fisheyedepth.synthetic.cli", "--out", str(out)]
     cmd += [f"--{k}={v}" for k, v in SLOW.items()] + ["--workers=2", "--no-lidar", "--quiet"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE)
     workers = wait_mid_render(proc, out)

@@ -20,11 +20,11 @@ from fisheyedepth.data.kitti360 import (
     read_poses,
     read_velodyne,
 )
-from fisheyedepth.data.synthetic import generate, is_complete, make_trajectory, make_world
-from fisheyedepth.data.synthetic import writer as writer_module
-from fisheyedepth.data.synthetic.cli import main as cli_main
-from fisheyedepth.data.synthetic.raycast import first_per_ray
 from fisheyedepth.geometry import relative_pose, sample, warp_to_source
+from fisheyedepth.synthetic import generate, is_complete, make_trajectory, make_world
+from fisheyedepth.synthetic import writer as writer_module
+from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.raycast import first_per_ray
 
 SIZE = 256
 TRAIN = "2013_05_28_drive_0000_sync"

@@ -18,7 +18,8 @@ from omegaconf import OmegaConf
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.data.datamodule import RootBatchSampler
 from fisheyedepth.data.kitti360 import read_cam_to_pose, read_poses
-from fisheyedepth.data.synthetic import (
+from fisheyedepth.models.depth_net import depth_scale, scale_focal
+from fisheyedepth.synthetic import (
     FAMILIES,
     calibration_text,
     camera_is_valid,
@@ -30,8 +31,7 @@ from fisheyedepth.data.synthetic import (
     make_rig,
     random_camera,
 )
-from fisheyedepth.data.synthetic import indoor as indoor_module
-from fisheyedepth.models.depth_net import depth_scale, scale_focal
+from fisheyedepth.synthetic import indoor as indoor_module
 from test_synthetic import warp_check
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,16 +14,16 @@ import torch
 from fisheyedepth.cameras import compute_rays
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.augment import flip_sample
-from fisheyedepth.data.synthetic import generate
-from fisheyedepth.data.synthetic.raycast import Movers, scene_tensors
-from fisheyedepth.data.synthetic.render import MAX_RANGE, CameraRenderer
-from fisheyedepth.data.synthetic.rig import make_rig
-from fisheyedepth.data.synthetic.sensor import BLUR_SAMPLES, SHUTTER, Sensor, blur_times, check_effects
-from fisheyedepth.data.synthetic.traffic import CLEARANCE, MOVING, _legs, make_traffic
-from fisheyedepth.data.synthetic.world import make_drive, make_trajectory, make_world
-from fisheyedepth.data.synthetic.writer import DatasetMismatch, ensure_dataset, make_scene_motion, pose_at
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.losses.selfsup import ReprojectionLoss, match_brightness, trimmed
+from fisheyedepth.synthetic import generate
+from fisheyedepth.synthetic.raycast import Movers, scene_tensors
+from fisheyedepth.synthetic.render import MAX_RANGE, CameraRenderer
+from fisheyedepth.synthetic.rig import make_rig
+from fisheyedepth.synthetic.sensor import BLUR_SAMPLES, SHUTTER, Sensor, blur_times, check_effects
+from fisheyedepth.synthetic.traffic import CLEARANCE, MOVING, _legs, make_traffic
+from fisheyedepth.synthetic.world import make_drive, make_trajectory, make_world
+from fisheyedepth.synthetic.writer import DatasetMismatch, ensure_dataset, make_scene_motion, pose_at
 
 from conftest import TRAIN_SEQ, kitti02
 
@@ -332,7 +332,7 @@ def test_outliers_leave_the_worst_pixels_of_each_image_out_of_the_loss():
 
 
 def test_the_command_line_takes_traffic_and_effects_and_refuses_bad_ones(tmp_path, capsys):
-    from fisheyedepth.data.synthetic.cli import main
+    from fisheyedepth.synthetic.cli import main
 
     out = tmp_path / "d"
     assert main(["--out", str(out), "--traffic", "-1", "--quiet"]) == 2

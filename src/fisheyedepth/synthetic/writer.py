@@ -41,11 +41,11 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from ... import __version__
-from ...cameras import CameraModel, opencv_yaml
-from ...geometry import axis_angle_to_matrix, make_pose
-from ...option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_options
-from ...utils import pid_alive
+from .. import __version__
+from ..cameras import CameraModel, opencv_yaml
+from ..geometry import axis_angle_to_matrix, make_pose
+from ..option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_options
+from ..utils import pid_alive
 from .indoor import make_indoor_trajectory, make_indoor_world
 from .raycast import Movers, scene_tensors
 from .render import CameraRenderer, LidarRenderer, quantise
@@ -59,7 +59,7 @@ SEQUENCES = {split: f"2013_05_28_drive_{i:04d}_sync" for i, split in enumerate(S
 GAP = 10  # trajectory frames left out between two splits, so no two splits share a segment
 MARKER = ".fisheyedepth-synthetic"  # the first file of every dataset this generator starts
 MARKER_TEXT = (
-    "Rendered by fisheyedepth's synthetic generator (fisheyedepth.data.synthetic.generate).\n"
+    "Rendered by fisheyedepth's synthetic generator (fisheyedepth.synthetic.generate).\n"
     "This folder may be deleted and rendered again; see docs/data-format.md.\n"
 )
 OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written

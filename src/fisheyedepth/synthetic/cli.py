@@ -1,4 +1,4 @@
-"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.data.synthetic.cli``): render a synthetic fisheye
+"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.synthetic.cli``): render a synthetic fisheye
 dataset."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ...option_checks import check_options
+from ..option_checks import check_options
 from .rig import RIGS
 from .sensor import EFFECTS
 from .traffic import MAX_TRAFFIC
