@@ -32,7 +32,7 @@ from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, re
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.synthetic import generate
 from fisheyedepth.synthetic.cli import main as synthetic_main
-from fisheyedepth.synthetic.writer import NoSpaceLeft
+from fisheyedepth.synthetic.folder import NoSpaceLeft
 
 from conftest import aria_fisheye624, kitti02, load_script
 from test_faults_run import one_line_error, predict_cfg

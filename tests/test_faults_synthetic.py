@@ -27,8 +27,9 @@ from fisheyedepth.synthetic import (
     is_complete,
     made_by_generator,
 )
-from fisheyedepth.synthetic import writer as writer_module
 from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.folder import OWNER
+from fisheyedepth.synthetic.frames import FrameRenderer
 from fisheyedepth.synthetic.sensor import check_effects
 
 TINY = {"frames": 9, "size": 16, "supersample": 1, "lidar": False, "progress": False}
@@ -209,7 +210,7 @@ def test_effects_are_names_and_parameters_are_checked_before_rendering(tmp_path)
 
 def test_sigterm_while_rendering_cleans_up_and_restores_the_handler(tmp_path, monkeypatch):
     calls = {"n": 0}
-    original = writer_module._Worker.__call__
+    original = FrameRenderer.__call__
 
     def terminated_midway(self, job):
         calls["n"] += 1
@@ -217,7 +218,7 @@ def test_sigterm_while_rendering_cleans_up_and_restores_the_handler(tmp_path, mo
             os.kill(os.getpid(), signal.SIGTERM)
         return original(self, job)
 
-    monkeypatch.setattr(writer_module._Worker, "__call__", terminated_midway)
+    monkeypatch.setattr(FrameRenderer, "__call__", terminated_midway)
     previous = signal.getsignal(signal.SIGTERM)
     out = tmp_path / "d"
     with pytest.raises(Terminated) as err:
@@ -239,10 +240,10 @@ def test_a_stale_temporary_folder_of_a_dead_run_is_removed(tmp_path):
     ):
         (tmp_path / name / "calibration").mkdir(parents=True)
         if owner:
-            (tmp_path / name / writer_module.OWNER).write_text(owner)
+            (tmp_path / name / OWNER).write_text(owner)
     (tmp_path / ".other.partial-1").mkdir()  # another dataset's
     generate(out, **TINY)
-    assert is_complete(out) and not (out / writer_module.OWNER).exists()
+    assert is_complete(out) and not (out / OWNER).exists()
     left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("."))
     assert left == sorted([".other.partial-1", f".d.partial-{alive}", f".d.partial-{dead + 1_000_000}"])
     assert socket.gethostname() != "another-host"

@@ -22,9 +22,10 @@ from fisheyedepth.data.kitti360 import (
 )
 from fisheyedepth.geometry import relative_pose, sample, warp_to_source
 from fisheyedepth.synthetic import generate, is_complete, make_trajectory, make_world
-from fisheyedepth.synthetic import writer as writer_module
 from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.frames import FrameRenderer
 from fisheyedepth.synthetic.raycast import first_per_ray
+from fisheyedepth.synthetic.scene import split_frames
 
 SIZE = 256
 TRAIN = "2013_05_28_drive_0000_sync"
@@ -230,7 +231,7 @@ def test_refuses_to_overwrite_and_never_leaves_a_partial_dataset(tmp_path, monke
         generate(out, frames=9, size=16, supersample=1, lidar=False, progress=False)
     assert (out / "keep.txt").read_text() == "mine"
     calls = {"n": 0}
-    original = writer_module._Worker.__call__
+    original = FrameRenderer.__call__
 
     def crash(self, job):
         calls["n"] += 1
@@ -238,12 +239,12 @@ def test_refuses_to_overwrite_and_never_leaves_a_partial_dataset(tmp_path, monke
             raise KeyboardInterrupt
         return original(self, job)
 
-    monkeypatch.setattr(writer_module._Worker, "__call__", crash)
+    monkeypatch.setattr(FrameRenderer, "__call__", crash)
     fresh = tmp_path / "fresh"
     with pytest.raises(KeyboardInterrupt):
         generate(fresh, frames=9, size=16, supersample=1, lidar=False, progress=False)
     assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))
-    monkeypatch.setattr(writer_module._Worker, "__call__", original)
+    monkeypatch.setattr(FrameRenderer, "__call__", original)
     generate(out, frames=9, size=16, supersample=1, lidar=False, progress=False, overwrite=True)
     assert is_complete(out) and not (out / "keep.txt").exists()
 
@@ -286,7 +287,7 @@ def _turn_deg(poses: np.ndarray) -> float:
 def test_the_table2_world_turns_in_training_and_validation():
     """``scripts/reproduce.py`` trains on world 34 because its training segment turns: in the default
     world 0 it drives straight while validation turns, so a PoseNet never learns a rotation there."""
-    ranges = writer_module.split_frames(200)
+    ranges = split_frames(200)
     turns = {}
     for seed in (0, 34):
         poses = make_trajectory(make_world(seed), ranges["test"][1], seed)

@@ -16,14 +16,14 @@ from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.augment import flip_sample
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.losses.selfsup import ReprojectionLoss, match_brightness, trimmed
-from fisheyedepth.synthetic import generate
+from fisheyedepth.synthetic import DatasetMismatch, ensure_dataset, generate
 from fisheyedepth.synthetic.raycast import Movers, scene_tensors
 from fisheyedepth.synthetic.render import MAX_RANGE, CameraRenderer
 from fisheyedepth.synthetic.rig import make_rig
+from fisheyedepth.synthetic.scene import make_scene_motion, pose_at
 from fisheyedepth.synthetic.sensor import BLUR_SAMPLES, SHUTTER, Sensor, blur_times, check_effects
 from fisheyedepth.synthetic.traffic import CLEARANCE, MOVING, _legs, make_traffic
 from fisheyedepth.synthetic.world import make_drive, make_trajectory, make_world
-from fisheyedepth.synthetic.writer import DatasetMismatch, ensure_dataset, make_scene_motion, pose_at
 
 from conftest import TRAIN_SEQ, kitti02
 

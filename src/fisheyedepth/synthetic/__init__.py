@@ -10,24 +10,15 @@ that this generator did not make; ``ensure_datasets`` does it for each folder of
 docs/data-format.md for the layout.
 """
 
+from .folder import MARKER, DatasetMismatch, NotASyntheticDataset, is_complete, made_by_generator
 from .indoor import clearance, make_indoor_trajectory, make_indoor_world
+from .layout import calibration_text
+from .pool import Terminated
 from .rig import FAMILIES, RIGS, Rig, camera_is_valid, make_rig, random_camera
+from .scene import make_scene_trajectory, make_scene_world
+from .spec import GENERATE_OPTIONS
 from .world import SCENES, World, make_trajectory, make_world
-from .writer import (
-    GENERATE_OPTIONS,
-    MARKER,
-    DatasetMismatch,
-    NotASyntheticDataset,
-    Terminated,
-    calibration_text,
-    ensure_dataset,
-    ensure_datasets,
-    generate,
-    is_complete,
-    made_by_generator,
-    make_scene_trajectory,
-    make_scene_world,
-)
+from .writer import ensure_dataset, ensure_datasets, generate
 
 __all__ = [
     "FAMILIES",

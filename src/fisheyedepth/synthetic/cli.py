@@ -8,11 +8,14 @@ import sys
 from pathlib import Path
 
 from ..option_checks import check_options
+from .folder import made_by_generator
+from .pool import Terminated
 from .rig import RIGS
 from .sensor import EFFECTS
+from .spec import GENERATE_OPTIONS
 from .traffic import MAX_TRAFFIC
 from .world import SCENES
-from .writer import GENERATE_OPTIONS, Terminated, generate, made_by_generator
+from .writer import generate
 
 
 def flag(option: str) -> str:
@@ -22,7 +25,7 @@ def flag(option: str) -> str:
 
 def check_flags(args: argparse.Namespace) -> None:
     """The flags that are generation parameters, by the kinds and ranges of ``data.generate``
-    (:data:`~.writer.GENERATE_OPTIONS`), named as typed: ``--traffic: 1000.0 is not a number in [0, 8]``."""
+    (:data:`~.spec.GENERATE_OPTIONS`), named as typed: ``--traffic: 1000.0 is not a number in [0, 8]``."""
     given = {flag(k): v for k, v in vars(args).items()}
     check_options(given, {flag(k): kind for k, kind in GENERATE_OPTIONS.items()})
 
@@ -97,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
             traffic=a.traffic,
             effects=a.effects,
         )
-    except (OSError, ValueError) as exc:  # a full disk: writer.NoSpaceLeft, naming the folder
+    except (OSError, ValueError) as exc:  # a full disk: folder.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except (Terminated, KeyboardInterrupt) as exc:
