@@ -26,8 +26,11 @@ from ..utils import pid_alive
 from .spec import CHECKED, UNWRITTEN
 
 MARKER = ".fisheyedepth-synthetic"  # the first file of every dataset this generator starts
+# The marker's text is part of every dataset's bytes (the street digests of
+# tests/test_synthetic_world_mix.py cover it), so it stays byte for byte as they have it, the module
+# path it names included; the generator itself is fisheyedepth.synthetic.generate.
 MARKER_TEXT = (
-    "Rendered by fisheyedepth's synthetic generator (fisheyedepth.synthetic.generate).\n"
+    "Rendered by fisheyedepth's synthetic generator (fisheyedepth.data.synthetic.generate).\n"
     "This folder may be deleted and rendered again; see docs/data-format.md.\n"
 )
 OWNER = ".partial-owner"  # "<host> <pid>" of the rendering run; removed before synthetic.json is written
