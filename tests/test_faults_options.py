@@ -177,7 +177,7 @@ def test_the_tables_name_the_options_of_their_readers():
     readers' defaults pass."""
     from fisheyedepth.data import Augment, FisheyeDataModule, PoseNoise
     from fisheyedepth.options import model_options
-    from fisheyedepth.synthetic import ensure_dataset
+    from fisheyedepth.synthetic import WorldSpec, ensure_dataset
 
     def arguments(function) -> set[str]:
         return set(inspect.signature(function).parameters)
@@ -191,7 +191,8 @@ def test_the_tables_name_the_options_of_their_readers():
     assert set(DATAMODULE_OPTIONS) <= arguments(FisheyeDataModule.__init__)
     assert set(DATAMODULE_OPTIONS["augment"].table) <= {f.name for f in dataclasses.fields(Augment)}
     assert set(DATAMODULE_OPTIONS["pose_noise"].table) <= {f.name for f in dataclasses.fields(PoseNoise)}
-    assert set(GENERATE_OPTIONS) - {"worlds"} <= arguments(ensure_dataset)
+    spec = {f.name for f in dataclasses.fields(WorldSpec)}  # what the dataset is; the others: how rendered
+    assert set(GENERATE_OPTIONS) - {"worlds"} <= arguments(ensure_dataset) | spec
     generate = {
         "frames": 9,
         "traffic": 8,

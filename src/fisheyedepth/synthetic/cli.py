@@ -4,6 +4,7 @@ dataset."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from .folder import made_by_generator
 from .pool import Terminated
 from .rig import RIGS
 from .sensor import EFFECTS
-from .spec import GENERATE_OPTIONS
+from .spec import GENERATE_OPTIONS, WorldSpec
 from .traffic import MAX_TRAFFIC
 from .world import SCENES
 from .writer import generate
@@ -81,25 +82,11 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         check_flags(a)
+        spec = WorldSpec(**{field.name: getattr(a, field.name) for field in dataclasses.fields(WorldSpec)})
         if a.overwrite:
             _announce_replacement(Path(a.out))
-        out = generate(
-            a.out,
-            a.rig,
-            a.frames,
-            a.size,
-            a.seed,
-            a.supersample,
-            a.workers,
-            not a.no_lidar,
-            a.overwrite,
-            not a.quiet,
-            lane=a.lane,
-            scene=a.scene,
-            random_cameras=a.random_cameras,
-            traffic=a.traffic,
-            effects=a.effects,
-        )
+        rendering = {"workers": a.workers, "lidar": not a.no_lidar, "progress": not a.quiet}
+        out = generate(a.out, spec, overwrite=a.overwrite, **rendering)
     except (OSError, ValueError) as exc:  # a full disk: folder.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)
         return 2

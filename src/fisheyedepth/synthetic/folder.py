@@ -23,7 +23,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ..utils import pid_alive
-from .spec import CHECKED, UNWRITTEN
+from .spec import WorldSpec
 
 MARKER = ".fisheyedepth-synthetic"  # the first file of every dataset this generator starts
 # The marker's text is part of every dataset's bytes (the street digests of
@@ -171,8 +171,8 @@ def refusal(root: Path) -> NotASyntheticDataset:
     )
 
 
-def check_parameters(root: Path, asked: dict) -> None:
-    """A finished dataset is used only if it was rendered with the parameters asked for."""
+def check_parameters(root: Path, spec: WorldSpec) -> None:
+    """A finished dataset is used only if it was rendered with the spec asked for."""
     path = root / "synthetic.json"
     try:
         meta = json.loads(path.read_text())
@@ -180,8 +180,7 @@ def check_parameters(root: Path, asked: dict) -> None:
         raise DatasetMismatch(f"{path} is not valid JSON ({exc}); delete {root} to render it again") from exc
     if not isinstance(meta, dict) or not str(meta.get("generator", "")).startswith("fisheyedepth"):
         raise refusal(root)
-    meta = {**UNWRITTEN, **meta}
-    differ = [f"{k} {meta[k]!r} (asked {asked[k]!r})" for k in CHECKED if k in meta and meta[k] != asked[k]]
+    differ = spec.differences(meta)
     if differ:
         raise DatasetMismatch(
             f"{root} holds a synthetic dataset rendered with other parameters than asked: "

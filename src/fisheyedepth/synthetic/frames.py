@@ -1,5 +1,5 @@
-"""The renderer of a dataset's frames: built once per process from the generation parameters (the world,
-the rig's camera and LiDAR renderers, the traffic and each camera's sensor effects), it renders a
+"""The renderer of a dataset's frames: built once per process from a :class:`~.spec.WorldSpec` (the
+world, the rig's camera and LiDAR renderers, the traffic and each camera's sensor effects), it renders a
 :class:`~.scene.Job` and writes its files (:mod:`.layout`)."""
 
 from __future__ import annotations
@@ -12,38 +12,27 @@ from .layout import write_camera_frame, write_scan
 from .raycast import Movers, scene_tensors
 from .render import CameraRenderer, LidarRenderer, quantise
 from .rig import make_rig
-from .scene import Job, make_scene_motion, make_scene_world, pose_at
-from .sensor import Sensor, blur_times, check_effects
+from .scene import Job, make_scene_motion, make_scene_world, pose_at, split_frames
+from .sensor import Sensor, blur_times
+from .spec import WorldSpec
 
 
 class FrameRenderer:
     """Renders and writes whole frames into ``root``; built once per process."""
 
-    def __init__(
-        self,
-        root: Path,
-        seed: int,
-        rig_name: str,
-        size: int,
-        supersample: int,
-        lidar: bool,
-        scene: str = "street",
-        random_cameras: bool = False,
-        traffic: float = 0.0,
-        effects: tuple[str, ...] = (),
-        lane: str = "right",
-        frames: int = 0,
-    ):
+    def __init__(self, root: Path, spec: WorldSpec, lidar: bool):
+        seed, scene = spec.seed, spec.scene
         self.root, self.world = root, make_scene_world(scene, seed)
-        self.rig = make_rig(rig_name, size, scene, random_cameras, seed)
-        self.effects = check_effects(effects)
+        self.rig = make_rig(spec.rig, spec.size, scene, spec.random_cameras, seed)
+        self.effects = spec.effects
         self.poses, self.traffic = None, None
-        if traffic or "motion_blur" in self.effects:  # the motion around each frame is needed
-            self.poses, self.traffic = make_scene_motion(self.world, frames, seed, lane, traffic)
+        if spec.traffic or "motion_blur" in self.effects:  # the motion around each frame is needed
+            frames = split_frames(spec.frames)["test"][1]
+            self.poses, self.traffic = make_scene_motion(self.world, frames, seed, spec.lane, spec.traffic)
         # the street with its own cameras keeps the ground truth it has always had (SceneTensors)
-        self.scene = scene_tensors(self.world, legacy_culling=scene == "street" and not random_cameras)
+        self.scene = scene_tensors(self.world, legacy_culling=scene == "street" and not spec.random_cameras)
         self.cameras = {
-            name: CameraRenderer(cam, self.rig.cam_to_pose[name], supersample, self.rig.ego)
+            name: CameraRenderer(cam, self.rig.cam_to_pose[name], spec.supersample, self.rig.ego)
             for name, cam in self.rig.cameras.items()
         }
         self.lidar = LidarRenderer(self.rig.velo_to_pose, ego=self.rig.ego) if lidar else None

@@ -18,7 +18,7 @@ from .. import __version__
 from ..cameras import CameraModel, opencv_yaml
 from .rig import Rig
 from .scene import SEQUENCES, SPLITS, Job
-from .spec import UNWRITTEN
+from .spec import WorldSpec
 from .traffic import Traffic
 
 
@@ -111,11 +111,10 @@ def write_scan(root: Path, job: Job, points: np.ndarray) -> None:
 
 
 def metadata(
-    rig: Rig, world, ranges: dict[str, tuple[int, int]], params: dict, lidar: bool, agents: Traffic
+    rig: Rig, world, ranges: dict[str, tuple[int, int]], spec: WorldSpec, lidar: bool, agents: Traffic
 ) -> dict:
-    """``synthetic.json``: ``params`` are the generation parameters (seed, rig, size, supersample, frames;
-    scene and random_cameras where they differ from the street with fixed cameras)."""
-    params = {k: v for k, v in params.items() if k not in UNWRITTEN or v != UNWRITTEN[k]}
+    """``synthetic.json``: the generator, the parameters of ``spec`` (:meth:`~.spec.WorldSpec.written`),
+    the cameras, each split's trajectory frames, a description of the world, and whether it has LiDAR."""
     counts = {"boxes": len(world.boxes), "cylinders": len(world.cylinders), "spheres": len(world.spheres)}
     if world.scene == "indoor":
         described = {
@@ -131,7 +130,7 @@ def metadata(
             described["agents"] = {k: agents.kind.count(k) for k in sorted(set(agents.kind))}
     return {
         "generator": f"fisheyedepth {__version__}",
-        **params,
+        **spec.written(),
         "cameras": {name: cam.to_dict() for name, cam in rig.cameras.items()},
         "sequences": {
             split: {"name": SEQUENCES[split], "trajectory_frames": list(ranges[split])} for split in SPLITS
