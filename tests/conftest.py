@@ -250,10 +250,10 @@ def built_once(tmp_path_factory, name: str, build) -> Path:
 @pytest.fixture(scope="session")
 def kitti_data(tmp_path_factory):
     """A 256 x 256 kitti360 synthetic dataset (12 frames with LiDAR), rendered once per test session."""
-    from fisheyedepth.data.synthetic import generate
+    from fisheyedepth.synthetic import WorldSpec, generate
 
     def render(path: Path) -> None:
-        generate(path, "kitti360", frames=12, size=256, seed=3, progress=False)
+        generate(path, WorldSpec("kitti360", frames=12, size=256, seed=3), progress=False)
 
     return built_once(tmp_path_factory, "kitti", render)
 

@@ -26,18 +26,16 @@ CAMERAS = ("image_02", "image_03")
 @pytest.fixture(scope="module")
 def world(tmp_path_factory) -> tuple[Path, dict[str, np.ndarray]]:
     """A 128 x 128 kitti360 world (30 frames) whose exact body masks are moved aside, and those masks."""
-    from fisheyedepth.data.synthetic import generate
+    from fisheyedepth.synthetic import WorldSpec, generate
 
-    root = generate(
-        tmp_path_factory.mktemp("body") / "w",
+    spec = WorldSpec(
         "kitti360",
         frames=30,
         size=128,
         seed=5,
         supersample=1,  # one ray per pixel: body IoU 0.96-1.0 (0.96-0.99 with 2x2 rays), in 60 % of the time
-        progress=False,
-        lidar=False,
     )
+    root = generate(tmp_path_factory.mktemp("body") / "w", spec, progress=False, lidar=False)
     exact = {}
     for camera in CAMERAS:
         path = root / "calibration" / f"body_mask_{camera}.png"

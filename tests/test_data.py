@@ -99,10 +99,10 @@ def test_base_focal_auto_is_the_mean_focal_of_the_training_cameras_at_the_traini
 @pytest.fixture(scope="module")
 def surround4(tmp_path_factory):
     """A surround4 world (9 frames at 64 px, no LiDAR), rendered once for the tests that only read it."""
-    from fisheyedepth.data.synthetic import generate
+    from fisheyedepth.synthetic import WorldSpec, generate
 
     out = tmp_path_factory.mktemp("s4") / "s4"
-    return generate(out, "surround4", frames=9, size=64, seed=2, lidar=False, progress=False)
+    return generate(out, WorldSpec("surround4", frames=9, size=64, seed=2), lidar=False, progress=False)
 
 
 def test_mixed_cameras_and_models_in_one_batch(surround4, cache):
@@ -169,14 +169,15 @@ def test_the_stereo_rig_overlaps_and_its_other_camera_is_a_source(tmp_path, cach
     """The stereo rig: two fisheyes 0.2 m apart, axes 40 degrees apart (on the car; hand-held 0.25 m),
     whose views overlap: the other camera, warped with the ground truth, explains the target better than
     at 0.7x or 1.4x the distance, over much of the image."""
-    from fisheyedepth.data.synthetic import generate, make_rig
+    from fisheyedepth.synthetic import WorldSpec, generate, make_rig
 
     for scene, baseline in (("street", 0.2), ("indoor", 0.255)):
         rig = make_rig("stereo", 64, scene)
         a, b = rig.cam_to_pose["image_02"], rig.cam_to_pose["image_03"]
         assert np.linalg.norm(a[:3, 3] - b[:3, 3]) == pytest.approx(baseline, abs=0.001)
         assert math.degrees(math.acos(a[:3, 2] @ b[:3, 2])) == pytest.approx(40.0)
-    root = generate(tmp_path / "stereo", "stereo", frames=9, size=64, seed=2, lidar=False, progress=False)
+    spec = WorldSpec("stereo", frames=9, size=64, seed=2)
+    root = generate(tmp_path / "stereo", spec, lidar=False, progress=False)
     ds = FisheyeDataset(Kitti360Layout(root), [{"sequence": TRAIN_SEQ}], rig_offsets=(0,), cache_dir=cache)
     assert len(ds) == 2  # each camera once as the target, the other one its rig source
     for i in range(len(ds)):

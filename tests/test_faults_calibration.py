@@ -476,7 +476,7 @@ def test_predict_refuses_a_deep_or_implausible_camera_file(tmp_path, capsys, che
 def shipped_cameras() -> dict[str, CameraModel]:
     """The cameras of the test suite, the presets, the synthetic rigs' cameras (fixed and drawn), and
     what resizing and flipping make of them."""
-    from fisheyedepth.data.synthetic.rig import FAMILIES, make_rig, random_camera
+    from fisheyedepth.synthetic.rig import FAMILIES, make_rig, random_camera
 
     cameras = dict(all_cameras())
     cameras.update(tumvi_kb=presets.tumvi_kannala_brandt(), tumvi_ds=presets.tumvi_double_sphere())

@@ -28,10 +28,10 @@ from fisheyedepth.cli.predict import predict
 from fisheyedepth.data.aria import CALIBRATION, POSES, aria_to_rig
 from fisheyedepth.data.body_mask import estimate_body_mask
 from fisheyedepth.data.body_mask import main as estimate_mask_main
-from fisheyedepth.data.synthetic import generate
-from fisheyedepth.data.synthetic.cli import main as synthetic_main
-from fisheyedepth.data.synthetic.writer import NoSpaceLeft
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
+from fisheyedepth.synthetic import WorldSpec, generate
+from fisheyedepth.synthetic.cli import main as synthetic_main
+from fisheyedepth.synthetic.folder import NoSpaceLeft
 
 from conftest import aria_fisheye624, bare_module, kitti02
 from test_faults_run import one_line_error, predict_cfg
@@ -249,7 +249,7 @@ def test_a_full_disk_while_rendering_is_named(tmp_path, monkeypatch, capsys):
     )
     out = tmp_path / "syn"
     with pytest.raises(NoSpaceLeft) as info:
-        generate(out, "kitti360", frames=9, size=16, supersample=1, progress=False)
+        generate(out, WorldSpec("kitti360", frames=9, size=16, supersample=1), progress=False)
     assert isinstance(info.value, ValueError) and info.value.errno == errno.ENOSPC
     assert str(info.value).startswith(
         f"{out}: no space left on device while rendering the synthetic dataset (writing 0000000000.bin); "

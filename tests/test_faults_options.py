@@ -15,8 +15,8 @@ from hydra import compose, initialize_config_dir
 
 from fisheyedepth.cli.train import train
 from fisheyedepth.config import check_options as check_config
-from fisheyedepth.data.synthetic import GENERATE_OPTIONS
 from fisheyedepth.option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Group, Number, check_options
+from fisheyedepth.synthetic import GENERATE_OPTIONS
 
 from conftest import ROOT, TINY, bare_module, bare_objective
 from test_faults_run import one_line_error
@@ -174,8 +174,8 @@ def test_the_tables_name_the_options_of_their_readers():
     """A misspelt key in a table would check nothing: each names an argument its reader takes, and the
     readers' defaults pass."""
     from fisheyedepth.data import Augment, FisheyeDataModule, PoseNoise
-    from fisheyedepth.data.synthetic import ensure_dataset
     from fisheyedepth.options import model_options
+    from fisheyedepth.synthetic import WorldSpec, ensure_dataset
 
     def arguments(function) -> set[str]:
         return set(inspect.signature(function).parameters)
@@ -189,7 +189,8 @@ def test_the_tables_name_the_options_of_their_readers():
     assert set(DATAMODULE_OPTIONS) <= arguments(FisheyeDataModule.__init__)
     assert set(DATAMODULE_OPTIONS["augment"].table) <= {f.name for f in dataclasses.fields(Augment)}
     assert set(DATAMODULE_OPTIONS["pose_noise"].table) <= {f.name for f in dataclasses.fields(PoseNoise)}
-    assert set(GENERATE_OPTIONS) - {"worlds"} <= arguments(ensure_dataset)
+    spec = {f.name for f in dataclasses.fields(WorldSpec)}  # what the dataset is; the others: how rendered
+    assert set(GENERATE_OPTIONS) - {"worlds"} <= arguments(ensure_dataset) | spec
     generate = {
         "frames": 9,
         "traffic": 8,

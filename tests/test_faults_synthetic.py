@@ -16,22 +16,25 @@ from pathlib import Path
 
 import pytest
 
-from fisheyedepth.data.synthetic import (
+from fisheyedepth.synthetic import (
     MARKER,
     DatasetMismatch,
     NotASyntheticDataset,
     Terminated,
+    WorldSpec,
     ensure_dataset,
     ensure_datasets,
     generate,
     is_complete,
     made_by_generator,
 )
-from fisheyedepth.data.synthetic import writer as writer_module
-from fisheyedepth.data.synthetic.cli import main as cli_main
-from fisheyedepth.data.synthetic.sensor import check_effects
+from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.folder import OWNER
+from fisheyedepth.synthetic.frames import FrameRenderer
+from fisheyedepth.synthetic.sensor import check_effects
 
-TINY = {"frames": 9, "size": 16, "supersample": 1, "lidar": False, "progress": False}
+TINY = {"frames": 9, "size": 16, "supersample": 1}  # a tiny spec
+QUIET = {"lidar": False, "progress": False}  # rendered without LiDAR or a progress bar
 # long enough to be killed mid-render on two cores: ~15 s of rendering after the first image
 SLOW = {"frames": 60, "size": 64, "supersample": 1}
 linux_only = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -71,7 +74,7 @@ def test_a_folder_it_did_not_make_is_refused_and_left_untouched(tmp_path):
     root = user_folder(tmp_path / "my_robot")
     before = snapshot(root)
     with pytest.raises(NotASyntheticDataset) as err:
-        ensure_dataset(root, **TINY)
+        ensure_dataset(root, WorldSpec(**TINY), **QUIET)
     assert isinstance(err.value, FileExistsError)
     message = str(err.value)
     for words in (str(root), "not a synthetic dataset made by fisheyedepth", "left untouched"):
@@ -85,14 +88,14 @@ def test_a_file_and_a_foreign_synthetic_json_are_refused(tmp_path):
     file = tmp_path / "notes"
     file.write_text("mine")
     with pytest.raises(NotASyntheticDataset, match="a file"):
-        ensure_dataset(file, **TINY)
+        ensure_dataset(file, WorldSpec(**TINY), **QUIET)
     assert file.read_text() == "mine"
     other = tmp_path / "other"
     other.mkdir()
     (other / "synthetic.json").write_text(json.dumps({"generator": "blender 4.1", "size": 16}))
     before = snapshot(other)
     with pytest.raises(NotASyntheticDataset, match="left untouched"):
-        ensure_dataset(other, **TINY)
+        ensure_dataset(other, WorldSpec(**TINY), **QUIET)
     assert snapshot(other) == before
 
 
@@ -100,7 +103,7 @@ def test_an_absent_or_empty_folder_is_rendered(tmp_path):
     empty = tmp_path / "empty"
     empty.mkdir()
     for root in (empty, tmp_path / "absent" / "deeper"):
-        assert ensure_dataset(root, **TINY) == root
+        assert ensure_dataset(root, WorldSpec(**TINY), **QUIET) == root
         assert is_complete(root) and made_by_generator(root) and (root / MARKER).is_file()
         assert not hidden_siblings(root)
 
@@ -109,11 +112,12 @@ def test_an_absent_or_empty_folder_is_rendered(tmp_path):
 def finished(tmp_path_factory) -> Path:
     """A finished TINY dataset (seed 1), rendered once for the tests that start from one: each takes a
     copy (:func:`copy_of`)."""
-    return generate(tmp_path_factory.mktemp("finished") / "d", seed=1, **TINY)
+    return generate(tmp_path_factory.mktemp("finished") / "d", WorldSpec(seed=1, **TINY), **QUIET)
 
 
 def copy_of(finished: Path, root: Path) -> Path:
-    """``root``: a copy of the ``finished`` dataset, as ``generate(root, seed=1, **TINY)`` leaves it."""
+    """``root``: a copy of the ``finished`` dataset, as ``generate(root, WorldSpec(seed=1, **TINY))``
+    leaves it."""
     shutil.copytree(finished, root)
     assert is_complete(root) and made_by_generator(root)
     return root
@@ -124,12 +128,12 @@ def test_a_folder_the_generator_started_is_rendered_again(finished, tmp_path):
     (root / "synthetic.json").unlink()  # damaged: the marker says the generator made it
     (root / "leftover.png").write_bytes(b"old")
     assert made_by_generator(root) and not is_complete(root)
-    ensure_dataset(root, seed=1, **TINY)
+    ensure_dataset(root, WorldSpec(seed=1, **TINY), **QUIET)
     assert is_complete(root) and not (root / "leftover.png").exists()
     only_marker = tmp_path / "m"
     only_marker.mkdir()
     (only_marker / MARKER).write_text("")
-    ensure_dataset(only_marker, seed=1, **TINY)
+    ensure_dataset(only_marker, WorldSpec(seed=1, **TINY), **QUIET)
     assert is_complete(only_marker)
 
 
@@ -137,10 +141,10 @@ def test_a_finished_dataset_is_reused_only_with_the_same_parameters(finished, tm
     root = copy_of(finished, tmp_path / "d")
     (root / "notes.txt").write_text("kept")
     before = snapshot(root)
-    assert ensure_dataset(root, seed=1, **TINY) == root
+    assert ensure_dataset(root, WorldSpec(seed=1, **TINY), **QUIET) == root
     assert snapshot(root) == before  # not rendered again
     with pytest.raises(DatasetMismatch) as err:
-        ensure_dataset(root, **{**TINY, "seed": 2, "size": 24})
+        ensure_dataset(root, WorldSpec(**{**TINY, "seed": 2, "size": 24}), **QUIET)
     message = str(err.value)
     assert str(root) in message and "size 16 (asked 24)" in message and "seed 1 (asked 2)" in message
     assert "frames" not in message and "rig " not in message
@@ -190,15 +194,17 @@ def test_effects_are_names_and_parameters_are_checked_before_rendering(tmp_path)
         rf"^effects\[0\]: \{{'noise': -1\}} is not one of {effects} \(each effect a switch, named alone\)$"
     )
     with pytest.raises(ValueError, match=named_alone):
-        generate(tmp_path / "d", effects=[{"noise": -1}], **TINY)
+        generate(tmp_path / "d", WorldSpec(effects=[{"noise": -1}], **TINY), **QUIET)
     with pytest.raises(ValueError, match=r"^data\.generate\.effects\[0\]: \{'noise': -1\} is not one of"):
-        ensure_datasets(tmp_path / "d", {"effects": [{"noise": -1}], **TINY})
+        ensure_datasets(tmp_path / "d", {"effects": [{"noise": -1}], **TINY, **QUIET})
     with pytest.raises(ValueError, match=r"^random_cameras: 'maybe' is not a boolean \(true or false\)$"):
-        ensure_dataset(tmp_path / "d", random_cameras="maybe", **TINY)
+        ensure_dataset(tmp_path / "d", WorldSpec(random_cameras="maybe", **TINY), **QUIET)
     with pytest.raises(
         ValueError, match=r"^data\.generate\.worlds\[1\]\.traffic: 9 is not a number in \[0, 8\]"
     ):
-        ensure_datasets([tmp_path / "a", tmp_path / "b"], {**TINY, "worlds": [{"seed": 0}, {"traffic": 9}]})
+        ensure_datasets(
+            [tmp_path / "a", tmp_path / "b"], {**TINY, **QUIET, "worlds": [{"seed": 0}, {"traffic": 9}]}
+        )
     with pytest.raises(ValueError, match=r"^effects: unknown \[\{'noise': -1\}\]"):  # where it is read, too
         check_effects([{"noise": -1}])
     assert list(tmp_path.iterdir()) == []
@@ -209,7 +215,7 @@ def test_effects_are_names_and_parameters_are_checked_before_rendering(tmp_path)
 
 def test_sigterm_while_rendering_cleans_up_and_restores_the_handler(tmp_path, monkeypatch):
     calls = {"n": 0}
-    original = writer_module._Worker.__call__
+    original = FrameRenderer.__call__
 
     def terminated_midway(self, job):
         calls["n"] += 1
@@ -217,11 +223,11 @@ def test_sigterm_while_rendering_cleans_up_and_restores_the_handler(tmp_path, mo
             os.kill(os.getpid(), signal.SIGTERM)
         return original(self, job)
 
-    monkeypatch.setattr(writer_module._Worker, "__call__", terminated_midway)
+    monkeypatch.setattr(FrameRenderer, "__call__", terminated_midway)
     previous = signal.getsignal(signal.SIGTERM)
     out = tmp_path / "d"
     with pytest.raises(Terminated) as err:
-        generate(out, **TINY)
+        generate(out, WorldSpec(**TINY), **QUIET)
     assert err.value.code == 143 and isinstance(err.value, SystemExit)
     assert calls["n"] == 3  # stopped at once, not after the last frame
     assert not out.exists() and not hidden_siblings(out)
@@ -239,10 +245,10 @@ def test_a_stale_temporary_folder_of_a_dead_run_is_removed(tmp_path):
     ):
         (tmp_path / name / "calibration").mkdir(parents=True)
         if owner:
-            (tmp_path / name / writer_module.OWNER).write_text(owner)
+            (tmp_path / name / OWNER).write_text(owner)
     (tmp_path / ".other.partial-1").mkdir()  # another dataset's
-    generate(out, **TINY)
-    assert is_complete(out) and not (out / writer_module.OWNER).exists()
+    generate(out, WorldSpec(**TINY), **QUIET)
+    assert is_complete(out) and not (out / OWNER).exists()
     left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith("."))
     assert left == sorted([".other.partial-1", f".d.partial-{alive}", f".d.partial-{dead + 1_000_000}"])
     assert socket.gethostname() != "another-host"
@@ -314,8 +320,8 @@ def render_in_python(out: Path) -> subprocess.Popen:
     args = ", ".join(f"{k}={v}" for k, v in SLOW.items())
     code = (
         "import sys\n"
-        "from fisheyedepth.data.synthetic import ensure_dataset\n"
-        f"ensure_dataset(sys.argv[1], {args}, workers=2, lidar=False, progress=False)\n"
+        "from fisheyedepth.synthetic import WorldSpec, ensure_dataset\n"
+        f"ensure_dataset(sys.argv[1], WorldSpec({args}), workers=2, lidar=False, progress=False)\n"
     )
     return subprocess.Popen([sys.executable, "-c", code, str(out)], stderr=subprocess.PIPE)
 
@@ -323,7 +329,7 @@ def render_in_python(out: Path) -> subprocess.Popen:
 @linux_only
 def test_sigterm_of_make_synthetic_stops_the_workers_and_removes_the_partial_folder(tmp_path):
     out = tmp_path / "d"
-    cmd = [sys.executable, "-m", "fisheyedepth.data.synthetic.cli", "--out", str(out)]
+    cmd = [sys.executable, "-m", "fisheyedepth.synthetic.cli", "--out", str(out)]
     cmd += [f"--{k}={v}" for k, v in SLOW.items()] + ["--workers=2", "--no-lidar", "--quiet"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE)
     workers = wait_mid_render(proc, out)
@@ -356,5 +362,5 @@ def test_workers_die_with_a_killed_render_and_the_next_run_cleans_up(tmp_path):
     proc.communicate(timeout=30)
     assert_gone(workers)  # PR_SET_PDEATHSIG
     assert len(hidden_siblings(out)) == 1  # the dead run's .d.partial-<pid>
-    ensure_dataset(out, **TINY)
+    ensure_dataset(out, WorldSpec(**TINY), **QUIET)
     assert is_complete(out) and not hidden_siblings(out)

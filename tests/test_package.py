@@ -64,7 +64,7 @@ def test_commands_that_train_nothing_start_without_lightning():
     about 3 s of each such process's start on 2 cores."""
     code = (
         "import sys\n"
-        "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.data.synthetic.cli\n"
+        "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.synthetic.cli\n"
         "import fisheyedepth.cli.train\n"
         "from fisheyedepth.runtimes import TrainedDepthNet\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning')))\n"

@@ -20,28 +20,28 @@ from fisheyedepth.data.kitti360 import (
     read_poses,
     read_velodyne,
 )
-from fisheyedepth.data.synthetic import generate, is_complete, make_trajectory, make_world
-from fisheyedepth.data.synthetic import writer as writer_module
-from fisheyedepth.data.synthetic.cli import main as cli_main
-from fisheyedepth.data.synthetic.raycast import first_per_ray
 from fisheyedepth.geometry import relative_pose, sample, warp_to_source
+from fisheyedepth.synthetic import WorldSpec, generate, is_complete, make_trajectory, make_world
+from fisheyedepth.synthetic.cli import main as cli_main
+from fisheyedepth.synthetic.frames import FrameRenderer
+from fisheyedepth.synthetic.raycast import first_per_ray
+from fisheyedepth.synthetic.scene import split_frames
 
 SIZE = 256
 TRAIN = "2013_05_28_drive_0000_sync"
+TINY = WorldSpec(frames=9, size=16, supersample=1)
 
 
 @pytest.fixture(scope="session")
 def surround_data(tmp_path_factory):
-    return generate(
-        tmp_path_factory.mktemp("syn") / "surround",
+    spec = WorldSpec(
         "surround4",
         frames=9,
         size=SIZE,
         seed=5,
         supersample=1,  # one ray per pixel: warped / unwarped L1 0.02-0.04 (0.02-0.03 with 2x2 rays)
-        lidar=False,
-        progress=False,
     )
+    return generate(tmp_path_factory.mktemp("syn") / "surround", spec, lidar=False, progress=False)
 
 
 def load_frame(root, seq, cam, frame):
@@ -163,7 +163,7 @@ def test_left_lane_mirrors_the_cars_offset_from_the_centreline():
     lateral = np.einsum("i,i->", left[0, :3, 3] - right[0, :3, 3], right[0, :3, 1])
     assert lateral == pytest.approx(-3.5, abs=0.05)
     with pytest.raises(ValueError, match="lane must be one of"):
-        generate(Path("/nonexistent/never-written"), lane="centre")
+        generate(Path("/nonexistent/never-written"), WorldSpec(lane="centre"))
 
 
 @pytest.mark.parametrize("cam", ["image_02", "image_03"])
@@ -209,11 +209,10 @@ def test_lidar_agrees_with_the_distance_maps(kitti_data):
 
 
 def test_same_seed_same_files_other_seed_other_world(tmp_path):
-    a = generate(tmp_path / "a", "kitti360", frames=9, size=32, seed=1, supersample=1, progress=False)
-    b = generate(tmp_path / "b", "kitti360", frames=9, size=32, seed=1, supersample=1, progress=False)
-    c = generate(
-        tmp_path / "c", "kitti360", frames=9, size=32, seed=2, supersample=1, progress=False, lidar=False
-    )
+    tiny = {"frames": 9, "size": 32, "supersample": 1}
+    a = generate(tmp_path / "a", WorldSpec("kitti360", seed=1, **tiny), progress=False)
+    b = generate(tmp_path / "b", WorldSpec("kitti360", seed=1, **tiny), progress=False)
+    c = generate(tmp_path / "c", WorldSpec("kitti360", seed=2, **tiny), progress=False, lidar=False)
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
     assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
     for rel in files:
@@ -227,10 +226,10 @@ def test_refuses_to_overwrite_and_never_leaves_a_partial_dataset(tmp_path, monke
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="overwrite"):
-        generate(out, frames=9, size=16, supersample=1, lidar=False, progress=False)
+        generate(out, TINY, lidar=False, progress=False)
     assert (out / "keep.txt").read_text() == "mine"
     calls = {"n": 0}
-    original = writer_module._Worker.__call__
+    original = FrameRenderer.__call__
 
     def crash(self, job):
         calls["n"] += 1
@@ -238,13 +237,13 @@ def test_refuses_to_overwrite_and_never_leaves_a_partial_dataset(tmp_path, monke
             raise KeyboardInterrupt
         return original(self, job)
 
-    monkeypatch.setattr(writer_module._Worker, "__call__", crash)
+    monkeypatch.setattr(FrameRenderer, "__call__", crash)
     fresh = tmp_path / "fresh"
     with pytest.raises(KeyboardInterrupt):
-        generate(fresh, frames=9, size=16, supersample=1, lidar=False, progress=False)
+        generate(fresh, TINY, lidar=False, progress=False)
     assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))
-    monkeypatch.setattr(writer_module._Worker, "__call__", original)
-    generate(out, frames=9, size=16, supersample=1, lidar=False, progress=False, overwrite=True)
+    monkeypatch.setattr(FrameRenderer, "__call__", original)
+    generate(out, TINY, lidar=False, progress=False, overwrite=True)
     assert is_complete(out) and not (out / "keep.txt").exists()
 
 
@@ -269,10 +268,9 @@ def test_cli(tmp_path, capsys):
 
 
 def test_worker_processes_write_the_same_dataset(tmp_path):
-    serial = generate(tmp_path / "s", "kitti360", frames=9, size=32, seed=4, supersample=1, progress=False)
-    parallel = generate(
-        tmp_path / "p", "kitti360", frames=9, size=32, seed=4, supersample=1, workers=2, progress=False
-    )
+    spec = WorldSpec("kitti360", frames=9, size=32, seed=4, supersample=1)
+    serial = generate(tmp_path / "s", spec, progress=False)
+    parallel = generate(tmp_path / "p", spec, workers=2, progress=False)
     for path in serial.rglob("*.npy"):
         assert np.array_equal(np.load(path), np.load(parallel / path.relative_to(serial)))
 
@@ -286,7 +284,7 @@ def _turn_deg(poses: np.ndarray) -> float:
 def test_the_table2_world_turns_in_training_and_validation():
     """``scripts/research/reproduce.py`` trains on world 34 because its training segment turns: in the
     default world 0 it drives straight while validation turns, so a PoseNet never learns a rotation there."""
-    ranges = writer_module.split_frames(200)
+    ranges = split_frames(200)
     turns = {}
     for seed in (0, 34):
         poses = make_trajectory(make_world(seed), ranges["test"][1], seed)

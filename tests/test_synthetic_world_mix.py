@@ -18,8 +18,10 @@ from omegaconf import OmegaConf
 from fisheyedepth.cameras import load_camera
 from fisheyedepth.data.datamodule import RootBatchSampler
 from fisheyedepth.data.kitti360 import read_cam_to_pose, read_poses
-from fisheyedepth.data.synthetic import (
+from fisheyedepth.models.depth_net import depth_scale, scale_focal
+from fisheyedepth.synthetic import (
     FAMILIES,
+    WorldSpec,
     calibration_text,
     camera_is_valid,
     clearance,
@@ -30,8 +32,7 @@ from fisheyedepth.data.synthetic import (
     make_rig,
     random_camera,
 )
-from fisheyedepth.data.synthetic import indoor as indoor_module
-from fisheyedepth.models.depth_net import depth_scale, scale_focal
+from fisheyedepth.synthetic import indoor as indoor_module
 from test_synthetic import warp_check
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,8 +55,9 @@ def _files(root: Path) -> dict[str, bytes]:
 
 def _street_digest(out: Path) -> str:
     digest = hashlib.sha256()
-    for rig, options in (("kitti360", {"supersample": 1}), ("surround4", {"supersample": 2, "lidar": False})):
-        root = generate(out / rig, rig, frames=9, size=16, seed=3, progress=False, **options)
+    for rig, supersample, lidar in (("kitti360", 1, True), ("surround4", 2, False)):
+        spec = WorldSpec(rig, frames=9, size=16, seed=3, supersample=supersample)
+        root = generate(out / rig, spec, lidar=lidar, progress=False)
         for name, data in _files(root).items():
             if name != "synthetic.json":  # it names the package version
                 digest.update(name.encode() + b"\0" + data)
@@ -72,23 +74,23 @@ def test_the_default_street_world_is_unchanged(tmp_path):
 def indoor(tmp_path_factory):
     """A room seen by the kitti360 cameras on a hand-held rig (9 frames, 96 px, no LiDAR)."""
     out = tmp_path_factory.mktemp("indoor") / "room"
-    return generate(out, "kitti360", frames=9, size=SIZE, seed=2, lidar=False, progress=False, scene="indoor")
+    spec = WorldSpec("kitti360", frames=9, size=SIZE, seed=2, scene="indoor")
+    return generate(out, spec, lidar=False, progress=False)
 
 
 @pytest.fixture(scope="module")
 def street_random(tmp_path_factory):
     """The street seen by randomly drawn cameras (9 frames, 96 px, no LiDAR)."""
     out = tmp_path_factory.mktemp("street") / "random"
-    return generate(
-        out, "kitti360", frames=9, size=SIZE, seed=6, lidar=False, progress=False, random_cameras=True
-    )
+    spec = WorldSpec("kitti360", frames=9, size=SIZE, seed=6, random_cameras=True)
+    return generate(out, spec, lidar=False, progress=False)
 
 
 def test_an_indoor_world_renders_the_same_bytes_for_a_seed(tmp_path):
-    options = {"frames": 9, "size": 16, "supersample": 1, "progress": False, "scene": "indoor"}
-    a = generate(tmp_path / "a", seed=4, random_cameras=True, **options)
-    b = generate(tmp_path / "b", seed=4, random_cameras=True, **options)
-    c = generate(tmp_path / "c", seed=5, random_cameras=True, lidar=False, **options)
+    options = {"frames": 9, "size": 16, "supersample": 1, "scene": "indoor", "random_cameras": True}
+    a = generate(tmp_path / "a", WorldSpec(seed=4, **options), progress=False)
+    b = generate(tmp_path / "b", WorldSpec(seed=4, **options), progress=False)
+    c = generate(tmp_path / "c", WorldSpec(seed=5, **options), lidar=False, progress=False)
     assert _files(a) == _files(b)
     first = f"data_2d_raw/{TRAIN}/image_02/data_rgb/{0:010d}.png"
     assert (a / first).read_bytes() != (c / first).read_bytes()

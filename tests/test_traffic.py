@@ -14,16 +14,16 @@ import torch
 from fisheyedepth.cameras import compute_rays
 from fisheyedepth.data import FisheyeDataset, Kitti360Layout, collate
 from fisheyedepth.data.augment import flip_sample
-from fisheyedepth.data.synthetic import generate
-from fisheyedepth.data.synthetic.raycast import Movers, scene_tensors
-from fisheyedepth.data.synthetic.render import MAX_RANGE, CameraRenderer
-from fisheyedepth.data.synthetic.rig import make_rig
-from fisheyedepth.data.synthetic.sensor import BLUR_SAMPLES, SHUTTER, Sensor, blur_times, check_effects
-from fisheyedepth.data.synthetic.traffic import CLEARANCE, MOVING, _legs, make_traffic
-from fisheyedepth.data.synthetic.world import make_drive, make_trajectory, make_world
-from fisheyedepth.data.synthetic.writer import DatasetMismatch, ensure_dataset, make_scene_motion, pose_at
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.losses.selfsup import ReprojectionLoss, match_brightness, trimmed
+from fisheyedepth.synthetic import DatasetMismatch, WorldSpec, ensure_dataset, generate
+from fisheyedepth.synthetic.raycast import Movers, scene_tensors
+from fisheyedepth.synthetic.render import MAX_RANGE, CameraRenderer
+from fisheyedepth.synthetic.rig import make_rig
+from fisheyedepth.synthetic.scene import make_scene_motion, pose_at
+from fisheyedepth.synthetic.sensor import BLUR_SAMPLES, SHUTTER, Sensor, blur_times, check_effects
+from fisheyedepth.synthetic.traffic import CLEARANCE, MOVING, _legs, make_traffic
+from fisheyedepth.synthetic.world import make_drive, make_trajectory, make_world
 
 from conftest import TRAIN_SEQ, kitti02
 
@@ -198,10 +198,11 @@ def rendered(tmp_path_factory):
     """The same 16-pixel world with traffic rendered three times: plain, with every effect, and again
     with every effect (same seed; no LiDAR this time)."""
     root = tmp_path_factory.mktemp("traffic")
-    kwargs = dict(frames=9, size=16, seed=SEED, supersample=1, lidar=True, progress=False, traffic=1.0)
-    plain = generate(root / "plain", **kwargs)
-    effects = generate(root / "effects", **kwargs, effects=EFFECTS)
-    again = generate(root / "again", **kwargs | {"lidar": False}, effects=list(reversed(EFFECTS)))
+    kwargs = dict(frames=9, size=16, seed=SEED, supersample=1, traffic=1.0)
+    plain = generate(root / "plain", WorldSpec(**kwargs), lidar=True, progress=False)
+    effects = generate(root / "effects", WorldSpec(**kwargs, effects=EFFECTS), lidar=True, progress=False)
+    spec = WorldSpec(**kwargs, effects=list(reversed(EFFECTS)))
+    again = generate(root / "again", spec, lidar=False, progress=False)
     return plain, effects, again
 
 
@@ -236,13 +237,14 @@ def test_traffic_and_effects_render_the_same_bytes_for_a_seed_and_leave_the_grou
 
 def test_a_dataset_asked_for_with_other_traffic_or_effects_is_refused(rendered):
     plain, effects, _ = rendered
-    common = dict(frames=9, size=16, seed=SEED, supersample=1, progress=False)
-    assert ensure_dataset(plain, **common, traffic=1.0) == plain
-    assert ensure_dataset(effects, **common, traffic=1.0, effects=list(reversed(EFFECTS))) == effects
+    common = dict(frames=9, size=16, seed=SEED, supersample=1)
+    assert ensure_dataset(plain, WorldSpec(**common, traffic=1.0), progress=False) == plain
+    spec = WorldSpec(**common, traffic=1.0, effects=list(reversed(EFFECTS)))
+    assert ensure_dataset(effects, spec, progress=False) == effects
     with pytest.raises(DatasetMismatch, match=r"traffic 1\.0 \(asked 0\.5\)"):
-        ensure_dataset(plain, **common, traffic=0.5)
+        ensure_dataset(plain, WorldSpec(**common, traffic=0.5), progress=False)
     with pytest.raises(DatasetMismatch, match="effects"):
-        ensure_dataset(plain, **common, traffic=1.0, effects=["noise"])
+        ensure_dataset(plain, WorldSpec(**common, traffic=1.0, effects=["noise"]), progress=False)
 
 
 # ------------------------------------------------------------------------------------------ evaluation
@@ -332,7 +334,7 @@ def test_outliers_leave_the_worst_pixels_of_each_image_out_of_the_loss():
 
 
 def test_the_command_line_takes_traffic_and_effects_and_refuses_bad_ones(tmp_path, capsys):
-    from fisheyedepth.data.synthetic.cli import main
+    from fisheyedepth.synthetic.cli import main
 
     out = tmp_path / "d"
     assert main(["--out", str(out), "--traffic", "-1", "--quiet"]) == 2

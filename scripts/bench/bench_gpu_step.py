@@ -23,7 +23,7 @@ from pathlib import Path
 import torch
 
 from bench_training import make_batch, make_module, step
-from fisheyedepth.data.synthetic import generate
+from fisheyedepth.synthetic import WorldSpec, generate
 
 from _benchmarks import bench_parser, interleaved, parse_args, timed
 
@@ -47,9 +47,8 @@ def main(argv=None) -> int:
     device = torch.device(args.device)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else None
     with tempfile.TemporaryDirectory() as tmp:
-        root = generate(
-            Path(tmp) / "d", "kitti360", frames=20, size=args.size, seed=0, lidar=False, progress=False
-        )
+        spec = WorldSpec("kitti360", frames=20, size=args.size, seed=0)
+        root = generate(Path(tmp) / "d", spec, lidar=False, progress=False)
         batch = make_batch(root, args.size, args.batch, Path(tmp) / "cache").to(device)
     runs, warmup = {}, {}
     for name in args.variants:

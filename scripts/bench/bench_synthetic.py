@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
-from fisheyedepth.data.synthetic import generate, make_rig, make_trajectory, make_world
-from fisheyedepth.data.synthetic.raycast import scene_tensors
-from fisheyedepth.data.synthetic.render import CameraRenderer
+from fisheyedepth.synthetic import WorldSpec, generate, make_rig, make_trajectory, make_world
+from fisheyedepth.synthetic.raycast import scene_tensors
+from fisheyedepth.synthetic.render import CameraRenderer
 
 from _benchmarks import bench_parser, markers, parse_args, publish, timed
 
@@ -45,8 +45,8 @@ def render_only(frames: int, size: int, supersample: int) -> float:
 def end_to_end(frames: int, size: int, supersample: int, workers: int, **world) -> tuple[float, float]:
     """Camera-frames per second of ``generate``, and the dataset's megabytes per 100 camera-frames."""
     with tempfile.TemporaryDirectory() as tmp:
-        options = {"frames": frames, "size": size, "supersample": supersample, "workers": workers}
-        seconds = timed(lambda: generate(Path(tmp) / "d", "kitti360", progress=False, **options, **world))
+        spec = WorldSpec("kitti360", frames=frames, size=size, supersample=supersample, **world)
+        seconds = timed(lambda: generate(Path(tmp) / "d", spec, workers=workers, progress=False))
         size_bytes = sum(f.stat().st_size for f in (Path(tmp) / "d").rglob("*") if f.is_file())
         return frames * 2 / seconds, size_bytes / 2**20 / (frames * 2) * 100
 

@@ -35,9 +35,9 @@ from torch.nn import functional as F
 
 import fisheyedepth.losses.photometric as photometric
 from fisheyedepth.data import collate
-from fisheyedepth.data.synthetic import generate
 from fisheyedepth.models import bin_expectation
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.synthetic import WorldSpec, generate
 
 from _benchmarks import (
     bench_parser,
@@ -176,9 +176,8 @@ def main(argv=None) -> int:
         return 0
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as tmp:
-        root = generate(
-            Path(tmp) / "d", "kitti360", frames=20, size=args.size, seed=0, lidar=False, progress=False
-        )
+        spec = WorldSpec("kitti360", frames=20, size=args.size, seed=0)
+        root = generate(Path(tmp) / "d", spec, lidar=False, progress=False)
         data = make_batch(root, args.size, args.batch, Path(tmp) / "cache")
         modules = {name: make_module(name) for name in CONFIGS}
         levers = {name: Lever(*flags) for name, flags in LEVERS.items()}

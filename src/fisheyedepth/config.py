@@ -15,11 +15,11 @@ import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from .data.synthetic import GENERATE_OPTIONS
 from .migration import nested_hparams
 from .models.depth_net import check_input_size
 from .option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Kind
 from .option_checks import check_options as check_table
+from .synthetic import GENERATE_OPTIONS
 
 log = logging.getLogger("fisheyedepth")
 # ``${mul:a,b}``: a x b, e.g. the cosine schedule's floor, a tenth of the learning rate

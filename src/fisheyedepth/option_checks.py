@@ -14,7 +14,7 @@ names (``objective.truth_weight``), for a caller without a config.
 
 A table names the options whose kind it knows; the others (a file, a camera name, a string's choices
 with their own message) are left to their reader. The synthetic renderer's table,
-:data:`fisheyedepth.data.synthetic.GENERATE_OPTIONS`, lives beside the renderer (its effects and traffic
+:data:`fisheyedepth.synthetic.GENERATE_OPTIONS`, lives beside the renderer (its effects and traffic
 bound are the renderer's; the renderer imports this module, which imports nothing of the project)."""
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from ..checkpoints import released_checkpoint
-from ..data.synthetic import ensure_datasets
 from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
+from ..synthetic import ensure_datasets
 from ..utils import WRITE_ERRORS, keep_freed_memory
 
 log = logging.getLogger("fisheyedepth")

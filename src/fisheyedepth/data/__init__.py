@@ -1,4 +1,5 @@
-"""Data: the synthetic fisheye world, dataset layouts (KITTI-360, robot rig), the dataset and DataModule.
+"""Data: dataset layouts (KITTI-360, robot rig), the dataset and DataModule (the synthetic world that renders
+KITTI-360-layout datasets is :mod:`fisheyedepth.synthetic`).
 
 ``FisheyeDataModule`` is imported on first use: it needs Lightning (about 3 s to import), which a
 process that only renders or reads data (the synthetic generator's worker processes, a converter) never

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ...cameras import CameraModel, compute_rays
+from ..cameras import CameraModel, compute_rays
 from . import world as W
 from .raycast import Hit, Movers, SceneTensors, box_intersect, cast, tile_grid, untile_grid
 from .rig import EGO_BODY

@@ -1,18 +1,22 @@
-"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.data.synthetic.cli``): render a synthetic fisheye
+"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.synthetic.cli``): render a synthetic fisheye
 dataset."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
-from ...option_checks import check_options
+from ..option_checks import check_options
+from .folder import made_by_generator
+from .pool import Terminated
 from .rig import RIGS
 from .sensor import EFFECTS
+from .spec import GENERATE_OPTIONS, WorldSpec
 from .traffic import MAX_TRAFFIC
 from .world import SCENES
-from .writer import GENERATE_OPTIONS, Terminated, generate, made_by_generator
+from .writer import generate
 
 
 def flag(option: str) -> str:
@@ -22,7 +26,7 @@ def flag(option: str) -> str:
 
 def check_flags(args: argparse.Namespace) -> None:
     """The flags that are generation parameters, by the kinds and ranges of ``data.generate``
-    (:data:`~.writer.GENERATE_OPTIONS`), named as typed: ``--traffic: 1000.0 is not a number in [0, 8]``."""
+    (:data:`~.spec.GENERATE_OPTIONS`), named as typed: ``--traffic: 1000.0 is not a number in [0, 8]``."""
     given = {flag(k): v for k, v in vars(args).items()}
     check_options(given, {flag(k): kind for k, kind in GENERATE_OPTIONS.items()})
 
@@ -78,26 +82,12 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         check_flags(a)
+        spec = WorldSpec(**{field.name: getattr(a, field.name) for field in dataclasses.fields(WorldSpec)})
         if a.overwrite:
             _announce_replacement(Path(a.out))
-        out = generate(
-            a.out,
-            a.rig,
-            a.frames,
-            a.size,
-            a.seed,
-            a.supersample,
-            a.workers,
-            not a.no_lidar,
-            a.overwrite,
-            not a.quiet,
-            lane=a.lane,
-            scene=a.scene,
-            random_cameras=a.random_cameras,
-            traffic=a.traffic,
-            effects=a.effects,
-        )
-    except (OSError, ValueError) as exc:  # a full disk: writer.NoSpaceLeft, naming the folder
+        rendering = {"workers": a.workers, "lidar": not a.no_lidar, "progress": not a.quiet}
+        out = generate(a.out, spec, overwrite=a.overwrite, **rendering)
+    except (OSError, ValueError) as exc:  # a full disk: folder.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except (Terminated, KeyboardInterrupt) as exc:

@@ -103,7 +103,7 @@ class Movers:
 
     @classmethod
     def from_boxes(cls, boxes: dict, device="cpu") -> Movers:
-        """From :meth:`fisheyedepth.data.synthetic.traffic.Traffic.boxes_at`'s arrays."""
+        """From :meth:`fisheyedepth.synthetic.traffic.Traffic.boxes_at`'s arrays."""
         f = dict(dtype=torch.float32, device=device)
         lo, hi = torch.as_tensor(boxes["lo"], **f), torch.as_tensor(boxes["hi"], **f)
         xy = torch.stack((torch.as_tensor(boxes["x"], **f), torch.as_tensor(boxes["y"], **f)), -1)

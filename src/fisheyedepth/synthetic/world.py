@@ -62,7 +62,7 @@ class World:
     sphere_material: np.ndarray
     sphere_tint: np.ndarray
     sun: np.ndarray  # [3] unit vector towards the sun
-    # the indoor scene (fisheyedepth.data.synthetic.indoor); a street world keeps these defaults
+    # the indoor scene (fisheyedepth.synthetic.indoor); a street world keeps these defaults
     scene: str = "street"
     room: np.ndarray | None = None  # [6] the room's interior: lo xyz, hi xyz (the floor is z = 0)
     walkway: np.ndarray | None = None  # [5] x0, y0, x1, y1, corner radius of the loop the camera walks

@@ -31,9 +31,9 @@ import math
 import numpy as np
 import torch
 
-from ...cameras import CAMERA_MODELS, CameraModel, KannalaBrandtCamera, MeiCamera
-from ...geometry import make_pose, pose_from_3x4
-from ..kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
+from ..cameras import CAMERA_MODELS, CameraModel, KannalaBrandtCamera, MeiCamera
+from ..data.kitti360.presets import KITTI360_CAM0_TO_VELO, KITTI360_CAM_TO_POSE, kitti360_camera
+from ..geometry import make_pose, pose_from_3x4
 
 RIGS = ("kitti360", "surround4", "stereo")
 STEREO_BASELINE = 0.2  # metres between the stereo rig's two cameras
