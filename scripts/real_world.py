@@ -31,7 +31,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from fisheyedepth.realworld import FRAME_SETS, default_root, records_table, score_models
+from fisheyedepth.data.realframes import FRAME_SETS
+from fisheyedepth.realworld import default_root, records_table, score_models
 from fisheyedepth.runtimes import POST_PROCESSING
 from fisheyedepth.stereo.realpairs import multiview_records_table, multiview_scores
 
