@@ -282,6 +282,15 @@ def test_a_missing_frame_is_named_with_its_path(root, tiny, tmp_path, capsys):
     assert record["models"][tiny.stem]["frames"]["adt_left_1"] == record["frames"]["adt_left_1"]
 
 
+def test_the_command_needs_a_real_data_folder(tmp_path, monkeypatch, capsys):
+    """Without ``--root`` and without FISHEYEDEPTH_REALDATA: one ``error: --root:`` line naming both,
+    exit status 2, nothing read."""
+    monkeypatch.delenv("FISHEYEDEPTH_REALDATA", raising=False)
+    assert load_script("real_world").main([str(tmp_path / "model.ckpt"), "--no-multiview"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --root: ") and "FISHEYEDEPTH_REALDATA" in err[0]
+
+
 @pytest.mark.realdata
 def test_malformed_files_are_named_with_the_field(root, tmp_path):
     for name in ("kitti360_frame", "scannetpp_frame", "adt_slam"):

@@ -2,16 +2,12 @@
 model on every real frame (:mod:`fisheyedepth.data.realframes`, scored by :mod:`fisheyedepth.realscores`)
 beside its constant map, the tables kept in run records, the published anchors, a picture per model and
 frame, and the JSON record.
-
-The frames live outside the repository (``FISHEYEDEPTH_REALDATA``, default ``../shared/realdata``;
-their README describes them).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -40,12 +36,6 @@ ANCHORS = (
     ("Metric3D v2", 0.200, None),
     ("UniK3D", 0.244, None),
 )
-
-
-def default_root() -> Path:
-    """``$FISHEYEDEPTH_REALDATA``, else ``../shared/realdata`` beside the project's root."""
-    here = Path(__file__).resolve().parents[2]
-    return Path(os.environ.get("FISHEYEDEPTH_REALDATA", here.parent / "shared" / "realdata"))
 
 
 # ------------------------------------------------------------------ the pictures
@@ -206,7 +196,7 @@ def outputs(
 
 def score_models(
     model_paths: Sequence[Path],
-    root: Path | None = None,
+    root: Path,
     sets: Sequence[str] = FRAME_SETS,
     pictures: Path | None = None,
     json_out: Path | None = None,
@@ -219,7 +209,7 @@ def score_models(
     pictures ``<model>_<frame>.png`` into ``pictures``, the record (returned) into ``json_out`` when
     given. ``more(record, predictions)``: further scores added to the record before it is written, given
     each model's predicted distance per frame (``{model: {frame: [H, W]}}``)."""
-    root = default_root() if root is None else Path(root)
+    root = Path(root)
     for path in map(Path, model_paths):  # before the frames are read
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such checkpoint or exported file")
