@@ -1,6 +1,6 @@
 """Scores on real photographs (``fisheyedepth.data.realframes``, ``fisheyedepth.realscores``,
-``fisheyedepth.realworld``, ``scripts/real_world.py``): the real frames of ../shared/realdata (or
-FISHEYEDEPTH_REALDATA), skipped when absent."""
+``scripts/real_world.py``): the real frames of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped
+when absent."""
 
 from __future__ import annotations
 
@@ -13,7 +13,6 @@ import pytest
 import torch
 
 from fisheyedepth import realscores as rs
-from fisheyedepth import realworld as rw
 from fisheyedepth.cameras import CalibrationError
 from fisheyedepth.data import realframes as rf
 from fisheyedepth.data.kitti360 import OCCLUSION
@@ -180,7 +179,7 @@ def old_kitti360_score(runtime, folder: Path) -> dict:
 
 @pytest.mark.realdata
 def test_kitti360_scores_what_real_frame_scored(root, frames, tiny):
-    runtime = rw.load_model(tiny)
+    runtime = load_script("real_world").load_model(tiny)
     new, pred = rs.score(runtime, frames["kitti360"])
     assert pred.shape == (1400, 1400)
     old = old_kitti360_score(runtime, root / "kitti360_frame")
@@ -343,13 +342,13 @@ def test_the_readme_prints_the_anchors_the_command_prints():
     """docs/real-data.md, "Real photographs": the published anchors, as the command prints them."""
     readme = (ROOT / "docs" / "real-data.md").read_text()
     section = readme.split("## Real photographs", 1)[1].split("\n## ", 1)[0]
-    assert "\n".join(rw.anchors_table()) in section
+    assert "\n".join(load_script("real_world").anchors_table()) in section
     assert "python scripts/real_world.py" in section and "constant map" in section
     assert "real_frame" not in readme
 
 
 def test_model_names_are_short_and_unique():
-    names = rw.model_names(
+    names = load_script("real_world").model_names(
         [
             "a/tiny.onnx",
             "b/tiny.ckpt",
