@@ -46,9 +46,10 @@ reproduce: install
 # A checkpoint (or an exported .onnx) scored on every real frame with ground truth (FISHEYEDEPTH_REALDATA,
 # default ../shared/realdata) beside a constant map: make realscore CKPT=RUN/checkpoints/last.ckpt
 # [ARGS="--pictures out/ --json out/real.json"].
+FISHEYEDEPTH_REALDATA ?= $(abspath ../shared/realdata)
 realscore: install
 	@test -n "$(CKPT)" || { echo "usage: make realscore CKPT=FILE.ckpt|FILE.onnx [ARGS=...]" >&2; exit 2; }
-	$(PY) scripts/real_world.py $(CKPT) $(ARGS)
+	FISHEYEDEPTH_REALDATA="$(FISHEYEDEPTH_REALDATA)" $(PY) scripts/real_world.py $(CKPT) $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache src/*.egg-info

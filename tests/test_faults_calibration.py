@@ -43,7 +43,7 @@ from fisheyedepth.data.kitti360.presets import kitti360_camera
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.data.rosbag import RosbagError, camera_from_info
 
-from conftest import KITTI_02, all_cameras, aria_fisheye624
+from conftest import KITTI_02, all_cameras, aria_fisheye624, load_script
 
 TOPIC = "/front/camera_info"
 K = [612.4, 0.0, 318.7, 0.0, 611.9, 242.1, 0.0, 0.0, 1.0]  # a 640 x 480 USB camera, row-major
@@ -415,7 +415,9 @@ def test_rig_yaml_and_its_calibrations_refuse_a_deep_file(tmp_path):
 
 def test_aria_and_real_world_json_refuse_a_deep_file(tmp_path):
     from fisheyedepth.data.aria import CALIBRATION, aria_to_rig
-    from fisheyedepth.realworld import adt_camera, records_table, scannetpp_camera
+    from fisheyedepth.data.realframes import adt_camera, scannetpp_camera
+
+    records_table = load_script("real_world").records_table
 
     path = write(tmp_path / "calib.json", '{"cam": ' + "[" * 100_000)
     assert refused(Fisheye624Camera.from_aria, path, "cam") == f"{path}: {TOO_DEEP_LINE}"
@@ -507,7 +509,7 @@ def test_every_shipped_camera_passes_the_rule():
 
 def real_cameras(realdata: Path) -> dict[str, CameraModel]:
     """Every camera of ../shared/realdata, through the project's readers where it has one."""
-    from fisheyedepth.realworld import adt_camera, scannetpp_camera
+    from fisheyedepth.data.realframes import adt_camera, scannetpp_camera
 
     cameras = {f"kitti360 {i}": load_camera(realdata / "kitti360_frame" / f"image_0{i}.yaml") for i in (2, 3)}
     gen2 = realdata / "aria_gen2_rig" / "calib_slam_fisheye624.json"

@@ -1,5 +1,6 @@
-"""Scores on real photographs (``fisheyedepth.realworld``, ``scripts/real_world.py``): the real frames
-of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped when absent."""
+"""Scores on real photographs (``fisheyedepth.data.realframes``, ``fisheyedepth.realscores``,
+``scripts/real_world.py``): the real frames of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped
+when absent."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ import numpy as np
 import pytest
 import torch
 
-from fisheyedepth import realworld as rw
+from fisheyedepth import realscores as rs
 from fisheyedepth.cameras import CalibrationError
+from fisheyedepth.data import realframes as rf
 from fisheyedepth.data.kitti360 import OCCLUSION
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.images import read_image
@@ -43,10 +45,10 @@ def root() -> Path:
 
 
 @pytest.fixture(scope="module")
-def frames(root) -> dict[str, rw.RealFrame]:
-    loaded = rw.load_frames(root)
+def frames(root) -> dict[str, rf.RealFrame]:
+    loaded = rf.load_frames(root)
     assert [f.name for f in loaded] == FRAME_NAMES
-    assert all(isinstance(f, rw.RealFrame) for f in loaded), [f for f in loaded if isinstance(f, rw.Missing)]
+    assert all(isinstance(f, rf.RealFrame) for f in loaded), [f for f in loaded if isinstance(f, rf.Missing)]
     return {f.name: f for f in loaded}
 
 
@@ -102,7 +104,7 @@ def test_adt_z_depth_becomes_distance_whose_point_projects_back_to_its_pixel(fra
     for name in ("adt_left_0", "adt_right_1"):
         frame = frames[name]
         z = cv2.imread(str(frame.files[2]), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000
-        rays = rw.RAYS.get(frame.camera)[0].double()  # the rays the distance was made with
+        rays = rf.RAYS.get(frame.camera)[0].double()  # the rays the distance was made with
         d = frame.distance.double()
         has = d > 0
         assert 0.9 < float(has.double().mean()) and bool(
@@ -118,14 +120,14 @@ def test_adt_z_depth_becomes_distance_whose_point_projects_back_to_its_pixel(fra
         assert float((uv - pixel).abs().max()) < 1e-3
 
 
-def kitti360_scored_by_numpy(frame: rw.RealFrame) -> np.ndarray:
+def kitti360_scored_by_numpy(frame: rf.RealFrame) -> np.ndarray:
     """The full protocol's pixels of the KITTI-360 frame: body mask, a ray, a return below 80 m and not
     10 % behind the nearest return within 3 pixels (a 7x7 minimum filter by OpenCV's erosion)."""
     d = frame.distance.numpy()
     near = cv2.erode(np.where(d > 0, d, np.inf).astype(np.float32), np.ones((7, 7), np.uint8))
     with np.errstate(over="ignore"):  # inf (no return nearby) times 1.1
         hidden = (d > 0) & (d > np.float32(1 + OCCLUSION) * near)
-    valid = rw.RAYS.get(frame.camera)[1].numpy()
+    valid = rf.RAYS.get(frame.camera)[1].numpy()
     return frame.mask.numpy() & valid & (d > 1e-3) & (d < 80) & ~hidden
 
 
@@ -138,12 +140,12 @@ def test_the_constant_map_scores_what_numpy_computes(frames):
         if name == "kitti360":
             scored = kitti360_scored_by_numpy(frame)
         else:
-            valid = rw.RAYS.get(frame.camera)[1].numpy()
-            assert frame.protocol.cap[1] == np.floor(d[valid].max()) + 1
-            scored = valid & (d > 1e-3) & (d < frame.protocol.cap[1])
+            valid = rf.RAYS.get(frame.camera)[1].numpy()
+            assert rs.protocols(frame)[0].cap[1] == np.floor(d[valid].max()) + 1
+            scored = valid & (d > 1e-3) & (d < rs.protocols(frame)[0].cap[1])
         g = d[scored]
         median = np.median(g)
-        constant = rw.constant_map(frame)
+        constant = rs.constant_map(frame)
         assert constant["pixels"] == scored.sum() and constant["distance"] == pytest.approx(median, rel=1e-12)
         m = np.float64(np.float32(median))  # the map is float32, as every prediction
         ratio = np.maximum(g / m, m / g)
@@ -168,7 +170,7 @@ def old_kitti360_score(runtime, folder: Path) -> dict:
     pred = runtime.distance(image, [camera]).float()[0, 0]
     results = {}
     for name in ("full", "kitti360"):
-        evaluator = Evaluator(PROTOCOLS[name], ("none", "median"), rays=rw.RAYS)  # the rays, cached
+        evaluator = Evaluator(PROTOCOLS[name], ("none", "median"), rays=rf.RAYS)  # the rays, cached
         evaluator.update(pred, lidar.to(pred), torch.from_numpy(mask), camera, source="lidar")
         results[name] = evaluator.compute()
     return results
@@ -176,8 +178,8 @@ def old_kitti360_score(runtime, folder: Path) -> dict:
 
 @pytest.mark.realdata
 def test_kitti360_scores_what_real_frame_scored(root, frames, tiny):
-    runtime = rw.load_model(tiny)
-    new, pred = rw.score(runtime, frames["kitti360"])
+    runtime = load_script("real_world").load_model(tiny)
+    new, pred = rs.score(runtime, frames["kitti360"])
     assert pred.shape == (1400, 1400)
     old = old_kitti360_score(runtime, root / "kitti360_frame")
     for protocol in ("full", "kitti360"):
@@ -207,8 +209,8 @@ def test_kitti360_scores_the_lidar_points_as_they_are(frames):
         and 0 <= float(frame.image.min()) < float(frame.image.max()) <= 1
     )
     assert 0.02 < float((frame.distance > 0).float().mean()) < 0.03  # the README's 2.6 % of pixels
-    exact, _ = rw.score(ScaledLidar(frame.distance, 1.0), frame)
-    half, _ = rw.score(ScaledLidar(frame.distance, 0.5), frame)
+    exact, _ = rs.score(ScaledLidar(frame.distance, 1.0), frame)
+    half, _ = rs.score(ScaledLidar(frame.distance, 0.5), frame)
     for protocol in ("full", "kitti360"):
         assert exact[protocol]["none"]["abs_rel"] == pytest.approx(0.0, abs=1e-7)
         assert exact[protocol]["none"]["a1"] == 1.0 and exact[protocol]["none"]["images"] == 1
@@ -235,8 +237,8 @@ def test_the_command_scores_a_checkpoint_on_every_frame(root, frames, tiny, tmp_
     for r in rows:
         frame = frames[r[1]]
         constant = record["frames"][r[1]]["constant_map"]
-        result = scores[r[1]][frame.protocol.name]
-        assert r[2] == f"{constant['pixels']:,}" and r[3] == f"{frame.protocol.cap[1]:g} m"
+        result = scores[r[1]][rs.protocols(frame)[0].name]
+        assert r[2] == f"{constant['pixels']:,}" and r[3] == f"{rs.protocols(frame)[0].cap[1]:g} m"
         assert numbers(r[4]) == [
             round(result["none"][k], n) for k, n in (("abs_rel", 3), ("a1", 3), ("rmse", 2))
         ]
@@ -278,6 +280,15 @@ def test_a_missing_frame_is_named_with_its_path(root, tiny, tmp_path, capsys):
     assert record["models"][tiny.stem]["frames"]["adt_left_1"] == record["frames"]["adt_left_1"]
 
 
+def test_the_command_needs_a_real_data_folder(tmp_path, monkeypatch, capsys):
+    """Without ``--root`` and without FISHEYEDEPTH_REALDATA: one ``error: --root:`` line naming both,
+    exit status 2, nothing read."""
+    monkeypatch.delenv("FISHEYEDEPTH_REALDATA", raising=False)
+    assert load_script("real_world").main([str(tmp_path / "model.ckpt"), "--no-multiview"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: --root: ") and "FISHEYEDEPTH_REALDATA" in err[0]
+
+
 @pytest.mark.realdata
 def test_malformed_files_are_named_with_the_field(root, tmp_path):
     for name in ("kitti360_frame", "scannetpp_frame", "adt_slam"):
@@ -293,17 +304,17 @@ def test_malformed_files_are_named_with_the_field(root, tmp_path):
     calibration = tmp_path / "scannetpp_frame" / "calibration.json"
     replace(calibration, lambda p: p.write_text(json.dumps({k: v for k, v in calib.items() if k != "k3"})))
     with pytest.raises(CalibrationError, match=r"calibration.json: key 'k3': missing"):
-        rw.load_frames(tmp_path, ["scannetpp"])
+        rf.load_frames(tmp_path, ["scannetpp"])
     calibration.write_text(json.dumps(calib | {"fy": "791"}))
     with pytest.raises(CalibrationError, match=r"calibration.json: key 'fy': expected a number, got '791'"):
-        rw.load_frames(tmp_path, ["scannetpp"])
+        rf.load_frames(tmp_path, ["scannetpp"])
     calibration.write_text(json.dumps(calib))
     replace(
         tmp_path / "scannetpp_frame" / "depth_z_mm.png",
         lambda p: cv2.imwrite(str(p), np.zeros((1168, 1752), np.uint8)),
     )
     with pytest.raises(ValueError, match=r"depth_z_mm.png: expected a one-channel uint16 PNG \(millimetres"):
-        rw.load_frames(tmp_path, ["scannetpp"])
+        rf.load_frames(tmp_path, ["scannetpp"])
 
     meta = json.loads((root / "adt_slam" / "adt_sample.json").read_text())
     meta["cameras"]["camera-slam-right"]["projection_params"] = meta["cameras"]["camera-slam-right"][
@@ -315,14 +326,14 @@ def test_malformed_files_are_named_with_the_field(root, tmp_path):
         match=r"adt_sample.json: key 'cameras.camera-slam-right.projection_params': expected a list of 15 "
         r"numbers, got 14",
     ):
-        rw.load_frames(tmp_path, ["adt"])
+        rf.load_frames(tmp_path, ["adt"])
 
     replace(
         tmp_path / "kitti360_frame" / "image_02_body_mask.png",
         lambda p: cv2.imwrite(str(p), np.full((700, 700), 255, np.uint8)),
     )
     with pytest.raises(ValueError, match=r"body_mask.png: 700x700, but image_02.yaml says 1400x1400"):
-        rw.load_frames(tmp_path, ["kitti360"])
+        rf.load_frames(tmp_path, ["kitti360"])
 
 
 # ------------------------------------------------------------------ the published anchors
@@ -330,13 +341,13 @@ def test_the_readme_prints_the_anchors_the_command_prints():
     """docs/real-data.md, "Real photographs": the published anchors, as the command prints them."""
     readme = (ROOT / "docs" / "real-data.md").read_text()
     section = readme.split("## Real photographs", 1)[1].split("\n## ", 1)[0]
-    assert "\n".join(rw.anchors_table()) in section
+    assert "\n".join(load_script("real_world").anchors_table()) in section
     assert "python scripts/real_world.py" in section and "constant map" in section
     assert "real_frame" not in readme
 
 
 def test_model_names_are_short_and_unique():
-    names = rw.model_names(
+    names = load_script("real_world").model_names(
         [
             "a/tiny.onnx",
             "b/tiny.ckpt",

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from ..cameras.io import field
+from ..data.realframes import Missing, load_adt, one_match, read_json, read_rgb
 from ..geometry.se3 import invert_pose, transform_points
-from ..realworld import Missing, _one, load_adt, read_json, read_rgb
 from .pairs import RealPair, motorcycle
 from .recording import score
 from .refine import Matches, match_features, refine_relative_pose
@@ -80,7 +80,7 @@ def adt_pairs(folder: Path, refine: bool = True) -> list[ScoredPair | Missing]:
         found = []
         for index in ADT_REFINE_FRAMES:
             names = [f"adt_{c.rsplit('-', 1)[1]}_{index}" for c in ADT_CAMERAS]
-            paths = [_one(folder, f"{c}_{index}_*.png") for c in ADT_CAMERAS]
+            paths = [one_match(folder, f"{c}_{index}_*.png") for c in ADT_CAMERAS]
             if None not in paths:  # the frames with ground truth are read already
                 pairs = zip(names, paths, strict=True)
                 a, b = (frames[n].image if n in frames else read_rgb(p) for n, p in pairs)
@@ -185,9 +185,9 @@ def multiview_scores(
 ) -> dict[str, Any]:
     """Sweep stereo on every real pair (:func:`adt_pairs` under ``root/adt_slam``, refined; Middlebury
     Motorcycle when scikit-image is installed), a table row each through ``echo``, beside each model of
-    ``predictions`` (``{model: {frame: [H, W]}}``, as :func:`fisheyedepth.realworld.score_models` gives
-    them) scored on the same overlap pixels, and panels ``multiview_<frame>.png`` (image | checked |
-    dense | ground truth) into ``pictures``. Returns the record: per frame, the scores and the refinement."""
+    ``predictions`` (``{model: {frame: [H, W]}}``, as ``scripts/real_world.py`` passes them) scored on
+    the same overlap pixels, and panels ``multiview_<frame>.png`` (image | checked | dense | ground
+    truth) into ``pictures``. Returns the record: per frame, the scores and the refinement."""
     import cv2
 
     from ..utils import atomic_write_bytes
