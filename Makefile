@@ -49,7 +49,7 @@ reproduce: install
 FISHEYEDEPTH_REALDATA ?= $(abspath ../shared/realdata)
 realscore: install
 	@test -n "$(CKPT)" || { echo "usage: make realscore CKPT=FILE.ckpt|FILE.onnx [ARGS=...]" >&2; exit 2; }
-	FISHEYEDEPTH_REALDATA="$(FISHEYEDEPTH_REALDATA)" $(PY) scripts/real_world.py $(CKPT) $(ARGS)
+	FISHEYEDEPTH_REALDATA="$(FISHEYEDEPTH_REALDATA)" $(PY) scripts/tools/real_world.py $(CKPT) $(ARGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache src/*.egg-info

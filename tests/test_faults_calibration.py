@@ -417,7 +417,7 @@ def test_aria_and_real_world_json_refuse_a_deep_file(tmp_path):
     from fisheyedepth.data.aria import CALIBRATION, aria_to_rig
     from fisheyedepth.data.realframes import adt_camera, scannetpp_camera
 
-    records_table = load_script("real_world").records_table
+    records_table = load_script("tools/real_world").records_table
 
     path = write(tmp_path / "calib.json", '{"cam": ' + "[" * 100_000)
     assert refused(Fisheye624Camera.from_aria, path, "cam") == f"{path}: {TOO_DEEP_LINE}"

@@ -241,7 +241,7 @@ def test_adt_slam_pair_refined_then_swept_gives_metric_distance(adt_pairs):
 
 @pytest.mark.realdata
 def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monkeypatch, capsys):
-    """``scripts/real_world.py`` (``make realscore``) adds a table: each ADT reference frame and the
+    """``scripts/tools/real_world.py`` (``make realscore``) adds a table: each ADT reference frame and the
     Middlebury pair, checked and dense, the constant map and each model on the same overlap pixels,
     pictures ``multiview_<frame>.png``; every number in the JSON too."""
     pytest.importorskip("skimage")
@@ -269,7 +269,7 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
     pictures, out = tmp_path / "pictures", tmp_path / "scores.json"
     args = [str(tiny), "--root", str(realdata_dir()), "--frames", "adt", "--pictures", str(pictures),
             "--json", str(out)]  # fmt: skip
-    assert load_script("real_world").main(args) == 0
+    assert load_script("tools/real_world").main(args) == 0
     lines = capsys.readouterr().out.splitlines()
     table = lines[lines.index(realpairs.HEADER) + 2 :]
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table if line.startswith("| ")]
@@ -293,7 +293,7 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
         line.startswith("ADT slam right relative to left, refined from 3 image pairs") for line in lines
     )
     # the record rebuilds the table, nothing re-scored
-    assert load_script("real_world").main(["--from-records", "--multiview", str(out)]) == 0
+    assert load_script("tools/real_world").main(["--from-records", "--multiview", str(out)]) == 0
     start = lines.index(realpairs.HEADER)
     assert capsys.readouterr().out.splitlines() == lines[start : start + 2 + len(names)]
 

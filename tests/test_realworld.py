@@ -1,5 +1,5 @@
 """Scores on real photographs (``fisheyedepth.data.realframes``, ``fisheyedepth.realscores``,
-``scripts/real_world.py``): the real frames of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped
+``scripts/tools/real_world.py``): the real frames of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped
 when absent."""
 
 from __future__ import annotations
@@ -178,7 +178,7 @@ def old_kitti360_score(runtime, folder: Path) -> dict:
 
 @pytest.mark.realdata
 def test_kitti360_scores_what_real_frame_scored(root, frames, tiny):
-    runtime = load_script("real_world").load_model(tiny)
+    runtime = load_script("tools/real_world").load_model(tiny)
     new, pred = rs.score(runtime, frames["kitti360"])
     assert pred.shape == (1400, 1400)
     old = old_kitti360_score(runtime, root / "kitti360_frame")
@@ -223,7 +223,7 @@ def test_kitti360_scores_the_lidar_points_as_they_are(frames):
 # ------------------------------------------------------------------ the command
 @pytest.mark.realdata
 def test_the_command_scores_a_checkpoint_on_every_frame(root, frames, tiny, tmp_path, capsys):
-    script = load_script("real_world")
+    script = load_script("tools/real_world")
     pictures, out = tmp_path / "pictures", tmp_path / "scores.json"
     args = [str(tiny), "--root", str(root), "--pictures", str(pictures), "--json", str(out), "--no-multiview"]
     assert script.main(args) == 0
@@ -267,7 +267,7 @@ def test_a_missing_frame_is_named_with_its_path(root, tiny, tmp_path, capsys):
     out = tmp_path / "scores.json"
     args = [str(tiny), "--root", str(tmp_path), "--frames", "scannetpp", "adt", "--json", str(out),
             "--no-multiview"]  # fmt: skip
-    assert load_script("real_world").main(args) == 1
+    assert load_script("tools/real_world").main(args) == 1
     captured = capsys.readouterr()
     rows = {r[1]: r for r in map(cells, captured.out.splitlines()) if r[0] == tiny.stem}
     assert list(rows) == ["scannetpp", "adt_left_0", "adt_left_1", "adt_right_0", "adt_right_1"]
@@ -284,7 +284,7 @@ def test_the_command_needs_a_real_data_folder(tmp_path, monkeypatch, capsys):
     """Without ``--root`` and without FISHEYEDEPTH_REALDATA: one ``error: --root:`` line naming both,
     exit status 2, nothing read."""
     monkeypatch.delenv("FISHEYEDEPTH_REALDATA", raising=False)
-    assert load_script("real_world").main([str(tmp_path / "model.ckpt"), "--no-multiview"]) == 2
+    assert load_script("tools/real_world").main([str(tmp_path / "model.ckpt"), "--no-multiview"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: --root: ") and "FISHEYEDEPTH_REALDATA" in err[0]
 
@@ -341,13 +341,13 @@ def test_the_readme_prints_the_anchors_the_command_prints():
     """docs/real-data.md, "Real photographs": the published anchors, as the command prints them."""
     readme = (ROOT / "docs" / "real-data.md").read_text()
     section = readme.split("## Real photographs", 1)[1].split("\n## ", 1)[0]
-    assert "\n".join(load_script("real_world").anchors_table()) in section
-    assert "python scripts/real_world.py" in section and "constant map" in section
+    assert "\n".join(load_script("tools/real_world").anchors_table()) in section
+    assert "python scripts/tools/real_world.py" in section and "constant map" in section
     assert "real_frame" not in readme
 
 
 def test_model_names_are_short_and_unique():
-    names = load_script("real_world").model_names(
+    names = load_script("tools/real_world").model_names(
         [
             "a/tiny.onnx",
             "b/tiny.ckpt",

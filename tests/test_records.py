@@ -86,7 +86,7 @@ def test_benchmarks_publishes_marked_tables_with_their_commands():
 @pytest.mark.parametrize("name, command, body", published_tables())
 def test_a_published_table_is_what_its_command_prints_from_the_records(name, command, body):
     words = shlex.split(command)
-    scripts = ("research/make_tables.py", "research/heldout.py", "real_world.py")
+    scripts = ("research/make_tables.py", "research/heldout.py", "tools/real_world.py")
     assert words[0] == "python" and words[1] in [f"scripts/{s}" for s in scripts], command
     if not words[1].endswith("make_tables.py"):
         assert "--from-records" in words  # never re-scored here

@@ -112,7 +112,7 @@ def test_release_writes_float16_weights_and_their_checksum_and_keeps_an_existing
 
 def test_the_released_weights_score_the_real_kitti360_frame_as_published(realdata):
     """The KITTI-360 figure of weights/README.md and of its record, recomputed from the released file."""
-    score_models = load_script("real_world").score_models
+    score_models = load_script("tools/real_world").score_models
     record = score_models([released_checkpoint()], realdata, sets=["kitti360"], echo=lambda line: None)
     kept = json.loads((ROOT / "docs/records/real_photographs/release_mobile.json").read_text())["real_world"]
     scores = next(iter(record["models"].values()))["frames"]["kitti360"]["full"]

@@ -158,7 +158,7 @@ def multiview_row(name: str, result: dict[str, Any]) -> str:
 
 def multiview_records_table(paths) -> list[str]:
     """The sweep's real-world table kept in records (JSON files with a ``multiview`` entry, as
-    ``scripts/real_world.py --json`` writes them), nothing re-scored."""
+    ``scripts/tools/real_world.py --json`` writes them), nothing re-scored."""
     from ..cameras.io import load_json
 
     lines = [HEADER, "|---|---|---|---|---|---|---|---|"]
@@ -185,7 +185,7 @@ def multiview_scores(
 ) -> dict[str, Any]:
     """Sweep stereo on every real pair (:func:`adt_pairs` under ``root/adt_slam``, refined; Middlebury
     Motorcycle when scikit-image is installed), a table row each through ``echo``, beside each model of
-    ``predictions`` (``{model: {frame: [H, W]}}``, as ``scripts/real_world.py`` passes them) scored on
+    ``predictions`` (``{model: {frame: [H, W]}}``, as ``scripts/tools/real_world.py`` passes them) scored on
     the same overlap pixels, and panels ``multiview_<frame>.png`` (image | checked | dense | ground
     truth) into ``pictures``. Returns the record: per frame, the scores and the refinement."""
     import cv2
