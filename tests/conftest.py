@@ -293,10 +293,8 @@ def train_few_steps(kitti_data: Path, path: Path, **net) -> None:
     KITTI-360 batch, saved to ``path`` like Lightning saves it."""
     import torch
 
-    from fisheyedepth.module import FisheyeDepthModule
-
     torch.manual_seed(0)
-    module = FisheyeDepthModule(net={"scales": (0, 1), "base_focal": 20.0, **net}, input_size=(64, 64))
+    module = bare_module(net={"scales": (0, 1), "base_focal": 20.0, **net}, input_size=(64, 64))
     batch = tiny_batch(kitti_data)
     opt = torch.optim.Adam(module.parameters(), 1e-3)
     for _ in range(3):

@@ -38,6 +38,13 @@ def _read(path: Path) -> dict[str, Any]:
     return loaded
 
 
+def _tuples(value: Any) -> Any:
+    """YAML's lists as tuples (a default nobody can append to), through mappings."""
+    if isinstance(value, dict):
+        return {k: _tuples(v) for k, v in value.items()}
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
 @functools.lru_cache(maxsize=1)
 def _defaults() -> dict[str, Any]:
     model = _read(MODEL_CONFIG)
@@ -50,6 +57,7 @@ def _defaults() -> dict[str, Any]:
     for key, value in model.items():
         # an interpolation (``input_size: ${data.datamodule.size}``) is the entry point's to fill in
         out[key] = None if isinstance(value, str) and value.startswith("${") else value
+    out = _tuples(out)
     missing = [g for g in GROUPS if not isinstance(out.get(g), dict)]
     if missing:
         raise ValueError(f"{MODEL_CONFIG}: no {', '.join(missing)} group of options")
@@ -57,8 +65,8 @@ def _defaults() -> dict[str, Any]:
 
 
 def model_defaults() -> dict[str, Any]:
-    """The module's options as ``conf/model/fisheyedepth.yaml`` sets them (a fresh copy): the groups
-    and the module's own options. ``net.base_focal`` is ``auto`` there, which ``train.py`` resolves from
+    """The module's options as ``conf/model/fisheyedepth.yaml`` sets them (a fresh copy; its lists as
+    tuples): the groups and the module's own options. ``net.base_focal`` is ``auto`` there, which ``train.py`` resolves from
     the training cameras; a network built without them names its ``base_focal`` (None: depth scale 1)."""
     return copy.deepcopy(_defaults())
 
