@@ -51,21 +51,22 @@ def build_module(cfg: DictConfig, datamodule=None, base_focal: Any = "auto"):
     training cameras: None, depth_scale 1)."""
     from fisheyedepth.cli.train import build_model
     from fisheyedepth.config import resolve_base_focal
+    from fisheyedepth.plan import model_plan
 
-    path = _find(cfg.model, "base_focal")
+    model, path = model_plan(cfg), _find(cfg.model, "base_focal")
     if path is None:
-        return build_model(cfg)
+        return build_model(model)
     value = base_focal
     if base_focal == "auto" and OmegaConf.select(cfg.model, ".".join(path)) == "auto":
         if datamodule is None:
             raise ValueError(f"model.{'.'.join(path)}: auto needs the training data (a data module)")
         value = resolve_base_focal(datamodule)
     elif base_focal == "auto":
-        return build_model(cfg)  # a number configured: as it is
+        return build_model(model)  # a number configured: as it is
     resolved: Any = value
     for key in reversed(path):  # {"net": {"base_focal": value}} for model.net.base_focal
         resolved = {key: resolved}
-    return build_model(cfg, **resolved)
+    return build_model(model, **resolved)
 
 
 def _find(node: Any, key: str, path: tuple[str, ...] = ()) -> tuple[str, ...] | None:

@@ -314,12 +314,13 @@ def tiny_world(tmp_path_factory) -> Path:
     from hydra import compose, initialize_config_dir
 
     from fisheyedepth.cli import prepare_data
+    from fisheyedepth.plan import data_plan
 
     def config(data_dir: Path):
         with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
             return compose("train", [*TINY, f"paths.data_dir={data_dir}"])
 
-    data_dir = built_once(tmp_path_factory, "tiny_world", lambda path: prepare_data(config(path)))
+    data_dir = built_once(tmp_path_factory, "tiny_world", lambda path: prepare_data(data_plan(config(path))))
     root = Path(config(data_dir).data.datamodule.root)
     assert (root / "synthetic.json").is_file(), root
     return root

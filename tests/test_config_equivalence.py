@@ -17,6 +17,7 @@ from hydra import compose, initialize_config_dir
 from fisheyedepth.cli.train import build_model
 from fisheyedepth.config import check_sizes, configured_model, source_offsets
 from fisheyedepth.migration import ADDED_HPARAMS, FLAT_KEYS, nested_hparams
+from fisheyedepth.plan import model_plan
 
 from conftest import ROOT, tiny_batch
 
@@ -155,7 +156,7 @@ def test_the_objective_gives_the_recorded_losses(kitti_data, name, recorded_thre
     entry, recorded = CONFIGS[name], BEFORE["losses"][name]
     cfg = compose_train(recorded_overrides(name))
     torch.manual_seed(0)
-    module = build_model(cfg, net={"base_focal": entry["hparams"]["base_focal"]})
+    module = build_model(model_plan(cfg), net={"base_focal": entry["hparams"]["base_focal"]})
     assert plain(dict(module.hparams)) == grouped(entry["hparams"], entry["max_epochs"])
     assert sum(p.numel() for p in module.parameters()) == recorded["parameters"]
     batch = tiny_batch(kitti_data)

@@ -22,7 +22,8 @@ from fisheyedepth.checkpoints import (
     released_checkpoint,
     sha256,
 )
-from fisheyedepth.cli import checkpoint_path, load_runtime
+from fisheyedepth.cli import load_runtime
+from fisheyedepth.plan import runtime_plan
 
 from conftest import load_script
 
@@ -56,9 +57,9 @@ def test_the_released_network_is_the_mobile_model_in_float16():
 
 def test_commands_without_a_checkpoint_use_the_released_weights(tmp_path):
     cfg = OmegaConf.create({"runtime": "torch", "ckpt_path": None})
-    assert checkpoint_path(cfg) == str(WEIGHTS_DIR / RELEASED)
-    assert checkpoint_path(OmegaConf.create({"ckpt_path": "RUN/last.ckpt"})) == "RUN/last.ckpt"
-    runtime = load_runtime(cfg)
+    assert runtime_plan(cfg).checkpoint == str(WEIGHTS_DIR / RELEASED)
+    assert runtime_plan(OmegaConf.create({"ckpt_path": "RUN/last.ckpt"})).checkpoint == "RUN/last.ckpt"
+    runtime = load_runtime(runtime_plan(cfg))
     released = torch.load(released_checkpoint(), map_location="cpu", weights_only=True)["state_dict"]
     loaded = runtime.module.state_dict()
     assert all(torch.equal(loaded[k].half(), v) for k, v in released.items() if v.is_floating_point())

@@ -28,6 +28,7 @@ from hydra.utils import instantiate
 
 from fisheyedepth.cli import prepare_data
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.plan import data_plan
 from fisheyedepth.stereo.sweep import SweepStereo, View
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -58,7 +59,7 @@ def main(argv=None) -> int:
     input_size = tuple(module.hparams["input_size"])
     world = [f"data.generate.rig={args.rig}", f"data.generate.seed={args.seed}", "data.generate.frames=200"]
     cfg = compose_config(["data=synthetic", *world, f"data.datamodule.size=[{args.size},{args.size}]"])
-    prepare_data(cfg)
+    prepare_data(data_plan(cfg))
     dataset = instantiate(cfg.data.datamodule, offsets=args.offsets).dataset("test")
     sweep = SweepStereo(args.hypotheses, 1.5, 80.0, cost="zncc", window=5 if args.size < 200 else 7, paths=4)
     rows = {"monocular": [], "sweep, every pixel it sees": [], "monocular, sweep where checked": [],

@@ -26,6 +26,7 @@ from hydra.utils import instantiate
 from fisheyedepth.cli import prepare_data
 from fisheyedepth.evaluation import evaluate
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.plan import data_plan
 from fisheyedepth.runtimes import TorchRuntime
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -47,7 +48,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
     world = [f"data.generate.rig={args.rig}", f"data.generate.seed={args.seed}", "data.generate.frames=200"]
     cfg = compose_config(["data=synthetic", *world])
-    prepare_data(cfg)
+    prepare_data(data_plan(cfg))
     datamodule = instantiate(cfg.data.datamodule)
     print("| checkpoint | sources | images | full abs_rel | a1 | kitti360 abs_rel |")
     print("|---|---|---|---|---|---|")

@@ -30,6 +30,7 @@ from fisheyedepth.cameras.rays import RayCache
 from fisheyedepth.cli import prepare_data
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.geometry.se3 import transform_points
+from fisheyedepth.plan import data_plan
 from fisheyedepth.stereo import SweepStereo, View
 from fisheyedepth.stereo.recording import score
 
@@ -77,7 +78,7 @@ def main(argv=None) -> int:
     world = [f"data.generate.rig={args.rig}", f"data.generate.seed={args.seed}"]
     world.append(f"data.generate.frames={args.world_frames}")
     cfg = compose_config(["data=synthetic", *world, "data.datamodule.size=null"])  # the rendered size
-    prepare_data(cfg)  # rendered on first use, as eval.py renders it
+    prepare_data(data_plan(cfg))  # rendered on first use, as eval.py renders it
     dm = build_datamodule(cfg, rig_offsets=[0] if args.rig_sources else [])
     dataset = dm.dataset("test")  # with the frames the model warps
     step = max(1, len(dataset) // args.frames)

@@ -23,6 +23,7 @@ from hydra.utils import instantiate
 from fisheyedepth.cli import prepare_data
 from fisheyedepth.models.cost_volume import Sources
 from fisheyedepth.module import FisheyeDepthModule
+from fisheyedepth.plan import data_plan
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _compose import compose_config  # noqa: E402
@@ -50,7 +51,7 @@ def main(argv=None) -> int:
     size = list(module.hparams["input_size"])
     world = [f"data.generate.rig={args.rig}", f"data.generate.seed={args.seed}", "data.generate.frames=200"]
     cfg = compose_config(["data=synthetic", *world, f"data.datamodule.size=[{size[0]},{size[1]}]"])
-    prepare_data(cfg)
+    prepare_data(data_plan(cfg))
     dataset = instantiate(cfg.data.datamodule).dataset("test")
     stride = 2 ** (net.volume_level + 1)
     volume_errors, network_errors = [], []

@@ -112,20 +112,32 @@ def check_options(cfg: DictConfig) -> None:
     check_table(_configured(cfg.data.get("generate"), GENERATE_OPTIONS), GENERATE_OPTIONS, "data.generate.")
 
 
-def configured_model(cfg: DictConfig) -> dict[str, Any]:
-    """The model's constructor arguments as configured, in their groups (``net``, ``objective``,
-    ``optimizer``, ``scheduler``), with the module's defaults where the config is silent."""
+def model_arguments(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
+    """The model's class (``model._target_``) and its keywords as configured (resolved, plain values):
+    the option groups and the module's own options."""
     given = OmegaConf.to_container(cfg.model, resolve=True)
-    return get_class(cfg.model._target_).options(**{k: v for k, v in given.items() if not k.startswith("_")})
+    return str(given["_target_"]), {k: v for k, v in given.items() if not k.startswith("_")}
 
 
-def named_option(cfg: DictConfig, message: str) -> str | None:
+def configured_options(target: str, arguments: dict[str, Any]) -> dict[str, Any]:
+    """The constructor arguments of the model class ``target``, in their groups (``net``, ``objective``,
+    ``optimizer``, ``scheduler``), with its defaults where ``arguments`` are silent (imports the class)."""
+    return get_class(target).options(**arguments)
+
+
+def configured_model(cfg: DictConfig) -> dict[str, Any]:
+    """The model's constructor arguments as configured, in their groups, with the module's defaults where
+    the config is silent."""
+    return configured_options(*model_arguments(cfg))
+
+
+def named_option(options: dict[str, Any], message: str) -> str | None:
     """``message`` with the option it starts with (``lr: ...``, ``optimizer.lr: ...``) named as
-    configured, ``model.GROUP.KEY``; None when it starts with no option of the model."""
+    configured, ``model.GROUP.KEY``, in the model's ``options`` (:func:`configured_options`); None when
+    it starts with no option of the model."""
     match = re.match(r"([\w.]+)([:=])", message)
     if match is None:
         return None
-    options = configured_model(cfg)
     *group, key = match[1].split(".")
     if group:
         found = group if key in (options.get(group[0]) or {}) else []

@@ -1,7 +1,9 @@
 """The commands behind ``train.py``, ``eval.py``, ``predict.py`` and ``export.py``: the only place where
-configs become objects (``hydra.utils.instantiate``). One small module per command; this one holds what
-they share: how an input error ends a command, process-wide settings, the first-use rendering of the
-synthetic data, and output paths that never replace an earlier run's file."""
+configs become objects (``hydra.utils.instantiate``). Each command makes its plan from the composed config
+(:mod:`fisheyedepth.plan`: every option checked, nothing built yet), then builds from the plan. One small
+module per command; this one holds what they share: how an input error ends a command, process-wide
+settings, the first-use rendering of the synthetic data, the network predict and eval run, and output
+paths that never replace an earlier run's file."""
 
 from __future__ import annotations
 
@@ -11,9 +13,9 @@ import sys
 import warnings
 from pathlib import Path
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from ..checkpoints import released_checkpoint
+from ..plan import DataPlan, RuntimePlan, thawed
 from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from ..synthetic import ensure_datasets
 from ..utils import WRITE_ERRORS, keep_freed_memory
@@ -42,13 +44,13 @@ QUIET_WARNINGS = (
 )
 
 
-def prepare_process(cfg: DictConfig) -> None:
-    """Process-wide settings, before any work: :data:`QUIET_WARNINGS` silenced, ``keep_freed_memory``
-    (glibc keeps the memory of freed tensors for reuse instead of unmapping it;
-    :func:`fisheyedepth.utils.keep_freed_memory`)."""
+def prepare_process(keep_memory: bool) -> None:
+    """Process-wide settings, before any work: :data:`QUIET_WARNINGS` silenced, with ``keep_memory``
+    glibc keeping the memory of freed tensors for reuse instead of unmapping it
+    (:func:`fisheyedepth.utils.keep_freed_memory`)."""
     for message in QUIET_WARNINGS:
         warnings.filterwarnings("ignore", message=message)
-    if cfg.get("keep_freed_memory"):
+    if keep_memory:
         log.info("keep_freed_memory: %s", "on" if keep_freed_memory() else "not glibc, nothing changed")
 
 
@@ -78,15 +80,11 @@ def is_input_error(exc: BaseException) -> bool:
     return isinstance(exc, OSError) and exc.errno in WRITE_ERRORS and exc.filename is not None
 
 
-def prepare_data(cfg: DictConfig) -> None:
+def prepare_data(data: DataPlan) -> None:
     """Render the synthetic dataset on first use (``data.generate``); a finished one is reused. A folder
     that is not a synthetic dataset made by this project is refused and left untouched."""
-    gen = cfg.data.get("generate")
-    if not gen:
-        return
-    root = cfg.data.datamodule.root  # one folder, or a list (a mixed dataset: one world per folder)
-    root = OmegaConf.to_container(root, resolve=True) if OmegaConf.is_list(root) else str(root)
-    ensure_datasets(root, OmegaConf.to_container(gen, resolve=True), log)
+    if data.generate is not None:
+        ensure_datasets(thawed(data.root), thawed(data.generate), log)
 
 
 def free_path(path: Path) -> Path:
@@ -98,42 +96,18 @@ def free_path(path: Path) -> Path:
     return candidate
 
 
-def checkpoint_path(cfg: DictConfig) -> str:
-    """``ckpt_path``, or the released weights (``weights/``, checked against their checksum) when none
-    is given: metric distance from a calibrated camera without training."""
-    if cfg.get("ckpt_path"):
-        return str(cfg.ckpt_path)
-    path = released_checkpoint()
-    log.info("no ckpt_path: the released weights %s (weights/README.md)", path)
-    return str(path)
-
-
-def load_runtime(cfg: DictConfig, ckpt_path: str | None = None):
-    """The network ``predict.py`` and ``eval.py`` run: ``runtime=torch`` (``ckpt_path``, ``precision``,
-    ``device``, ``upsample``, ``size``) or ``runtime=onnx`` (``model_file``, typed ``model=FILE.onnx``:
-    an ``export.py`` file, which fixes the input size; ``threads``); either with ``post_process``.
-    ``ckpt_path``: the checkpoint :func:`checkpoint_path` already chose for ``cfg``, if a caller did."""
-    runtime, size = str(cfg.get("runtime", "torch")), cfg.get("size")
-    if runtime == "onnx":
-        if not cfg.get("model_file"):
-            raise ValueError("model: runtime=onnx needs the exported file, model=FILE.onnx (export.py)")
-        if cfg.get("upsample") not in (None, "distance"):
+def load_runtime(runtime: RuntimePlan):
+    """The network ``predict.py`` and ``eval.py`` run (:func:`fisheyedepth.plan.runtime_plan`): a
+    checkpoint in PyTorch, or an ``export.py`` file in ONNX Runtime, whose input size ``size`` must be."""
+    if runtime.kind == "onnx":
+        onnx = OnnxRuntime(runtime.model_file, runtime.threads, runtime.post_process)
+        if runtime.size and runtime.size != tuple(onnx.input_size):
+            exported = list(onnx.input_size)
             raise ValueError(
-                f"upsample: {cfg.upsample!r}; an exported file upsamples its distance (upsample=distance)"
-            )
-        onnx = OnnxRuntime(cfg.model_file, cfg.get("threads"), str(cfg.get("post_process", "none")))
-        if size and tuple(size) != tuple(onnx.input_size):
-            raise ValueError(
-                f"size: {list(size)}, but {cfg.model_file} was exported at {list(onnx.input_size)}"
+                f"size: {list(runtime.size)}, but {runtime.model_file} was exported at {exported}"
             )
         return onnx
-    if runtime != "torch":
-        raise ValueError(f"runtime: {runtime!r} is not one of torch, onnx")
-    if cfg.get("model_file"):
-        raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-    module = TrainedDepthNet.from_checkpoint(ckpt_path or checkpoint_path(cfg))
-    if cfg.get("upsample") is not None:  # only how a distance at the training size reaches a larger image
-        module.depth_net.upsample = str(cfg.upsample)  # recorded in results.json
-    size = tuple(size) if size else None
-    precision, post_process = str(cfg.get("precision", "fp32")), str(cfg.get("post_process", "none"))
-    return TorchRuntime(module, size, precision, cfg.get("device", "cpu"), post_process)
+    module = TrainedDepthNet.from_checkpoint(runtime.checkpoint)
+    if runtime.upsample is not None:
+        module.depth_net.upsample = runtime.upsample  # recorded in results.json
+    return TorchRuntime(module, runtime.size, runtime.precision, runtime.device, runtime.post_process)

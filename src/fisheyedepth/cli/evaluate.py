@@ -15,9 +15,10 @@ from rich.console import Console
 from rich.table import Table
 
 from ..evaluation import evaluate
-from ..runtimes import OnnxRuntime, as_runtime
+from ..plan import Scoring, eval_plan
+from ..runtimes import as_runtime
 from ..utils import atomic_write_text, run_config
-from . import checkpoint_path, free_path, load_runtime, prepare_data
+from . import free_path, load_runtime, prepare_data
 
 
 def _git_commit() -> str | None:
@@ -63,7 +64,7 @@ def print_table(results: dict[str, Any], title: str) -> None:
 
 
 def run_evaluation(
-    cfg: DictConfig,
+    scoring: Scoring,
     model,
     datamodule,
     out_dir: Path,
@@ -72,8 +73,8 @@ def run_evaluation(
     split: str = "test",
     device=None,
 ) -> dict[str, Any]:
-    """Evaluate ``split`` at the ground truth's native resolution, the network at the size it was
-    trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
+    """Evaluate ``split`` by ``scoring`` at the ground truth's native resolution, the network at the size
+    it was trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
     trained module (run on ``device``, default the module's), or a runtime (an ONNX file, bf16) of
     :mod:`fisheyedepth.runtimes`."""
     runtime = as_runtime(model, device=device)
@@ -86,18 +87,18 @@ def run_evaluation(
         runtime,
         loader,
         train_size,
-        list(cfg.eval.protocols),
-        list(cfg.eval.scalings),
-        cfg.eval.get("camera_height"),
+        list(scoring.protocols),
+        list(scoring.scalings),
+        scoring.camera_height,
         out_dir / "predictions",
-        int(cfg.eval.pictures),
-        f"{cfg.data.datamodule.root} ({split} split)",
+        scoring.pictures,
+        f"{scoring.data} ({split} split)",
     )
     record = {
-        "experiment": cfg.get("experiment_name"),
+        "experiment": scoring.experiment,
         "checkpoint": ckpt,
         "model": runtime.describe(),
-        "data": str(cfg.data.datamodule.root),
+        "data": scoring.data,
         "split": split,
         "train_size": list(train_size) if train_size else None,
         "results": results,
@@ -119,16 +120,13 @@ def experiment_of(ckpt_path: str | Path) -> str | None:
 
 def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     """``ckpt_path`` in PyTorch (``precision`` fp32 or bf16), or ``runtime=onnx model=FILE.onnx``."""
-    out_dir = Path(cfg.paths.output_dir)
-    prepare_data(cfg)
-    datamodule = instantiate(cfg.data.datamodule)
-    torch_ckpt = str(cfg.get("runtime", "torch")) == "torch" and not cfg.get("model_file")
-    ckpt = checkpoint_path(cfg) if torch_ckpt else None  # resolved (and checksummed) once
-    model = load_runtime(cfg, ckpt)
-    if isinstance(model, OnnxRuntime):
-        experiment = cfg.get("experiment_name") or Path(cfg.model_file).stem
+    plan = eval_plan(cfg)
+    prepare_data(plan.data)
+    datamodule = instantiate(plan.data.datamodule, **plan.data.arguments())
+    model, ckpt = load_runtime(plan.runtime), plan.runtime.checkpoint
+    if ckpt is None:  # an exported file
+        experiment = plan.scoring.experiment or Path(plan.runtime.model_file).stem
     else:
-        experiment = cfg.get("experiment_name") or experiment_of(ckpt) or Path(ckpt).stem
-    return run_evaluation(
-        cfg, model, datamodule, out_dir, ckpt, {"experiment": experiment}, str(cfg.get("split", "test"))
-    )
+        experiment = plan.scoring.experiment or experiment_of(ckpt) or Path(ckpt).stem
+    extra = {"experiment": experiment}
+    return run_evaluation(plan.scoring, model, datamodule, plan.output_dir, ckpt, extra, plan.split)

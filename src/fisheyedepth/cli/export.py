@@ -18,13 +18,10 @@ from rich.console import Console
 
 from ..cameras import PinholeCamera, load_camera
 from ..inference import DistancePredictor
-from ..models.depth_net import check_input_size
 from ..outputs import output_lock, place, refuse_existing, writable
+from ..plan import ExportPlan, export_plan, export_size
 from ..runtimes import TrainedDepthNet, calibration_split, onnx_export, onnx_session
-from . import checkpoint_path
 
-EXPORT_FORMATS = {"onnx": ".onnx", "torchscript": ".pt"}
-QUANTIZE = ("int8",)
 # Parity of an exported file with the PyTorch network it was made from, on probe images: the largest
 # relative difference in distance allowed (float32 paths), or the median (int8, an approximation by
 # design; its accuracy on a test split is in BENCHMARKS.md "Inference"). A file outside is not written.
@@ -32,45 +29,34 @@ PARITY = {"torchscript": ("max", 1e-4), "onnx": ("max", 1e-4), "onnx-int8": ("me
 
 
 def export(cfg: DictConfig) -> dict[str, Any]:
-    if cfg.format not in EXPORT_FORMATS:
-        raise ValueError(f"format: {cfg.format!r} is not one of {', '.join(EXPORT_FORMATS)}")
-    quantize = cfg.get("quantize")
-    if quantize is not None and (quantize not in QUANTIZE or cfg.format != "onnx"):
-        raise ValueError(f"quantize: {quantize!r}; only quantize=int8 with format=onnx (or null)")
-    if quantize and not cfg.get("calibration"):
-        raise ValueError("calibration: quantize=int8 needs a folder of training images, calibration=DIR")
-    ckpt_path = checkpoint_path(cfg)
-    module = TrainedDepthNet.from_checkpoint(ckpt_path)
+    plan = export_plan(cfg)  # format, quantisation, size and checkpoint checked: nothing read yet
+    module = TrainedDepthNet.from_checkpoint(plan.checkpoint)
     if module.depth_net.cost_volume is not None:
         raise ValueError(
-            f"{ckpt_path}: net.cost_volume: the multi-view network reads source frames and poses, which an "
-            "exported file does not take yet; export a monocular checkpoint, or run this one in PyTorch"
+            f"{plan.checkpoint}: net.cost_volume: the multi-view network reads source frames and poses, "
+            "which an exported file does not take yet; export a monocular checkpoint, or run this one in "
+            "PyTorch"
         )
-    size = tuple(cfg.size) if cfg.get("size") else tuple(module.hparams.get("input_size") or ())
-    if len(size) != 2:
-        raise ValueError(
-            "export needs a fixed input size: size=[W,H] (or a checkpoint that stores input_size)"
-        )
-    size = check_input_size(size, "size" if cfg.get("size") else f"{ckpt_path}: input_size")
-    name = f"fisheyedepth_{size[0]}x{size[1]}{'_' + quantize if quantize else ''}{EXPORT_FORMATS[cfg.format]}"
-    path = Path(cfg.output) if cfg.get("output") else Path(cfg.paths.output_dir) / name
-    overwrite = bool(cfg.get("overwrite"))
-    refuse_existing(path, overwrite)  # at once, not after waiting for another export of the file
+    size = plan.size or export_size(
+        tuple(module.hparams.get("input_size") or ()), f"{plan.checkpoint}: input_size"
+    )
+    path = plan.path(size)
+    refuse_existing(path, plan.overwrite)  # at once, not after waiting for another export of the file
     with output_lock(path):  # one export.py at a time writes this file
-        refuse_existing(path, overwrite)
-        data, record = exported(cfg, module, ckpt_path, size, quantize, path)
+        refuse_existing(path, plan.overwrite)
+        data, record = exported(plan, module, size, path)
         record["sha256"] = hashlib.sha256(data).hexdigest()
         with writable(path):
-            place(path, data, json.dumps(record, indent=2) + "\n", overwrite)
+            place(path, data, json.dumps(record, indent=2) + "\n", plan.overwrite)
     Console(width=130).print(record)
     return record
 
 
-def exported(cfg: DictConfig, module, ckpt_path: str, size, quantize, path: Path):
-    """The network of ``module`` at ``size`` serialised in ``cfg.format`` and its record, checked against
+def exported(plan: ExportPlan, module, size, path: Path):
+    """The network of ``module`` at ``size`` serialised in ``plan.format`` and its record, checked against
     PyTorch on probe images (:data:`PARITY`): a file outside its tolerance is a ValueError."""
-    if cfg.get("camera"):
-        camera = load_camera(cfg.camera)
+    if plan.camera:
+        camera = load_camera(plan.camera)
     else:  # no camera: depth_scale 1, i.e. a camera with the base focal (the training cameras' mean)
         focal = module.depth_net.base_focal or 1.0
         camera = PinholeCamera(width=size[0], height=size[1], fx=focal, fy=focal, cx=0.0, cy=0.0)
@@ -78,17 +64,17 @@ def exported(cfg: DictConfig, module, ckpt_path: str, size, quantize, path: Path
     example = torch.rand(1, 3, size[1], size[0], generator=torch.Generator().manual_seed(0))
     probe = torch.rand(2, 3, size[1], size[0], generator=torch.Generator().manual_seed(1))
     buffer = io.BytesIO()  # serialised in memory, verified, then written atomically
-    if cfg.format == "torchscript":
+    if plan.format == "torchscript":
         torch.jit.save(torch.jit.trace(net, example), buffer)  # ScriptModule.save takes file names only
         exported = torch.jit.load(io.BytesIO(buffer.getvalue()))
         run = lambda x: exported(x)  # noqa: E731
         data = buffer.getvalue()
     else:
         calibration = None
-        if quantize:  # the parity probes are real images too, but not ones the ranges were measured on
-            calibration, held = calibration_split(cfg.calibration, size, int(cfg.calibration_frames))
+        if plan.quantize:  # the parity probes are real images too, but not ones the ranges were measured on
+            calibration, held = calibration_split(plan.calibration, size, plan.calibration_frames)
             probe = torch.from_numpy(held)
-        data = onnx_export(net, size, module.depth_net.base_focal, quantize, calibration)
+        data = onnx_export(net, size, module.depth_net.base_focal, plan.quantize, calibration)
         try:
             session = onnx_session(data)
         except ImportError:
@@ -96,23 +82,23 @@ def exported(cfg: DictConfig, module, ckpt_path: str, size, quantize, path: Path
         else:
             run = lambda x: torch.from_numpy(session.run(None, {"image": x.numpy()})[0])  # noqa: E731
     record: dict[str, Any] = {
-        "format": cfg.format,
-        "quantize": quantize,
+        "format": plan.format,
+        "quantize": plan.quantize,
         "path": str(path),
         "size": list(size),
         "depth_scale": net.depth_scale,
         "base_focal": module.depth_net.base_focal,
-        "checkpoint": ckpt_path,
+        "checkpoint": plan.checkpoint,
     }
-    if quantize:
-        record["calibration"] = {"folder": str(cfg.calibration), "frames": len(calibration)}
+    if plan.quantize:
+        record["calibration"] = {"folder": plan.calibration, "frames": len(calibration)}
     if run is not None:
         with torch.no_grad():
             ref, got = net(probe), run(probe)
         rel = ((got - ref).abs() / ref.abs().clamp_min(1e-6)).flatten()
         record["max_relative_difference"] = float(rel.max())
         record["median_relative_difference"] = float(rel.median())
-        kind = "onnx-int8" if quantize else cfg.format
+        kind = "onnx-int8" if plan.quantize else plan.format
         statistic, tolerance = PARITY[kind]
         record["parity"] = {"statistic": statistic, "tolerance": tolerance}
         if record[f"{statistic}_relative_difference"] > tolerance:

@@ -18,24 +18,25 @@ from ..cameras import load_camera
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter
 from ..options import CONF_DIR
+from ..plan import predict_plan
 from ..runtimes import OnnxRuntime
-from ..utils import atomic_write_text, check_writable
+from ..utils import atomic_write_text
 from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
-    option = "output" if cfg.get("output") else "paths.output_dir"
-    out = check_writable(cfg.get(option) if option == "output" else cfg.paths.output_dir, option)
+    plan = predict_plan(cfg)  # the output folder writable, the runtime's options: nothing loaded yet
+    out = plan.output
     writer = PredictionWriter(
-        out, cfg.z_depth, cfg.point_cloud, str(cfg.png_scale), cfg.vmin, cfg.vmax, cfg.overwrite
+        out, plan.z_depth, plan.point_cloud, plan.png_scale, plan.vmin, plan.vmax, plan.overwrite
     )
-    source = FrameSource(cfg.input, cfg.get("max_frames"))  # lists the inputs without decoding any
+    source = FrameSource(plan.input, plan.max_frames)  # lists the inputs without decoding any
     writer.check_free(source.names())
-    runtime = load_runtime(cfg)
-    batch_size = 1 if source.live else int(cfg.batch_size)  # a live frame is written as it comes
-    run = FramePrediction(runtime, load_camera(cfg.camera), cfg.camera, writer, batch_size)
+    runtime = load_runtime(plan.runtime)
+    batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
+    run = FramePrediction(runtime, load_camera(plan.camera), plan.camera, writer, batch_size)
     unreadable: list[str] = []
     grayscale: list[str] = []
     t0 = time.perf_counter()
@@ -71,11 +72,11 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         "seconds": round(seconds, 3),
         "fps": round(done / seconds, 2) if seconds > 0 else None,
         "output": str(out),
-        "png_scale": f"uint16 = metres * {int(1000 if cfg.png_scale == 'mm' else 256)}, 0 = no ray",
+        "png_scale": f"uint16 = metres * {int(1000 if plan.png_scale == 'mm' else 256)}, 0 = no ray",
     }
     if done == 0:
         raise ValueError(f"{source.source}: no frame could be read ({len(unreadable)} unreadable)")
-    summary_path = out / "summary.json" if cfg.overwrite else free_path(out / "summary.json")
+    summary_path = out / "summary.json" if plan.overwrite else free_path(out / "summary.json")
     atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     Console(width=130).print(
         f"{done} frames in {seconds:.1f} s ({summary['fps']} fps), {len(unreadable)} unreadable "

@@ -5,36 +5,26 @@ self-supervised validation loss (``select=best``). Neither uses ground truth."""
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from ..checkpoints import CheckpointError, check_resumable, weights_mismatch
-from ..config import (
-    check_options,
-    configured_model,
-    named_option,
-    resolve_base_focal,
-    resolve_precision,
-    rig_offsets,
-    source_offsets,
-)
+from ..checkpoints import CheckpointError, weights_mismatch
+from ..config import named_option, resolve_base_focal
+from ..plan import ModelPlan, TrainPlan, check_select, train_plan
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
 from .run_folder import run_folder
 
 log = logging.getLogger("fisheyedepth")
-SELECT = ("last", "best")
 
 
 def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
     """The checkpoint to test, from the run's ``ModelCheckpoint`` callbacks: ``last`` is the end of
     the schedule (the unmonitored one, saved every epoch; as Monodepth2 evaluates), ``best`` has the
     lowest monitored self-supervised validation loss. None: the weights in memory (no checkpoint)."""
-    if select not in SELECT:
-        raise ValueError(f"select={select!r}: expected one of {SELECT}")
+    check_select(select)
     monitored = [c for c in callbacks if getattr(c, "monitor", None)]
     if select == "best":
         if not monitored:
@@ -46,37 +36,33 @@ def selected_checkpoint(callbacks: list[Any], select: str) -> str | None:
     return None  # the weights in memory are the last ones
 
 
-def build_model(cfg: DictConfig, **resolved):
-    """The configured module, its option groups passed as plain dicts (the optimiser and scheduler are
-    built when training starts); an option it refuses is named ``model.<group>.<option>`` (Hydra wraps
-    the error)."""
+def build_model(model: ModelPlan, **resolved):
+    """The planned module, its option groups passed as plain dicts (``resolved`` over them; the optimiser
+    and scheduler are built when training starts); an option it refuses is named
+    ``model.<group>.<option>`` (Hydra wraps the error)."""
     try:
-        return instantiate(cfg.model, **resolved, _convert_="all", _recursive_=False)
+        config = {"_target_": model.target, **model.arguments(**resolved)}
+        return instantiate(config, _convert_="all", _recursive_=False)
     except InstantiationException as exc:
         cause = exc.__cause__
         if not isinstance(cause, INPUT_ERRORS):
             raise
         message = str(cause.args[0] if cause.args else cause)
-        named = named_option(cfg, message) if isinstance(cause, ValueError) else None
+        named = named_option(model.configured(), message) if isinstance(cause, ValueError) else None
         if named is not None:
             raise ValueError(named) from None
         raise cause from None
 
 
 def train(cfg: DictConfig) -> dict[str, Any] | None:
-    out_dir = Path(cfg.paths.output_dir)
-    check_options(cfg)  # sizes, switches and numbers by kind and range, before any folder, render or fit
-    ckpt_path = cfg.get("ckpt_path")
-    # the model's class (and Lightning with it) is imported only for a checkpoint that can be resumed
-    resumed = check_resumable(ckpt_path, lambda: configured_model(cfg)) if ckpt_path else None
-    with run_folder(out_dir, ckpt_path):  # one run per folder; before any checkpoint is touched
-        return fit_and_test(cfg, out_dir, resumed)
+    plan = train_plan(cfg)  # every option, choice and the resumed checkpoint checked: nothing made yet
+    with run_folder(plan.output_dir, plan.resume):  # one run per folder; before any checkpoint is touched
+        return fit_and_test(plan)
 
 
-def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None) -> dict[str, Any] | None:
-    select = cfg.get("select", "last")
-    prepare_process(cfg)
-    prepare_data(cfg)
+def fit_and_test(plan: TrainPlan) -> dict[str, Any] | None:
+    prepare_process(plan.keep_freed_memory)
+    prepare_data(plan.data)
     # Lightning, the module and the metrics (about 4 s to import) only now: a refused folder, checkpoint
     # or option above is answered at once
     import lightning as L
@@ -87,35 +73,33 @@ def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None)
     from ..training import AtomicCheckpointIO
     from .evaluate import run_evaluation
 
-    L.seed_everything(cfg.seed, workers=True)
-    offsets = {"offsets": source_offsets(cfg), "rig_offsets": rig_offsets(cfg)}
-    datamodule = instantiate(cfg.data.datamodule, **offsets)
-    resolved = {}
-    if cfg.model.net.get("base_focal") == "auto":  # stored as a number in the checkpoint's hparams
+    L.seed_everything(plan.seed, workers=True)
+    datamodule = instantiate(plan.data.datamodule, **plan.data.arguments())
+    resolved, resumed = {}, plan.resumed
+    if plan.model.options["net"].get("base_focal") == "auto":  # a number in the checkpoint's hparams
         resolved["net"] = {"base_focal": resolve_base_focal(datamodule, resumed)}
-    module = build_model(cfg, **resolved)
+    module = build_model(plan.model, **resolved)
     if resumed is not None and (mismatch := weights_mismatch(module.state_dict(), resumed["state_dict"])):
-        raise CheckpointError(cfg.ckpt_path, f"cannot resume it with this model: weights {mismatch}")
-    logger = instantiate(cfg.logger) if cfg.get("logger") else False
-    callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c is not None]
+        raise CheckpointError(plan.resume, f"cannot resume it with this model: weights {mismatch}")
+    logger = instantiate(plan.logger) if plan.logger else False
+    callbacks = [instantiate(c) for c in plan.callbacks]
     checkpointers = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
-    selected_checkpoint(checkpointers, select)  # a bad choice fails now, not after hours of training
-    precision = resolve_precision(cfg.trainer.get("precision"), cfg.trainer.get("accelerator"))
+    selected_checkpoint(checkpointers, plan.select)  # best without a monitor fails now, not after training
     trainer: L.Trainer = instantiate(
-        cfg.trainer,
+        plan.trainer,
         logger=logger,
         callbacks=callbacks,
-        default_root_dir=str(out_dir),
-        precision=precision,
+        default_root_dir=str(plan.output_dir),
+        precision=plan.precision,
         plugins=[AtomicCheckpointIO()],  # a kill while saving leaves the previous checkpoint whole
     )
     try:
         try:
-            trainer.fit(module, datamodule=datamodule, ckpt_path=cfg.get("ckpt_path"))
+            trainer.fit(module, datamodule=datamodule, ckpt_path=plan.resume)
         except SIGTERMException:
             # Lightning stops at a batch boundary and raises SystemExit(None), i.e. exit 0: a job
             # scheduler, make or a shell script would take the run for finished.
-            last = Path(cfg.paths.output_dir) / "checkpoints" / "last.ckpt"
+            last = plan.output_dir / "checkpoints" / "last.ckpt"
             log.error(
                 "terminated by SIGTERM at step %d; no results.json. Resume with ckpt_path=%s",
                 trainer.global_step,
@@ -123,19 +107,19 @@ def fit_and_test(cfg: DictConfig, out_dir: Path, resumed: dict[str, Any] | None)
             )
             raise SystemExit(EXIT_SIGTERM) from None
         record = None
-        if cfg.get("test") and trainer.is_global_zero and not trainer.fast_dev_run:
-            ckpt = selected_checkpoint(checkpointers, select)
+        if plan.test and trainer.is_global_zero and not trainer.fast_dev_run:
+            ckpt = selected_checkpoint(checkpointers, plan.select)
             tested = FisheyeDepthModule.from_checkpoint(ckpt) if ckpt else module
             record = run_evaluation(
-                cfg,
+                plan.scoring,
                 tested,
                 datamodule,
-                out_dir,
+                plan.output_dir,
                 ckpt,
                 {
-                    "resumed_from": cfg.get("ckpt_path"),
+                    "resumed_from": plan.resume,
                     "global_step": trainer.global_step,
-                    "select": select,
+                    "select": plan.select,
                     "skipped_batches": module.skipped_batches,
                 },
                 device=trainer.strategy.root_device,  # a checkpoint loads on the CPU
