@@ -5,11 +5,11 @@ defaults to ``../shared/realdata``): the KITTI-360 frame against its LiDAR (80 m
 mask), the ScanNet++ frame and four Aria Digital Twin SLAM frames against their rendered depth (capped
 at the frame's range). Real cameras, never trained on.
 
-    python scripts/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
+    python scripts/tools/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
                                  [--no-multiview]
-    python scripts/real_world.py --from-records docs/records/real_photographs   # kept scores
-    python scripts/real_world.py --from-records --multiview RECORD               # the sweep's, kept
+    python scripts/tools/real_world.py --from-records docs/records/real_photographs   # kept scores
+    python scripts/tools/real_world.py --from-records --multiview RECORD               # the sweep's, kept
 
 Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
 the ratio ground truth / prediction), beside a constant map at the ground truth's median distance,

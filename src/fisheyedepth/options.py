@@ -66,8 +66,9 @@ def _defaults() -> dict[str, Any]:
 
 def model_defaults() -> dict[str, Any]:
     """The module's options as ``conf/model/fisheyedepth.yaml`` sets them (a fresh copy; its lists as
-    tuples): the groups and the module's own options. ``net.base_focal`` is ``auto`` there, which ``train.py`` resolves from
-    the training cameras; a network built without them names its ``base_focal`` (None: depth scale 1)."""
+    tuples): the groups and the module's own options. ``net.base_focal`` is ``auto`` there, which
+    ``train.py`` resolves from the training cameras; a network built without them names its
+    ``base_focal`` (None: depth scale 1)."""
     return copy.deepcopy(_defaults())
 
 
