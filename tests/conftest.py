@@ -176,15 +176,18 @@ def load_script(name: str):
 @contextlib.contextmanager
 def script_folder(name: str):
     """``scripts/<name>.py``'s folder on ``sys.path`` (first) for the block, as Python puts it there
-    for a script it runs: the scripts import their siblings as top-level modules."""
-    folder = str((ROOT / "scripts" / f"{name}.py").parent)
-    added = folder not in sys.path
-    if added:
+    for a script it runs: the scripts import their siblings as top-level modules; and ``scripts/``
+    itself, where they find ``_compose`` (a script run anew puts it there through its own import of
+    ``_benchmarks``, which a test process imports once, while a test's ``monkeypatch`` restores
+    ``sys.path`` after it)."""
+    folders = [str((ROOT / "scripts" / f"{name}.py").parent), str(ROOT / "scripts")]
+    added = [folder for folder in folders if folder not in sys.path]
+    for folder in reversed(added):
         sys.path.insert(0, folder)
     try:
         yield
     finally:
-        if added:
+        for folder in added:
             sys.path.remove(folder)
 
 

@@ -645,3 +645,14 @@ def test_train_eval_predict_on_cuda(tmp_path):
         f"hydra.run.dir={tmp_path / 'predict'}",
     )
     assert len(list(predicted.glob("*_distance.npy"))) == 2
+
+
+def test_a_benchmark_loads_after_a_test_restored_sys_path(monkeypatch):
+    """The benchmarks find ``_compose`` in ``scripts/``, which their ``_benchmarks`` puts on ``sys.path``
+    when first imported; once a test's ``monkeypatch`` has restored ``sys.path``, the cached module puts
+    nothing back, and loading a script still finds it."""
+    load_script("bench/bench_fit")
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p != str(ROOT / "scripts")])
+    monkeypatch.delitem(sys.modules, "_compose", raising=False)
+    assert load_script("bench/bench_inference").__name__ == "bench_inference"
+    assert str(ROOT / "scripts") not in sys.path  # as it was: the loader restores what it added
