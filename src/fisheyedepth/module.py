@@ -30,7 +30,7 @@ from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
 from .models.cost_volume import Sources
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
-from .options import check_numbers, keywords, model_options
+from .options import check_numbers, model_options, unknown_options
 from .training import StepGuard, build_optimizer, build_scheduler
 from .viz import panel
 
@@ -49,7 +49,7 @@ class FisheyeDepthModule(L.LightningModule):
         evaluation after fitting, prediction and export use the plain functions.
         ``log_images_every``: steps between the distance maps written to the logger (0: none)."""
         super().__init__()
-        unknown = sorted(set(options) - set(keywords()))
+        unknown = unknown_options(options)
         if unknown:
             raise TypeError(f"FisheyeDepthModule: unexpected {', '.join(unknown)}")
         hp = model_options(**options)

@@ -97,14 +97,23 @@ def net_options(**given: Any) -> dict[str, Any]:
 def objective_options(**given: Any) -> dict[str, Any]:
     """:class:`~fisheyedepth.losses.objective.SelfSupervisedObjective`'s keywords: the YAML's (less the
     PoseNet's ``pose_translation_scale``), with ``given`` over them; ``scales`` are the network's."""
-    objective = model_defaults()["objective"]
+    defaults = model_defaults()
+    objective = defaults["objective"]
     objective.pop("pose_translation_scale")
-    return objective | {"scales": net_options()["scales"]} | given
+    return objective | {"scales": defaults["net"]["scales"]} | given
 
 
 def keywords() -> tuple[str, ...]:
     """Every keyword of the module (what a checkpoint's hyper-parameters may hold)."""
     return tuple(_defaults())
+
+
+def unknown_options(arguments: dict[str, Any]) -> list[str]:
+    """The module's keywords in ``arguments`` that it does not take, and the ``objective.`` options (the
+    group read without building the objective, by a network loaded for inference)."""
+    unknown = [k for k in arguments if k not in _defaults()]
+    objective = _defaults()["objective"]
+    return unknown + [f"objective.{k}" for k in arguments.get("objective") or {} if k not in objective]
 
 
 def check_numbers(options: dict[str, Any]) -> None:
@@ -122,4 +131,5 @@ __all__ = [
     "model_options",
     "net_options",
     "objective_options",
+    "unknown_options",
 ]

@@ -37,7 +37,7 @@ from .checkpoints import model_from_checkpoint
 from .images import IMAGE_SUFFIXES, read_image
 from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
-from .options import check_numbers, keywords, model_defaults, model_options
+from .options import check_numbers, model_options, unknown_options
 
 PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
@@ -177,9 +177,7 @@ class TrainedDepthNet(torch.nn.Module):
     @classmethod
     def from_arguments(cls, **arguments: Any) -> TrainedDepthNet:
         """From the module's keyword arguments; a TypeError for one it does not take, as the module's."""
-        objective = model_defaults()["objective"]
-        unknown = [k for k in arguments if k not in keywords()]
-        unknown += [f"objective.{k}" for k in arguments.get("objective") or {} if k not in objective]
+        unknown = unknown_options(arguments)
         if unknown:
             raise TypeError(f"unexpected {', '.join(unknown)}")
         hparams = model_options(**arguments)
