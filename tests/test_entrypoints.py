@@ -170,10 +170,10 @@ def test_trainers_share_one_base_and_clipping_has_one_name():
     cpu, gpu, ddp = (compose_train([f"trainer={t}"]).trainer for t in ("cpu", "gpu", "ddp"))
     for trainer in (cpu, gpu, ddp):
         assert trainer.gradient_clip_val == 1.0 and trainer.num_sanity_val_steps == 1
-    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 8, 10)
-    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 8, 50)
-    assert ddp.max_epochs == 8 and all(t.precision == "auto" for t in (cpu, gpu, ddp))
-    assert compose_train([]).model.scheduler.step_size == 6  # the decay for the last quarter of every trainer
+    assert (cpu.accelerator, cpu.max_epochs, cpu.log_every_n_steps) == ("cpu", 7, 10)
+    assert (gpu.accelerator, gpu.max_epochs, gpu.log_every_n_steps) == ("gpu", 7, 50)
+    assert ddp.max_epochs == 7 and all(t.precision == "auto" for t in (cpu, gpu, ddp))
+    assert compose_train([]).model.scheduler.step_size == 5  # the decay for the last two of every trainer's 7
     assert ddp.strategy == "ddp" and ddp.sync_batchnorm is True
     assert "grad_clip" not in compose_train([]).model
 

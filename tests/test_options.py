@@ -43,7 +43,7 @@ def test_the_defaults_are_what_hydra_composes_for_the_model():
     assert defaults.pop("input_size") is None
     assert json.loads(json.dumps(defaults)) == composed  # its lists as tuples
     assert defaults["net"]["scales"] == (0, 1, 2, 3) and defaults["eval_cap"] == (0.001, 80.0)
-    assert defaults["optimizer"]["lr"] == 3e-4 and defaults["scheduler"]["step_size"] == 6  # the YAML's
+    assert defaults["optimizer"]["lr"] == 3e-4 and defaults["scheduler"]["step_size"] == 5  # the YAML's
     assert set(keywords()) == set(composed) | {"input_size"}
 
 
