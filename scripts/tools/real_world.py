@@ -76,11 +76,10 @@ def data_root(root: Path | None) -> Path:
 
 
 # ------------------------------------------------------------------ the pictures
-def picture(frame: RealFrame, pred: Tensor, scored: Tensor | None = None, width: int = 350) -> np.ndarray:
-    """Input | prediction | ground truth (the scored pixels, ``scored``: :func:`scored_pixels` when
-    known already; a sparse scan's nearest point per block, so it stays visible) | relative error,
-    ``width`` px a tile, BGR uint8. The colour scale runs over the frame's range."""
-    scored = scored_pixels(frame) if scored is None else scored
+def picture(frame: RealFrame, pred: Tensor, scored: Tensor, width: int = 350) -> np.ndarray:
+    """Input | prediction | ground truth (the ``scored`` pixels, :func:`scored_pixels`; a sparse scan's
+    nearest point per block, so it stays visible) | relative error, ``width`` px a tile, BGR uint8. The
+    colour scale runs over the frame's range."""
     H, W = pred.shape
     size = (width, round(H * width / W))
     image = cv2.resize(frame.image[0].permute(1, 2, 0).numpy(), size, interpolation=cv2.INTER_AREA)

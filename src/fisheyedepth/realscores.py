@@ -34,10 +34,9 @@ def scored_pixels(frame: RealFrame) -> Tensor:
     return evaluator.scored(frame.distance, frame.mask, frame.camera, frame.source)
 
 
-def median_distance(frame: RealFrame, scored: Tensor | None = None) -> float:
-    """The median of the ground truth on the scored pixels (the mean of the middle two for an even count);
-    ``scored``: :func:`scored_pixels`, when known already."""
-    scored = scored_pixels(frame) if scored is None else scored
+def median_distance(frame: RealFrame, scored: Tensor) -> float:
+    """The median of the ground truth on the ``scored`` pixels (:func:`scored_pixels`; the mean of the
+    middle two for an even count)."""
     return float(torch.quantile(frame.distance[scored].double(), 0.5))
 
 

@@ -154,22 +154,13 @@ def z_to_distance(z: Tensor, camera: CameraModel) -> Tensor:
     return torch.where(front & (zd > 0), zd * ratio, torch.zeros_like(zd)).to(z.dtype)
 
 
-def indoor_cap(distance: Tensor, mask: Tensor | None = None) -> float:
-    """The frame's ground-truth range rounded up to a whole metre: the largest distance's floor + 1."""
-    usable = distance[(distance > 0) if mask is None else (distance > 0) & mask]
+def indoor_cap(distance: Tensor, camera: CameraModel, path: Path) -> float:
+    """The frame's ground-truth range over the pixels the camera sees, rounded up to a whole metre: the
+    largest distance's floor + 1; a ValueError naming ``path`` without a positive one."""
+    usable = distance[(distance > 0) & RAYS.get(camera)[1]]
     if usable.numel() == 0:
-        raise ValueError("no positive ground truth")
+        raise ValueError(f"{path}: no pixel with a positive depth inside the camera's field of view")
     return float(math.floor(float(usable.max())) + 1)
-
-
-def _indoor_cap(distance: Tensor, camera: CameraModel, path: Path) -> float:
-    """:func:`indoor_cap` over the pixels the camera sees; a ValueError naming ``path`` without one."""
-    try:
-        return indoor_cap(distance, RAYS.get(camera)[1])
-    except ValueError:
-        raise ValueError(
-            f"{path}: no pixel with a positive depth inside the camera's field of view"
-        ) from None
 
 
 # ------------------------------------------------------------------ the frames
@@ -228,7 +219,7 @@ def z_depth_frame(
     _check_size(depth_path, z, cam, calibration)
     distance = z_to_distance(torch.from_numpy(z.astype(np.float32) / 1000.0), cam)
     mask = torch.ones_like(distance, dtype=torch.bool)
-    cap = _indoor_cap(distance, cam, depth_path)
+    cap = indoor_cap(distance, cam, depth_path)
     return RealFrame(name, image, cam, distance, mask, (calibration, image_path, depth_path), cap=cap)
 
 

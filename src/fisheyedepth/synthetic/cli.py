@@ -4,16 +4,15 @@ dataset."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
 from ..option_checks import check_options
-from .folder import made_by_generator
+from .folder import is_empty_dir, made_by_generator
 from .pool import Terminated
 from .rig import RIGS
 from .sensor import EFFECTS
-from .spec import GENERATE_OPTIONS, WorldSpec
+from .spec import GENERATE_OPTIONS, SPEC_FIELDS, WorldSpec
 from .traffic import MAX_TRAFFIC
 from .world import SCENES
 from .writer import generate
@@ -33,7 +32,7 @@ def check_flags(args: argparse.Namespace) -> None:
 
 def _announce_replacement(out: Path) -> None:
     """``--overwrite`` is explicit, but say what it is about to replace."""
-    if not out.exists() or (out.is_dir() and not any(out.iterdir())):
+    if not out.exists() or is_empty_dir(out):
         return
     if not out.is_dir():
         what = "a file, NOT a dataset made by fisheyedepth"
@@ -82,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         check_flags(a)
-        spec = WorldSpec(**{field.name: getattr(a, field.name) for field in dataclasses.fields(WorldSpec)})
+        spec = WorldSpec(**{name: getattr(a, name) for name in SPEC_FIELDS})
         if a.overwrite:
             _announce_replacement(Path(a.out))
         rendering = {"workers": a.workers, "lidar": not a.no_lidar, "progress": not a.quiet}

@@ -88,7 +88,7 @@ class WorldSpec:
         object.__setattr__(self, "effects", check_effects(self.effects))
 
     def _values(self) -> dict[str, Any]:
-        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        return {name: getattr(self, name) for name in SPEC_FIELDS}
 
     @classmethod
     def from_config(cls, options: Mapping[str, Any], prefix: str = "data.generate.") -> WorldSpec:
@@ -97,14 +97,13 @@ class WorldSpec:
         the caller; a value not of its kind or range, and a key that is no option, are named as
         configured (``prefix`` + key)."""
         check_options(options, GENERATE_OPTIONS, prefix)
-        names = [field.name for field in dataclasses.fields(cls)]
-        unknown = [key for key in options if key not in names and key not in RENDERING]
+        unknown = [key for key in options if key not in SPEC_FIELDS and key not in RENDERING]
         if unknown:
             raise ValueError(
                 f"{prefix}{unknown[0]}: not an option of the synthetic dataset; "
-                f"its options are {', '.join([*names, *RENDERING])}"
+                f"its options are {', '.join([*SPEC_FIELDS, *RENDERING])}"
             )
-        return cls(**{key: value for key, value in options.items() if key in names})
+        return cls(**{key: value for key, value in options.items() if key in SPEC_FIELDS})
 
     def params(self) -> dict[str, Any]:
         """Every parameter by name, ``effects`` a list (as ``synthetic.json`` and a config hold it)."""
@@ -119,11 +118,13 @@ class WorldSpec:
     def from_written(cls, meta: Mapping[str, Any]) -> WorldSpec:
         """The spec a dataset's ``synthetic.json`` records (:meth:`written`); a parameter it lacks has its
         :data:`UNWRITTEN` value, or the default."""
-        names = [field.name for field in dataclasses.fields(cls)]
-        return cls(**{k: v for k, v in {**UNWRITTEN, **meta}.items() if k in names})
+        return cls(**{k: v for k, v in {**UNWRITTEN, **meta}.items() if k in SPEC_FIELDS})
 
     def differences(self, meta: Mapping[str, Any]) -> list[str]:
         """Each parameter in which a dataset's ``synthetic.json`` differs from this spec, as ``size 16
         (asked 24)``; one it lacks (an older version's) is not compared."""
         meta, asked = {**UNWRITTEN, **meta}, self.params()
         return [f"{k} {meta[k]!r} (asked {asked[k]!r})" for k in asked if k in meta and meta[k] != asked[k]]
+
+
+SPEC_FIELDS = tuple(field.name for field in dataclasses.fields(WorldSpec))  # the parameters, in order

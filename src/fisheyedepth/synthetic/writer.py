@@ -58,7 +58,7 @@ def generate(
     """
     _check_rendering(spec, workers, lidar, progress)
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+    if out.exists() and not is_empty_dir(out) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
     ranges = split_frames(spec.frames)
     world = make_scene_world(spec.scene, spec.seed)
