@@ -120,3 +120,42 @@ def test_the_cache_erodes_each_camera_once_per_margin():
     cache.inside([kitti03().resize(32, 32)], 1)
     cache.inside(cams[:1], 2)
     assert len(cache._inside) == 4
+
+
+# ------------------------------------------------------------- a large image without the iterative inverse
+def test_interpolated_rays_are_the_models_inverse(camera):
+    """Every model: the rays by interpolation and Newton's polish project back within
+    1e-6 px of their pixel, equal the model's own unprojection to 1e-7 radians (under float32's resolution),
+    and the same pixels have a ray."""
+    from fisheyedepth.cameras.rays import interpolated_rays
+
+    big = camera
+    rays, valid = interpolated_rays(big)
+    expected, expected_valid = big.unproject(pixel_grid(big.width, big.height, dtype=torch.float64))
+    assert torch.equal(valid, expected_valid)
+    assert (rays[valid] - expected[valid]).norm(dim=-1).max() < 1e-7  # below float32's resolution
+    uv, projects = big.project(rays[valid])
+    assert (
+        projects.all()
+        and (uv - pixel_grid(big.width, big.height, dtype=torch.float64)[valid]).norm(dim=-1).max() < 1e-6
+    )
+    assert torch.equal(
+        rays[~valid], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64).expand(int((~valid).sum()), 3)
+    )
+
+
+def test_a_large_image_of_an_iterative_model_is_interpolated_and_a_small_one_is_not(monkeypatch):
+    """compute_rays takes the interpolated path for a model whose inverse is a two-dimensional iteration
+    (Fisheye624, OpenCV, Mei with tangential terms) from INTERPOLATE_FROM_PIXELS on, the model's own
+    unprojection for the others and for small images."""
+    from fisheyedepth.cameras import rays as module
+
+    calls = []
+    monkeypatch.setattr(module, "interpolated_rays", lambda camera, device: calls.append(camera) or (
+        camera.unproject(pixel_grid(camera.width, camera.height, dtype=torch.float64))))  # fmt: skip
+    small, large = kitti03(tangential=True).resize(64, 64), kitti03(tangential=True).resize(256, 256)
+    compute_rays(small)
+    compute_rays(kitti02().resize(256, 256))  # no tangential terms: a one-dimensional solve
+    assert calls == []
+    compute_rays(large)
+    assert calls == [large] and large.width * large.height >= module.INTERPOLATE_FROM_PIXELS

@@ -53,6 +53,10 @@ class CameraModel:
     height: int
 
     model_name: ClassVar[str] = ""
+    # Whether ``unproject`` is direct: a closed form or a one-dimensional solve, about as fast per pixel
+    # as a projection. Where it is not (a two-dimensional iteration), the ray cache unprojects a large
+    # image through :func:`fisheyedepth.cameras.rays.interpolated_rays`.
+    direct_unproject: ClassVar[bool] = False
     # Names of the parameters that are a focal length (pixels) along u and v, and the principal point.
     # Resizing and flipping are generic over these.
     _fu: ClassVar[str] = "fx"
@@ -286,7 +290,13 @@ def check_plausible(camera: CameraModel) -> CameraModel:
 # -------------------------------------------------------------------- shared numerical helpers
 def safe_norm(x: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
     """Euclidean norm whose gradient is finite at zero."""
-    sq = (x * x).sum(dim=dim, keepdim=keepdim)
+    if dim in (-1, x.dim() - 1) and x.shape[-1] <= 4:  # a point's few coordinates: added, not reduced
+        sq = x[..., 0] * x[..., 0]
+        for i in range(1, x.shape[-1]):
+            sq = sq + x[..., i] * x[..., i]
+        sq = sq[..., None] if keepdim else sq
+    else:
+        sq = (x * x).sum(dim=dim, keepdim=keepdim)
     tiny = torch.finfo(x.dtype).tiny
     return torch.sqrt(sq.clamp_min(tiny))
 

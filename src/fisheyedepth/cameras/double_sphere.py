@@ -41,6 +41,7 @@ class DoubleSphereCamera(CameraModel):
     alpha: float
 
     model_name = "double_sphere"
+    direct_unproject = True
 
     def _check(self) -> None:
         if not -1.0 < self.xi <= 1.0:

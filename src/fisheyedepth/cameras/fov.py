@@ -43,6 +43,7 @@ class FovCamera(CameraModel):
     w: float
 
     model_name = "fov"
+    direct_unproject = True
 
     def _check(self) -> None:
         if not 0.0 < self.w < math.pi:

@@ -39,6 +39,7 @@ class KannalaBrandtCamera(CameraModel):
     k4: float = 0.0
 
     model_name = "kannala_brandt"
+    direct_unproject = True
 
     @property
     def _coeffs(self) -> tuple[float, float, float, float]:

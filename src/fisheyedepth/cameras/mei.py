@@ -64,6 +64,10 @@ class MeiCamera(CameraModel):
     def has_tangential(self) -> bool:
         return self.p1 != 0.0 or self.p2 != 0.0
 
+    @property
+    def direct_unproject(self) -> bool:  # the tangential terms need a two-dimensional Newton iteration
+        return not self.has_tangential
+
     # -------------------------------------------------------------- domain
     @cached_property
     def _z_min(self) -> float:

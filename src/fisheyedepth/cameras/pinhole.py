@@ -23,6 +23,7 @@ class PinholeCamera(CameraModel):
     cy: float
 
     model_name = "pinhole"
+    direct_unproject = True
 
     @property
     def max_incidence(self) -> float:

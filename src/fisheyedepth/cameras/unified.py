@@ -118,6 +118,7 @@ class UnifiedCamera(CameraModel):
     alpha: float
 
     model_name = "ucm"
+    direct_unproject = True
 
     def _check(self) -> None:
         _check_alpha(self.alpha)
@@ -154,6 +155,7 @@ class ExtendedUnifiedCamera(CameraModel):
     beta: float
 
     model_name = "eucm"
+    direct_unproject = True
 
     def _check(self) -> None:
         _check_alpha(self.alpha)
