@@ -4,7 +4,6 @@ real rectified pair (Middlebury 2014 Motorcycle)."""
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import math
@@ -113,26 +112,36 @@ def write_room_rig(
 
 
 def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
+    """The rectified pipeline by default: every image with the rig's other camera and its own camera's
+    previous and next images, each pair matched once, the partners fused; the seconds of each image and
+    of each stage in the summary."""
     from fisheyedepth.stereo.recording import main
 
-    rig = write_room_rig(tmp_path / "rec", size=80)
+    rig = write_room_rig(tmp_path / "rec", size=192)
     out = tmp_path / "out"
-    args = [str(tmp_path / "rec"), "--out", str(out), "--hypotheses", "32", "--min-distance", "0.5",
-            "--max-distance", "20", "--quiet"]  # fmt: skip
+    args = [str(tmp_path / "rec"), "--out", str(out), "--min-distance", "0.5", "--max-distance", "20",
+            "--threads", "1", "--quiet"]  # fmt: skip
     assert main(args) == 0
     summary = json.loads((out / "summary.json").read_text())
-    t0, t1, _ = rig["stamps"]
-    assert summary["unpaired"] == [f"seq/lonely/{t0 + 50_000_000}"]  # no partner at its instant or later
-    first = {r["image"]: r for r in summary["images"]}[f"seq/left/{t0}"]
-    assert first["partners"] == [f"right/{t0}", f"left/{t1}"]  # the rig's other camera, then its own motion
+    t0, t1, t2 = rig["stamps"]
+    assert summary["unpaired"] == [f"seq/lonely/{t0 + 50_000_000}"]  # no partner at its instant or near
+    records = {r["image"]: r for r in summary["images"]}
+    assert records[f"seq/left/{t0}"]["partners"] == [f"right/{t0}", f"left/{t1}"]  # the rig, then later
+    assert records[f"seq/left/{t1}"]["partners"] == [f"right/{t1}", f"left/{t0}", f"left/{t2}"]  # both sides
     for record in summary["images"]:
-        assert record["checked"]["abs_rel"] < 0.12 and record["checked"]["coverage"] > 0.6, record  # 80 px
-        assert record["checked"]["abs_rel"] < 0.5 * record["checked"]["constant_abs_rel"], record
+        assert record["checked"]["abs_rel"] < 0.08 and record["checked"]["coverage"] > 0.8, record
+        assert record["checked"]["abs_rel"] < 0.2 * record["checked"]["constant_abs_rel"], record
+        assert record["dense"]["abs_rel"] < 0.15 and 0 < record["seconds"] < 30, record
+    seconds = summary["seconds"]
+    assert set(seconds) == {"total", "refine", "rectify", "match", "fill", "map_back", "fuse", "per_image"}
+    assert seconds["match"] > 0 and seconds["per_image"] > 0 and summary["settings"]["matcher"] == "sgbm"
     distance = np.load(out / "seq" / "distance" / "left" / f"{t0}.npy")
     dense = np.load(out / "seq" / "dense" / "left" / f"{t0}.npy")
-    assert distance.dtype == np.float32 and distance.shape == (80, 80)
+    confidence = np.load(out / "seq" / "confidence" / "left" / f"{t0}.npy")
+    assert distance.dtype == np.float32 and distance.shape == (192, 192)
     assert ((distance == 0) | (distance == dense)).all() and (dense > 0).sum() >= (distance > 0).sum() > 0
-    assert cv2.imread(str(out / "seq" / "panels" / "left" / f"{t0}.png")).shape == (80, 4 * 80, 3)
+    assert ((confidence > 0) == (distance > 0)).all() and confidence.max() <= 1
+    assert cv2.imread(str(out / "seq" / "panels" / "left" / f"{t0}.png")).shape == (192, 4 * 192, 3)
 
     assert main(args) == 2  # the outputs exist: replaced only with --overwrite
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
@@ -140,6 +149,24 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     )
     assert main([*args[:3], "--sources", "rig,gps", "--quiet"]) == 2
     assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
+    assert main([*args[:3], "--threads", "0", "--quiet"]) == 2
+    assert "--threads: 0; at least 1" in capsys.readouterr().err
+
+
+def test_the_sweep_stays_as_a_matcher(tmp_path):
+    """``--matcher sweep``: the sweep over every partner of an image at once, the same outputs."""
+    from fisheyedepth.stereo.recording import main
+
+    write_room_rig(tmp_path / "rec", size=64, stamps=(1_000_000_000, 1_100_000_000))
+    out = tmp_path / "out"
+    args = [str(tmp_path / "rec"), "--out", str(out), "--matcher", "sweep", "--hypotheses", "24",
+            "--min-distance", "0.5", "--max-distance", "20", "--sources", "rig", "--quiet"]  # fmt: skip
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["matcher"] == "sweep" and summary["settings"]["hypotheses"] == 24
+    assert len(summary["images"]) == 4
+    for record in summary["images"]:
+        assert record["checked"]["abs_rel"] < 0.2 and record["checked"]["coverage"] > 0.3, record
 
 
 def turned(T: torch.Tensor, degrees: float, axis=(0.3, 1.0, -0.2)) -> torch.Tensor:
@@ -181,24 +208,25 @@ def test_refine_writes_the_rig_its_images_say(tmp_path, degrees):
 
 
 # ------------------------------------------------------------------ a real rectified pair
-def crop(view: View, x0: int, y0: int, width: int, height: int) -> View:
-    c = view.camera
-    camera = PinholeCamera(width=width, height=height, fx=c.fx, fy=c.fy, cx=c.cx - x0, cy=c.cy - y0)
-    return View(view.image[..., y0 : y0 + height, x0 : x0 + width], camera, view.T_ref_to_view)
+def crop(image: torch.Tensor, camera: PinholeCamera, x0: int, y0: int, width: int, height: int):
+    c = camera
+    cropped = PinholeCamera(width=width, height=height, fx=c.fx, fy=c.fy, cx=c.cx - x0, cy=c.cy - y0)
+    return image[..., y0 : y0 + height, x0 : x0 + width], cropped
 
 
-def test_middlebury_motorcycle_a_real_pair():
+def test_middlebury_motorcycle_a_real_pair_swept():
     """Middlebury 2014 Motorcycle (real photographs, scikit-image): census sweep stereo on a 320x240 window
     of the left image's centre against the right image's full rows, scored against the exact disparity.
     The whole image (128 hypotheses) scores 0.0116 on 85.9 % of its pixels (BENCHMARKS.md); the window
     loses some of its border to the round trip."""
     pytest.importorskip("skimage")
-    from fisheyedepth.stereo.pairs import motorcycle
+    from fisheyedepth.data.realpairs import motorcycle
 
     pair = motorcycle()
     x0, y0, width, height = 250, 130, 320, 240
-    reference = crop(pair.reference, x0, y0, width, height)
-    source = crop(pair.source, 0, y0, pair.source.camera.width, height)
+    reference = View(*crop(pair.image, pair.camera, x0, y0, width, height), torch.eye(4))
+    source = View(*crop(pair.partner_image, pair.partner_camera, 0, y0, pair.partner_camera.width, height),
+                  pair.T.float())  # fmt: skip
     truth = pair.distance[y0 : y0 + height, x0 : x0 + width][None]
     result = SweepStereo(hypotheses=96, min_distance=1.5, max_distance=10.0, cost="census")(
         reference, [source]
@@ -208,70 +236,63 @@ def test_middlebury_motorcycle_a_real_pair():
     assert scores(result.dense, truth)["abs_rel"] < 0.1
 
 
-# ------------------------------------------------------------------ real fisheye pairs (make realscore)
-@pytest.fixture(scope="module")
-def adt_pairs():
-    from fisheyedepth.stereo.realpairs import adt_pairs
+@pytest.mark.realdata
+def test_real_pairs_through_the_rectified_pipeline():
+    """``make realscore``'s pairs through the rectified pipeline (the ranges by the scene's kind): the ADT
+    SLAM pair, rotation refined, each camera of frames 0 and 1 the reference, checked within 0.11 on 55 %
+    or more of the overlap and filled within 0.35; Middlebury Motorcycle checked within 0.02 on 85 % or
+    more of its overlap and filled within 0.05; every one far better than the constant map."""
+    pytest.importorskip("skimage")
+    from fisheyedepth.data.realpairs import overlap
+    from fisheyedepth.stereo.realscores import real_pairs, score_pair
 
     root = realdata_dir()
     if not (root / "adt_slam").is_dir():
         pytest.skip(f"real data not found at {root} (set FISHEYEDEPTH_REALDATA)")
-    return adt_pairs(root / "adt_slam")
-
-
-@pytest.mark.realdata
-def test_adt_slam_pair_refined_then_swept_gives_metric_distance(adt_pairs):
-    """Aria Digital Twin's two SLAM fisheyes (real photographs, 0.14 m apart, 75 degrees turned): the
-    stored rotation between them is about 0.8 degrees off what their images say; refined from the
-    matches of three image pairs, the sweep's checked distance on the left image's overlap scores
-    0.107 (a1 0.87) on 52 % of it, against 0.87 for the constant map on the same pixels."""
-    from fisheyedepth.stereo.realpairs import ADT_SWEEP, score_pair
-
-    assert [p.pair.name for p in adt_pairs] == ["adt_left_0", "adt_right_0", "adt_left_1", "adt_right_1"]
-    refinement = adt_pairs[0].refinement
+    pairs = real_pairs(root)
+    assert [p.name for p, _, _ in pairs] == ["adt_left_0", "adt_right_0", "adt_left_1", "adt_right_1",
+                                            "middlebury_motorcycle"]  # fmt: skip
+    refinement = pairs[0][1]
     assert refinement["instants"] == 3 and 0.5 < refinement["rotation_deg"] < 1.2
     assert refinement["error_before_px"] > 1.2 and refinement["error_after_px"] < 0.4
-    assert 0.35 < float(adt_pairs[0].overlap.float().mean()) < 0.45  # of the image: where the cameras overlap
-    record, result = score_pair(adt_pairs[0], ADT_SWEEP)
-    checked = record["checked"]
-    assert checked["abs_rel"] <= 0.12 and checked["a1"] >= 0.85 and checked["coverage"] >= 0.5, checked
-    assert checked["constant_abs_rel"] > 0.7 and record["dense"]["abs_rel"] < 0.45, record
-    assert result.distance.shape == (1, 480, 640)
+    for pair, _, settings in pairs:
+        scored = overlap(pair)
+        record, (checked, dense) = score_pair(pair, scored, "sgbm", settings)
+        c, d = record["checked"], record["dense"]
+        bound = (0.02, 0.85, 0.05) if pair.name.startswith("middlebury") else (0.11, 0.55, 0.35)
+        assert c["abs_rel"] <= bound[0] and c["coverage"] >= bound[1] and d["abs_rel"] <= bound[2], (
+            pair.name,
+            record,
+        )
+        assert c["abs_rel"] < 0.2 * c["constant_abs_rel"] and checked.shape == pair.distance.shape
 
 
 @pytest.mark.realdata
-def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monkeypatch, capsys):
+def test_realscore_scores_stereo_beside_each_model(tmp_path, monkeypatch, capsys):
     """``scripts/tools/real_world.py`` (``make realscore``) adds a table: each ADT reference frame and the
-    Middlebury pair, checked and dense, the constant map and each model on the same overlap pixels,
-    pictures ``multiview_<frame>.png``; every number in the JSON too."""
+    Middlebury pair, checked and filled, the constant map and each model on the same overlap pixels,
+    pictures ``multiview_<frame>.png``; every number in the JSON too, and the record rebuilds the table."""
     pytest.importorskip("skimage")
-    from fisheyedepth.stereo import realpairs
+    from fisheyedepth.stereo import realscores
 
-    # for time: frame 0's two references (refined once, by the fixture), a window of Middlebury's pair,
-    # 16 hypotheses
-    monkeypatch.setattr(realpairs, "adt_pairs", lambda folder, refine=True: adt_pairs[:2])
-    pair = realpairs.middlebury_pair().pair
-    window = pair.reference.camera.width - 320, 0, 320, 240
-    small_pair = pair._replace(
-        reference=crop(pair.reference, *window),
-        source=crop(pair.source, 0, 0, pair.source.camera.width, 240),
-        distance=pair.distance[:240, window[0] :],
+    root = realdata_dir()
+    if not (root / "adt_slam").is_dir():
+        pytest.skip(f"real data not found at {root} (set FISHEYEDEPTH_REALDATA)")
+    full = realscores.real_pairs
+    # for time: frame 0's two references and Middlebury
+    monkeypatch.setattr(
+        realscores, "real_pairs", lambda *a, **k: [p for p in full(*a, **k) if "_1" not in p[0].name]
     )
-    window_pair = realpairs.ScoredPair(small_pair, small_pair.distance > 0, None)
-    monkeypatch.setattr(realpairs, "middlebury_pair", lambda: window_pair)
-    monkeypatch.setattr(realpairs, "ADT_SWEEP", dataclasses.replace(realpairs.ADT_SWEEP, hypotheses=16))
-    small = dataclasses.replace(realpairs.MIDDLEBURY_SWEEP, hypotheses=16)
-    monkeypatch.setattr(realpairs, "MIDDLEBURY_SWEEP", small)
     torch.manual_seed(0)
     module = bare_module(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
     tiny = tmp_path / "tiny.ckpt"
     torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams)}, tiny)
     pictures, out = tmp_path / "pictures", tmp_path / "scores.json"
-    args = [str(tiny), "--root", str(realdata_dir()), "--frames", "adt", "--pictures", str(pictures),
+    args = [str(tiny), "--root", str(root), "--frames", "adt", "--pictures", str(pictures),
             "--json", str(out)]  # fmt: skip
     assert load_script("tools/real_world").main(args) == 0
     lines = capsys.readouterr().out.splitlines()
-    table = lines[lines.index(realpairs.HEADER) + 2 :]
+    table = lines[lines.index(realscores.HEADER) + 2 :]
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table if line.startswith("| ")]
     names = ["adt_left_0", "adt_right_0", "middlebury_motorcycle"]
     assert [r[0] for r in rows] == names
@@ -280,7 +301,8 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
         kept = record[row[0]]
         assert row[2] == f"{kept['overlap_pixels']:,}"
         assert row[3] == ", ".join(f"{kept['checked'][k]:.3f}" for k in ("abs_rel", "a1", "coverage"))
-        assert row[4] == str(kept["checked"]["constant_abs_rel"])  # 16 hypotheses: the table, not accuracy
+        assert row[4] == str(kept["checked"]["constant_abs_rel"])
+        assert kept["stereo"]["matcher"] == "sgbm"
         if row[0].startswith("adt"):
             model = kept["models"]["tiny"]
             assert row[7] == f"tiny: {model['abs_rel']:.3f}, {model['a1']:.3f}"
@@ -288,13 +310,13 @@ def test_realscore_scores_the_sweep_beside_each_model(adt_pairs, tmp_path, monke
         else:
             assert row[7] == "-" and kept["refinement"] is None
         picture = cv2.imread(str(pictures / f"multiview_{row[0]}.png"))
-        assert picture.shape[1] == 4 * (640 if row[0].startswith("adt") else 320)
+        assert picture.shape[1] == 4 * (640 if row[0].startswith("adt") else 741)
     assert any(
         line.startswith("ADT slam right relative to left, refined from 3 image pairs") for line in lines
     )
     # the record rebuilds the table, nothing re-scored
     assert load_script("tools/real_world").main(["--from-records", "--multiview", str(out)]) == 0
-    start = lines.index(realpairs.HEADER)
+    start = lines.index(realscores.HEADER)
     assert capsys.readouterr().out.splitlines() == lines[start : start + 2 + len(names)]
 
 

@@ -151,11 +151,26 @@ def test_a_large_image_of_an_iterative_model_is_interpolated_and_a_small_one_is_
     from fisheyedepth.cameras import rays as module
 
     calls = []
-    monkeypatch.setattr(module, "interpolated_rays", lambda camera, device: calls.append(camera) or (
-        camera.unproject(pixel_grid(camera.width, camera.height, dtype=torch.float64))))  # fmt: skip
+
+    def instead(camera, device, tolerance_px):
+        calls.append(camera)
+        return camera.unproject(pixel_grid(camera.width, camera.height, dtype=torch.float64))
+
+    monkeypatch.setattr(module, "interpolated_rays", instead)
     small, large = kitti03(tangential=True).resize(64, 64), kitti03(tangential=True).resize(256, 256)
     compute_rays(small)
     compute_rays(kitti02().resize(256, 256))  # no tangential terms: a one-dimensional solve
     assert calls == []
     compute_rays(large)
     assert calls == [large] and large.width * large.height >= module.INTERPOLATE_FROM_PIXELS
+
+
+@pytest.mark.parametrize("dtype,tolerance", [(torch.float64, 1e-9), (torch.float32, 1e-6)])
+def test_interpolated_rays_are_polished_to_the_precision_asked_for(dtype, tolerance):
+    """float64 rays project back within 1e-9 px of their pixel (a warp by them maps every pixel onto
+    itself); float32 ones within float32's own resolution (the polish stops at 1e-6 px)."""
+    camera = kitti03(tangential=True).resize(256, 256)
+    rays, valid = RayCache().get(camera, dtype=dtype)
+    uv, _ = camera.project(rays[valid].double())
+    error = (uv - pixel_grid(256, 256, dtype=torch.float64)[valid]).norm(dim=-1).max()
+    assert error < (tolerance if dtype == torch.float64 else 1e-4)

@@ -1,114 +1,291 @@
 #!/usr/bin/env python
-"""Sweep stereo beside OpenCV's StereoSGBM; results go into BENCHMARKS.md (between this script's markers).
+"""Metric distance from geometry at robot speed: the rectified pipeline (fisheyedepth.stereo) beside
+OpenCV's StereoSGBM alone, side by side in one run; results go into BENCHMARKS.md (between this script's
+markers). One thread unless said; a pair's rectification tables are built once (per rig pair, per
+calibration) and not timed, as a robot builds them once.
 
-1. Middlebury 2014 Motorcycle (real photographs, scikit-image; 741x500 rectified pinhole pair with exact
-   disparity): the census sweep (``--hypotheses``, default 128) and StereoSGBM (128 disparities, 5x5
-   blocks) on the same pair, one thread each, taking turns round by round: their seconds, the ratio, and
-   both scored against the ground truth (abs_rel, a1 and coverage of what each keeps, and the sweep's
-   dense map on every pixel).
-2. A 640x480 fisheye pair (two KITTI-360-like Mei cameras 0.2 m apart, turned 30 degrees, the sweep's
-   test room): the sweep's seconds with the same settings.
+1. Rays: every pixel of a 1408x1408 Fisheye624 camera (Aria Digital Twin's RGB calibration) unprojected
+   on one thread, the interpolated path beside the model's own iteration at every pixel.
+2. Middlebury 2014 Motorcycle (real photographs, scikit-image): the rectified path (remap on the sphere,
+   normalisation, SGBM, checks, fill, distance at every pixel) beside StereoSGBM alone on the raw pair
+   (same settings and disparity range), taking turns; both scored against the exact disparity on the
+   left image's overlap.
+3. The ADT SLAM pair (640x480 Fisheye624, ``FISHEYEDEPTH_REALDATA``): both images answered (both
+   directions, checks, fill, distance at every pixel), on 2 threads: pairs per second.
+4. A 1408 px fisheye with two partners: ADT's RGB camera and its two SLAM cameras (their calibration and
+   extrinsics) in the textured room of the tests; the RGB image's distance from both partners, fused.
+5. A four-camera rig: the Aria Gen2 rig (512x512 Fisheye624, metric odometry), every camera with its rig
+   partners and its own image from the last instant that moved 5 cm or more, through ``RigStereo`` on 2
+   threads: instants per second.
 
-Usage: python scripts/bench/bench_stereo.py [--hypotheses 128] [--rounds 2] [--threads 1]
-           [--no-write] [--quick]
+Usage: python scripts/bench/bench_stereo.py [--rounds 3] [--no-write] [--quick]
 """
 
 from __future__ import annotations
 
 import datetime
+import math
 import platform
 import statistics
 import sys
+import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from fisheyedepth.cameras.rays import compute_rays
-from fisheyedepth.data.kitti360 import kitti360_camera
-from fisheyedepth.stereo import SweepStereo
-from fisheyedepth.stereo.pairs import MOTORCYCLE, motorcycle
+from fisheyedepth.cameras.rays import compute_rays, pixel_grid
+from fisheyedepth.data.realframes import adt_camera
+from fisheyedepth.data.realpairs import MOTORCYCLE, adt_left_to_right, adt_pairs, motorcycle, overlap
+from fisheyedepth.stereo import RigStereo, StereoSettings, build_rectification, fuse, match_pair
+from fisheyedepth.stereo.match import normalise
+from fisheyedepth.stereo.scores import score
 
 from _benchmarks import bench_parser, interleaved, markers, parse_args, publish
 
 START, END = markers("bench_stereo")
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))  # the sweep tests' textured room
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT / "tests"))  # the tests' textured room
 
-from stereo_world import pair as room_pair  # noqa: E402
-from stereo_world import pose, scores  # noqa: E402
+from stereo_world import render, texture_volume  # noqa: E402
 
 
-def sgbm_distance(pair) -> torch.Tensor:
-    left, right = (
-        (v.image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8) for v in (pair.reference, pair.source)
+def realdata() -> Path:
+    import os
+
+    return Path(os.environ.get("FISHEYEDEPTH_REALDATA", ROOT.parent / "shared" / "realdata"))
+
+
+def grey(image: torch.Tensor) -> np.ndarray:
+    return (image[0].mean(0).numpy() * 255).astype(np.float32)
+
+
+def threads(n: int) -> None:
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+
+
+def rays_section(quick: bool) -> list[str]:
+    """Seconds to unproject every pixel of a 1408 px Fisheye624 camera, both ways, one thread."""
+    threads(1)
+    path = realdata() / "adt_slam" / "adt_sample.json"
+    camera = adt_camera(path, "camera-rgb") if path.is_file() else None
+    if camera is None:
+        return ["(rays: no ADT calibration under FISHEYEDEPTH_REALDATA)"]
+    if quick:
+        camera = camera.resize(352, 352)
+    fast = statistics.median(
+        interleaved({"": lambda: compute_rays(camera, dtype=torch.float64)}, 1, warmup=0)[""]
     )
-    sgbm = cv2.StereoSGBM_create(
-        minDisparity=0, numDisparities=128, blockSize=5, P1=8 * 3 * 25, P2=32 * 3 * 25, uniquenessRatio=5,
-        disp12MaxDiff=1,
-    )  # fmt: skip
-    disparity = sgbm.compute(left, right).astype(np.float32) / 16
+    if quick:
+        return [f"Rays of a {camera.width} px Fisheye624: {fast:.2f} s"]
+    grid = pixel_grid(camera.width, camera.height, dtype=torch.float64)
+    exact = statistics.median(interleaved({"": lambda: camera.unproject(grid)}, 1, warmup=0)[""])
+    return [
+        f"Every pixel of a {camera.width}x{camera.height} Fisheye624 camera (ADT's RGB calibration, "
+        f"{camera.width * camera.height / 1e6:.1f} megapixels) unprojected on one thread, float32 rays as "
+        f"the pipeline keeps them: **{fast:.2f} s** (the model's own iteration at every pixel: "
+        f"{exact:.2f} s); once per calibration."
+    ]
+
+
+def middlebury_section(rounds: int, quick: bool) -> tuple[list[str], float]:
+    threads(1)
+    pair = motorcycle()
+    settings = StereoSettings(min_distance=1.5, max_distance=10.0)
+    rect = build_rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
+                               directions=(True, False), max_distance=settings.max_distance)  # fmt: skip
+    a, b = grey(pair.image), grey(pair.partner_image)
+    m = settings.matcher
+    seen = np.ones(a.shape, bool)
+    raw = [normalise(x, seen, m.normalise_window) for x in (a, b)]
+    # the raw pair's disparity range for the same nearest distance (d + doffs = f b / z)
     c = MOTORCYCLE
-    z = np.where(disparity > 0, c["f"] * c["baseline"] / (disparity + c["doffs"]), 0.0)
-    rays, _ = compute_rays(pair.reference.camera)
-    return torch.from_numpy(z).float() / rays[..., 2]
+    raw_range = 16 * math.ceil((c["f"] * c["baseline"] / settings.min_distance - c["doffs"]) / 16)
+    sgbm = m.sgbm(raw_range)
+    results = {}
+
+    def ours():
+        results["ours"] = match_pair(a, b, rect, settings, (True, False))[0]
+
+    def theirs():
+        results["theirs"] = sgbm.compute(*raw).astype(np.float32) / 16
+
+    times = interleaved({"ours": ours, "theirs": theirs}, 1 if quick else rounds, warmup=0 if quick else 1)
+    ours_s, theirs_s = statistics.median(times["ours"]), statistics.median(times["theirs"])
+    scored = overlap(pair).numpy()
+    truth = pair.distance.numpy()
+    rays, _ = compute_rays(pair.camera)
+    d = results["theirs"]
+    z = np.where(d > 0, c["f"] * c["baseline"] / np.maximum(d + c["doffs"], 1e-6), 0)
+    their_distance = z / rays[..., 2].numpy()
+    rows = []
+    for name, distance, seconds in (
+        (f"rectified on the sphere, SGBM ({m.mode}, {m.block}x{m.block}), checks, fill",
+         results["ours"].distance, ours_s),
+        ("the same, filled", results["ours"].dense, None),
+        (f"OpenCV StereoSGBM alone on the raw pair (same settings, {raw_range} disparities)", their_distance,
+         theirs_s),
+    ):  # fmt: skip
+        s = score(distance, truth, scored)
+        cell = "-" if seconds is None else f"{seconds:.3f}"
+        rows.append(f"| {name} | {s['abs_rel']:.4f} | {s['a1']:.3f} | {100 * s['coverage']:.1f} % | {cell} |")
+    lines = [
+        f"Middlebury 2014 Motorcycle, 741x500, one thread (grid {rect.grid.rows}x{rect.grid.cols}, "
+        f"{rect.disparities} disparities); scored on the left image's overlap:",
+        "",
+        "| method | abs_rel | a1 | coverage | seconds |",
+        "|---|---|---|---|---|",
+        *rows,
+        "",
+        f"The rectified path takes **{ours_s / theirs_s:.2f}x** StereoSGBM's time alone on this pair.",
+    ]
+    return lines, ours_s / theirs_s
+
+
+def adt_section(rounds: int, quick: bool) -> list[str]:
+    folder = realdata() / "adt_slam"
+    if not folder.is_dir():
+        return ["(ADT: no adt_slam under FISHEYEDEPTH_REALDATA)"]
+    threads(2)
+    pair = adt_pairs(folder, adt_left_to_right(folder))[0]
+    settings = StereoSettings(min_distance=0.2, max_distance=10.0)
+    rect = build_rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
+                               max_distance=settings.max_distance)  # fmt: skip
+    a, b = grey(pair.image), grey(pair.partner_image)
+    seconds = statistics.median(
+        interleaved({"": lambda: match_pair(a, b, rect, settings)}, 1 if quick else rounds, warmup=1)[""]
+    )
+    return [
+        f"ADT's SLAM pair, 640x480 each, both images answered (grid {rect.grid.rows}x{rect.grid.cols}, "
+        f"{rect.disparities} disparities), 2 threads: {seconds:.3f} s, **{1 / seconds:.1f} pairs per "
+        "second**."
+    ]
+
+
+def rgb_section(rounds: int, quick: bool) -> list[str]:
+    """ADT's 1408 px RGB camera and its two SLAM cameras in the textured room, their extrinsics."""
+    path = realdata() / "adt_slam" / "adt_sample.json"
+    if not path.is_file():
+        return ["(RGB with partners: no ADT calibration under FISHEYEDEPTH_REALDATA)"]
+    import json
+
+    threads(1)
+    data = json.loads(path.read_text())
+    names = ("camera-rgb", "camera-slam-left", "camera-slam-right")
+    cameras = {n: adt_camera(path, n) for n in names}
+    if quick:
+        cameras = {n: c.resize(c.width // 4, c.height // 4) for n, c in cameras.items()}
+    to_device = {n: torch.tensor(data["cameras"][n]["T_device_camera"], dtype=torch.float64) for n in names}
+    world = torch.eye(4, dtype=torch.float64)
+    world[:3, 3] = torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)
+    images = {n: grey(render(cameras[n], world @ to_device[n], texture_volume(0))[0]) for n in names}
+    settings = StereoSettings(min_distance=0.3, max_distance=20.0)
+    rects = {
+        n: build_rectification(cameras["camera-rgb"], cameras[n],
+                               (torch.linalg.inv(to_device[n]) @ to_device["camera-rgb"]).numpy(),
+                               settings.min_distance, directions=(True, False),
+                               max_distance=settings.max_distance)
+        for n in names[1:]
+    }  # fmt: skip
+
+    def rgb():
+        return fuse(
+            [
+                match_pair(images["camera-rgb"], images[n], rects[n], settings, (True, False))[0]
+                for n in names[1:]
+            ]
+        )
+
+    seconds = statistics.median(interleaved({"": rgb}, 1 if quick else rounds, warmup=1)[""])
+    rgb_camera = cameras["camera-rgb"]
+    return [
+        f"A {rgb_camera.width} px Fisheye624 (ADT's RGB calibration) with its two 640x480 SLAM cameras as "
+        f"partners (grids at the SLAM cameras' {math.degrees(rects[names[1]].grid.step):.3f} degrees a "
+        "pixel), "
+        f"its distance from both, fused, one thread: **{seconds:.2f} s** a frame."
+    ]
+
+
+def rig_section(rounds: int, quick: bool) -> list[str]:
+    src = realdata() / "aria_gen2_rig"
+    if not src.is_dir():
+        return ["(four-camera rig: no aria_gen2_rig under FISHEYEDEPTH_REALDATA)"]
+    from fisheyedepth.data.aria import aria_to_rig
+    from fisheyedepth.data.layouts import RigLayout
+    from fisheyedepth.stereo.refine import layout_image
+
+    threads(2)
+    with tempfile.TemporaryDirectory() as tmp:
+        aria_to_rig(src, Path(tmp) / "rig")
+        layout = RigLayout(Path(tmp) / "rig")
+        sequence = layout.sequences()[0]
+        names = list(layout.cameras)
+        frames = {n: layout.frames(sequence, n) for n in names}
+        count = min(len(f) for f in frames.values())
+        images = [{n: layout_image(layout, sequence, n, frames[n][i]) for n in names} for i in range(count)]
+        poses = [frames[names[0]][i].pose for i in range(count)]
+    cameras = {n: layout.cameras[n].camera for n in names}
+    if quick:
+        cameras = {n: c.resize(c.width // 2, c.height // 2) for n, c in cameras.items()}
+        images = [
+            {n: cv2.resize(x, (cameras[n].width, cameras[n].height)) for n, x in i.items()} for i in images
+        ]
+    rig = RigStereo(cameras, {n: layout.cameras[n].cam_to_body for n in names}, StereoSettings(), threads=2)
+    instants, partners = [], []
+    for i in range(count):
+        earlier = [j for j in range(i) if np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) >= 0.05]
+        if not earlier:
+            continue
+        j = earlier[-1]
+        motion = np.linalg.inv(poses[j]) @ poses[i]
+        out = None
+
+        def instant(i=i, j=j, motion=motion):
+            nonlocal out
+            out = rig(images[i], previous=images[j], motion=motion)
+
+        instants.append(
+            statistics.median(interleaved({"": instant}, 1, warmup=1 if i == count - 1 else 0)[""])
+        )
+        partners.append(sum(len(r.partners) for r in out.values()))
+    seconds = statistics.median(instants)
+    camera = next(iter(cameras.values()))
+    return [
+        f"The Aria Gen2 rig: {len(names)} cameras of {camera.width}x{camera.height}, {len(rig.pairs)} "
+        "overlapping "
+        f"rig pairs, every camera also against its own image of the last instant 5 cm or more away "
+        f"({statistics.median(partners):.0f} partner maps an instant), 2 threads, over {len(instants)} "
+        "instants: "
+        f"{seconds:.2f} s, **{1 / seconds:.1f} instants per second**."
+    ]
 
 
 def main(argv=None) -> None:
     parser = bench_parser(__doc__)
-    parser.add_argument("--hypotheses", type=int, default=128)
-    parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--threads", type=int, default=1)
-    args = parse_args(parser, argv, quick={"hypotheses": 16, "rounds": 1})
-    torch.set_num_threads(args.threads)
-    cv2.setNumThreads(args.threads)
-    pair = motorcycle()
-    sweep = SweepStereo(hypotheses=args.hypotheses, min_distance=1.5, max_distance=10.0, cost="census")
-    results = {}
-    times = interleaved(
-        {
-            "sweep": lambda: results.__setitem__("sweep", sweep(pair.reference, [pair.source])),
-            "sgbm": lambda: results.__setitem__("sgbm", sgbm_distance(pair)),
-        },
-        args.rounds,
-        warmup=0 if args.quick else 1,
-    )
-    sweep_s, sgbm_s = statistics.median(times["sweep"]), statistics.median(times["sgbm"])
-    ours, dense, theirs = (
-        scores(results["sweep"].distance, pair.distance[None]),
-        scores(results["sweep"].dense, pair.distance[None]),
-        scores(results["sgbm"][None], pair.distance[None]),
-    )
-
-    camera = kitti360_camera(2).resize(640, 480)
-    reference, source, _ = room_pair(camera, camera, pose(), pose(30.0, (0.2, 0.0, 0.0)))
-    fisheye_sweep = SweepStereo(hypotheses=args.hypotheses, min_distance=0.3, max_distance=20.0)
-    fisheye_s = statistics.median(
-        interleaved({"": lambda: fisheye_sweep(reference, [source])}, 1, warmup=0)[""]
-    )
-
-    def row(name, score, seconds):
-        cells = f"{score['abs_rel']:.4f} | {score['a1']:.3f} | {100 * score['coverage']:.1f} %"
-        return f"| {name} | {cells} | {seconds} |"
-
+    parser.add_argument("--rounds", type=int, default=3)
+    args = parse_args(parser, argv, quick={"rounds": 1})
     today = datetime.date.today().isoformat()
+    middlebury, _ = middlebury_section(args.rounds, args.quick)
     lines = [
         START,
-        f"### Sweep stereo beside StereoSGBM ({today}, {platform.machine()}, {args.threads} thread(s))",
+        f"### The rectified pipeline beside StereoSGBM ({today}, {platform.machine()})",
         "",
-        f"`python scripts/bench/bench_stereo.py --hypotheses {args.hypotheses} --threads {args.threads}`: "
-        "Middlebury 2014 Motorcycle, 741x500 (real photographs, scikit-image), scored against its exact "
-        "disparity; each method's kept pixels, seconds the median of the rounds taken in turns.",
+        f"`python scripts/bench/bench_stereo.py --rounds {args.rounds}`: one thread unless said; each pair's "
+        "rectification tables built once beforehand, as a robot builds them once per rig pair and "
+        "calibration; "
+        "seconds the median of the rounds.",
         "",
-        "| method | abs_rel | a1 | coverage | seconds |",
-        "|---|---|---|---|---|",
-        row(f"sweep, census 7x7, {args.hypotheses} hypotheses, round-trip check", ours, f"{sweep_s:.2f}"),
-        row("the same before the check (dense)", dense, "-"),
-        row("OpenCV StereoSGBM, 128 disparities, 5x5", theirs, f"{sgbm_s:.3f}"),
+        *rays_section(args.quick),
         "",
-        f"The sweep takes {sweep_s / sgbm_s:.0f}x StereoSGBM's time on this pair. A 640x480 fisheye pair "
-        f"(Mei, 0.2 m apart, turned 30 degrees; ZNCC 11x11, {args.hypotheses} hypotheses, round trip): "
-        f"{fisheye_s:.1f} s.",
+        *middlebury,
+        "",
+        *adt_section(args.rounds, args.quick),
+        "",
+        *rgb_section(args.rounds, args.quick),
+        "",
+        *rig_section(args.rounds, args.quick),
         END,
     ]
     publish("\n".join(lines) + "\n", args.output, START, END, not args.no_write)

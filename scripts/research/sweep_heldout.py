@@ -1,12 +1,13 @@
 #!/usr/bin/env python
-"""Sweep stereo (fisheyedepth.stereo, untrained) on a held-out synthetic world with exact ground truth: each
-test frame of the world rendered with ``--seed`` (the 200-frame world ``heldout.py`` scores the networks on)
-is the reference; its sources are the frames the model warps (``model.source_offsets``: the odometry's
-motion between instants) and, with ``--rig-sources``, the rig's other cameras at the same instant.
+"""Stereo (fisheyedepth.stereo, untrained: the rectified SGBM pipeline or the sweep) on a held-out synthetic
+world with exact ground truth: each test frame of the world rendered with ``--seed`` (the 200-frame world
+``heldout.py`` scores the networks on) is the reference; its sources are the frames the model warps
+(``model.source_offsets``: the odometry's motion between instants) and, with ``--rig-sources``, the rig's
+other cameras at the same instant.
 
-    python scripts/research/sweep_heldout.py [--seed 2001] [--rig kitti360] [--rig-sources] [--frames 16]
-                                             [--hypotheses 128] [--cost zncc] [--min-distance 0.5]
-                                             [--max-distance 80] [--world-frames 200]
+    python scripts/research/sweep_heldout.py [--matcher sgbm|sweep] [--seed 2001] [--rig kitti360]
+                                             [--rig-sources] [--frames 16] [--hypotheses 128] [--cost zncc]
+                                             [--min-distance 0.5] [--max-distance 80] [--world-frames 200]
 
 Prints, over the frames, on the pixels ``eval.py`` scores (the ``full`` protocol): the checked output's
 abs_rel and a1 on the pixels it keeps and its coverage; the same on the *resolvable* pixels only (where a
@@ -23,7 +24,9 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from fisheyedepth.cameras.rays import RayCache
@@ -31,8 +34,8 @@ from fisheyedepth.cli import prepare_data
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.geometry.se3 import transform_points
 from fisheyedepth.plan import data_plan
-from fisheyedepth.stereo import SweepStereo, View
-from fisheyedepth.stereo.recording import score
+from fisheyedepth.stereo import StereoSettings, SweepStereo, View, fuse, match_pair, rectification
+from fisheyedepth.stereo.scores import score
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
 from _compose import build_datamodule, compose_config  # noqa: E402
@@ -57,6 +60,27 @@ def resolvable(camera, distance: torch.Tensor, sources: list[View], change: floa
     return out & has_ray & (distance > 0)
 
 
+class Result(NamedTuple):
+    distance: torch.Tensor  # [1, H, W]
+    dense: torch.Tensor
+
+
+def rectified(reference: View, sources: list[View], settings: StereoSettings) -> Result:
+    """The rectified pipeline on the reference against each source, fused."""
+
+    def grey(view: View) -> np.ndarray:
+        return (view.image[0].mean(0).numpy() * 255).astype(np.float32)
+
+    maps = []
+    for source in sources:
+        T = source.T_ref_to_view.double().numpy()
+        rect = rectification(reference.camera, source.camera, T, settings.min_distance, settings.resolution,
+                             (True, False), settings.max_distance)  # fmt: skip
+        maps.append(match_pair(grey(reference), grey(source), rect, settings, (True, False))[0])
+    fused = fuse(maps)
+    return Result(torch.from_numpy(fused.distance)[None], torch.from_numpy(fused.dense)[None])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -67,6 +91,7 @@ def main(argv=None) -> int:
         "--rig-sources", action="store_true", help="also the rig's other cameras, same instant"
     )
     parser.add_argument("--frames", type=int, default=16, help="test frames scored (spread over the split)")
+    parser.add_argument("--matcher", choices=("sgbm", "sweep"), default="sgbm")
     parser.add_argument("--hypotheses", type=int, default=128)
     parser.add_argument("--cost", choices=("zncc", "census"), default="zncc")
     parser.add_argument("--min-distance", type=float, default=0.5)
@@ -83,6 +108,7 @@ def main(argv=None) -> int:
     dataset = dm.dataset("test")  # with the frames the model warps
     step = max(1, len(dataset) // args.frames)
     sweep = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
+    settings = StereoSettings(args.min_distance, args.max_distance)
     evaluator = Evaluator(PROTOCOLS["full"], ("none",), rays=RAYS)
     totals: dict[str, list] = {"checked": [], "resolvable": [], "dense": []}
     errors = []  # the checked output's relative error on every pixel it keeps
@@ -95,7 +121,10 @@ def main(argv=None) -> int:
         cameras = sample.get("source_camera", [camera] * len(sample["sources"]))  # rig sources: theirs
         triples = zip(sample["sources"], cameras, sample["poses"], strict=True)
         sources = [View(image[None], cam, T) for image, cam, T in triples]
-        result = sweep(reference, sources)
+        if args.matcher == "sweep":
+            result = sweep(reference, sources)
+        else:
+            result = rectified(reference, sources, settings)
         # the pixels eval.py scores (the "full" protocol: up to 80 m, not the ego vehicle's body, which
         # moves with the camera and so matches at the farthest hypothesis)
         scored = evaluator.scored(truth, sample["mask"][0] > 0.5, camera, sample.get("distance_source"))
@@ -116,8 +145,9 @@ def main(argv=None) -> int:
         return sum(values) / len(values) if values else float("nan")
 
     sources = "time and rig" if args.rig_sources else "time"
+    how = f"{args.hypotheses} hypotheses {args.cost}" if args.matcher == "sweep" else "rectified, SGBM"
     print(f"\nworld {args.rig} seed {args.seed}, {len(totals['checked'])} test frames, sources {sources}, "
-          f"{args.hypotheses} hypotheses {args.cost}:")  # fmt: skip
+          f"{how}:")  # fmt: skip
     print("| output | pixels | abs_rel | a1 | coverage | constant map there |")
     print("|---|---|---|---|---|---|")
     labels = {"checked": "checked, all pixels with truth", "resolvable": "checked, resolvable pixels",

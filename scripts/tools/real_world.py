@@ -48,7 +48,7 @@ from fisheyedepth.cameras import load_json
 from fisheyedepth.data.realframes import FRAME_SETS, RAYS, Missing, RealFrame, load_frames
 from fisheyedepth.realscores import constant_map, protocols, score, scored_pixels
 from fisheyedepth.runtimes import POST_PROCESSING, OnnxRuntime, TorchRuntime, TrainedDepthNet
-from fisheyedepth.stereo.realpairs import multiview_records_table, multiview_scores
+from fisheyedepth.stereo.realscores import multiview_records_table, multiview_scores
 from fisheyedepth.utils import atomic_write_bytes, atomic_write_text
 from fisheyedepth.viz import panel
 

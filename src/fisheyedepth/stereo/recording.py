@@ -1,28 +1,37 @@
-"""``fisheyedepth-multiview ROOT --out OUT [--refine] [--sources rig,time]``: sweep stereo over a recording
-in the rig layout (docs/data-format.md, "Robot rig layout"): every image paired with the rig's other cameras
-at the same instant (``rig``) and with its own camera a few frames on (``time``, the odometry's motion),
-metric because the calibration and the odometry are.
+"""``fisheyedepth-multiview ROOT --out OUT [--refine] [--sources rig,time] [--matcher sgbm|sweep]``: metric
+distance from geometry over a recording in the rig layout (docs/data-format.md, "Robot rig layout"):
+every image paired with the rig's other cameras at the same instant (``rig``) and with its own camera's
+previous and next images that moved far enough (``time``, the odometry's motion), metric because the
+calibration and the odometry are.
+
+The matcher: ``sgbm`` (default) rectifies each pair on the sphere and matches it with OpenCV's
+semi-global block matcher (:mod:`.pipeline`): every pair once, both of its images answered, every
+partner of an image fused; ``sweep`` sweeps distance hypotheses over all partners at once
+(:mod:`.sweep`, on CUDA where there is one: a hundred times slower on a CPU).
 
 For each image it can pair it writes, under ``OUT/<sequence>/``:
-- ``distance/<camera>/<timestamp_ns>.npy``: float32 H x W metres along the ray, 0 where the round trip
-  rejects or no partner sees the pixel;
-- ``dense/<camera>/<timestamp_ns>.npy``: the same before the check (every pixel a partner sees);
-- ``confidence/<camera>/<timestamp_ns>.npy``: float32 in [0, 1];
-- ``panels/<camera>/<timestamp_ns>.png``: image | checked | dense [| ground truth];
+- ``distance/<camera>/<timestamp_ns>.npy``: float32 H x W metres along the ray, 0 where no partner's
+  checks keep the pixel;
+- ``dense/<camera>/<timestamp_ns>.npy``: the filled map (every pixel a partner could match);
+- ``confidence/<camera>/<timestamp_ns>.npy``: float32 in [0, 1] of the kept pixels;
+- ``panels/<camera>/<timestamp_ns>.png``: image | checked | filled [| ground truth];
 with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
 changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
-its partners and, where the folder has ground truth (``<sequence>/distance/<camera>/<timestamp_ns>.npy``),
-abs_rel, a1, coverage and the constant map on the same scored pixels; the images with no partner, by name.
-Nothing existing is replaced without ``--overwrite``.
+its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
+<timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels; the
+seconds of each stage; the images with no partner, by name. Nothing existing is replaced without
+``--overwrite``.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import io
 import json
 import logging
+import math
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,18 +41,20 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..cameras import load_yaml
+from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
-from ..geometry.se3 import relative_pose
-from ..images import read_image
 from ..utils import atomic_write_bytes, atomic_write_text
-from ..viz import colourise
-from .refine import Matches, match_features, refine_relative_pose
-from .sweep import StereoResult, SweepStereo, View
+from .fuse import Fused, fuse
+from .mapback import PixelMaps
+from .pipeline import StereoSettings, Timer, match_pair
+from .rectify import RectificationCache
+from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
+from .scores import panel, score
+from .sweep import SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
 SOURCES = ("rig", "time")
-REFINE = ("rotation", "pose")  # what --refine corrects of each camera's extrinsics (pose: also the direction)
+MATCHERS = ("sgbm", "sweep")
 
 
 @dataclass(frozen=True)
@@ -82,8 +93,8 @@ def pairings(
     max_frames_apart: int = 5,
 ) -> list[Pairing]:
     """Every image of the recording with its partners: each other camera's image within
-    ``same_instant_ns`` (``rig``), and the first of the next ``max_frames_apart`` images of its own camera
-    (else of the previous ones) whose centre moved ``min_baseline`` metres or more (``time``)."""
+    ``same_instant_ns`` (``rig``); and of its own camera the nearest earlier and the nearest later image,
+    within ``max_frames_apart``, whose centre is ``min_baseline`` metres or more from its own (``time``)."""
     check_sources(sources)
     out = []
     for sequence in layout.sequences():
@@ -100,194 +111,134 @@ def pairings(
                             partners.append(Partner(other, nearest))
                 if "time" in sources:
                     here = _centre(layout, camera, frame)
-                    later = own[i + 1 : i + 1 + max_frames_apart]
                     earlier = own[max(0, i - max_frames_apart) : i][::-1]
-                    for candidate in (*later, *earlier):
-                        if np.linalg.norm(_centre(layout, camera, candidate) - here) >= min_baseline:
-                            partners.append(Partner(camera, candidate))
-                            break
+                    later = own[i + 1 : i + 1 + max_frames_apart]
+                    for side in (earlier, later):
+                        moved = (
+                            f
+                            for f in side
+                            if np.linalg.norm(_centre(layout, camera, f) - here) >= min_baseline
+                        )
+                        found = next(moved, None)
+                        if found is not None:
+                            partners.append(Partner(camera, found))
                 out.append(Pairing(sequence, camera, frame, tuple(partners)))
     return out
 
 
-def _image(layout: RigLayout, sequence: str, camera: str, frame: Frame) -> torch.Tensor:
-    bgr = read_image(layout.image(sequence, camera, frame)).bgr
-    expected = (layout.cameras[camera].camera.width, layout.cameras[camera].camera.height)
-    if (bgr.shape[1], bgr.shape[0]) != expected:
-        raise ValueError(
-            f"{layout.image(sequence, camera, frame)}: {bgr.shape[1]}x{bgr.shape[0]} pixels, but the "
-            f"calibration of camera {camera!r} is {expected[0]}x{expected[1]}"
-        )
-    return torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)[None].float() / 255
-
-
-def _truth(layout: RigLayout, pairing: Pairing) -> torch.Tensor | None:
+def _truth(layout: RigLayout, pairing: Pairing) -> np.ndarray | None:
     path = layout.distance(pairing.sequence, pairing.camera, pairing.frame)
     if path is None:
         return None
-    truth = np.load(path, allow_pickle=False)
     camera = layout.cameras[pairing.camera].camera
-    if truth.shape != (camera.height, camera.width) or not np.isfinite(truth).all() or (truth < 0).any():
-        raise ValueError(
-            f"{path}: expected a finite, non-negative {camera.height} x {camera.width} distance map, got "
-            f"shape {truth.shape}"
+    return read_distance(path, camera)
+
+
+def masks(layout: RigLayout) -> dict[str, np.ndarray | None]:
+    """Each camera's body mask (``H x W`` bool, True: the scene), None where the rig names none."""
+    out = {}
+    for name, spec in layout.cameras.items():
+        size = (spec.camera.width, spec.camera.height)
+        out[name] = (
+            None if spec.mask is None else binary_mask(spec.mask, size, size, "body mask")[0].numpy() > 0.5
         )
-    return torch.from_numpy(truth.astype(np.float32))
+    return out
 
 
-def estimate(layout: RigLayout, pairing: Pairing, sweep: SweepStereo) -> StereoResult:
+def _T(layout: RigLayout, camera_a: str, frame_a: Frame, camera_b: str, frame_b: Frame) -> np.ndarray:
+    """``T_a_to_b`` of two images: each camera's extrinsics and each instant's body pose."""
+    world_a = frame_a.pose @ layout.cameras[camera_a].cam_to_body
+    world_b = frame_b.pose @ layout.cameras[camera_b].cam_to_body
+    return np.linalg.inv(world_b) @ world_a
+
+
+class PairStore:
+    """The recording's pairs through the rectified pipeline: each pair of images matched once (both
+    directions), kept until both of its images have taken their maps."""
+
+    def __init__(self, layout: RigLayout, settings: StereoSettings, timer: Timer):
+        self.layout, self.settings, self.timer = layout, settings, timer
+        self.masks = masks(layout)
+        self.rectifications = RectificationCache(max_entries=64)
+        self.maps: dict[tuple, dict[tuple, PixelMaps | None]] = {}
+        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, no baseline)
+
+    def get(self, sequence: str, own: tuple[str, Frame], other: tuple[str, Frame]) -> PixelMaps | None:
+        """``own``'s maps against ``other`` (None where the pair has no overlap)."""
+        a, b = sorted((own, other), key=lambda x: (x[1].key, x[0]))
+        key = (sequence, a[0], a[1].key, b[0], b[1].key)
+        if key not in self.maps:
+            self.maps[key] = self._match(sequence, a, b)
+        entry = self.maps[key]
+        side = (own[0], own[1].key)
+        found = entry.pop(side, None)
+        if not entry:
+            del self.maps[key]
+        return found
+
+    def _match(self, sequence: str, a: tuple[str, Frame], b: tuple[str, Frame]) -> dict:
+        layout, s = self.layout, self.settings
+        start = time.perf_counter()
+        T = _T(layout, a[0], a[1], b[0], b[1])
+        try:
+            cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
+            rect = self.rectifications.get(
+                *cameras, T, s.min_distance, s.resolution, max_distance=s.max_distance
+            )
+        except ValueError as err:  # no overlap within the range, or no baseline
+            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = str(err)
+            return {(a[0], a[1].key): None, (b[0], b[1].key): None}
+        self.timer.add("rectify", start)
+        images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
+        pair_masks = (self.masks[a[0]], self.masks[b[0]])
+        maps_a, maps_b = match_pair(images[0], images[1], rect, s, (True, True), self.timer, pair_masks)
+        return {(a[0], a[1].key): maps_a, (b[0], b[1].key): maps_b}
+
+
+def _sweep(layout: RigLayout, pairing: Pairing, sweep: SweepStereo, image: np.ndarray) -> Fused:
     """The sweep for one pairing (its image the reference, its partners the sources)."""
-    spec = layout.cameras[pairing.camera]
-    reference = View(
-        _image(layout, pairing.sequence, pairing.camera, pairing.frame), spec.camera, torch.eye(4)
-    )
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    def tensor(bgr: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)[None].float().to(device) / 255
+
+    own = layout.cameras[pairing.camera].camera
+    reference = View(tensor(image), own, torch.eye(4, device=device))
     sources = []
     for partner in pairing.partners:
-        theirs = layout.cameras[partner.camera]
-        T = relative_pose(
-            torch.from_numpy(pairing.frame.pose),
-            torch.from_numpy(partner.frame.pose),
-            torch.from_numpy(spec.cam_to_body),
-            torch.from_numpy(theirs.cam_to_body),
-        ).float()
-        image = _image(layout, pairing.sequence, partner.camera, partner.frame)
-        sources.append(View(image, theirs.camera, T))
-    return sweep(reference, sources)
+        T = _T(layout, pairing.camera, pairing.frame, partner.camera, partner.frame)
+        partner_image = layout_image(layout, pairing.sequence, partner.camera, partner.frame)
+        sources.append(View(tensor(partner_image), layout.cameras[partner.camera].camera,
+                            torch.from_numpy(T).float().to(device)))  # fmt: skip
+    result = sweep(reference, sources)
+    distance, dense, confidence = (
+        x[0].cpu().numpy() for x in (result.distance, result.dense, result.confidence)
+    )
+    return Fused(distance, dense, np.where(distance > 0, confidence, 0).astype(np.float32),
+                 (distance > 0).astype(np.uint8))  # fmt: skip
 
 
-def _same_instants(layout: RigLayout, a: str, b: str, limit: int, same_instant_ns: int = 1_000_000):
-    """Up to ``limit`` (sequence, frame of a, frame of b) taken at one instant, spread over the recording."""
-    found = []
-    for sequence in layout.sequences():
-        theirs = layout.frames(sequence, b)
-        for frame in layout.frames(sequence, a):
-            nearest = min(theirs, key=lambda f: abs(f.key - frame.key), default=None)
-            if nearest is not None and abs(nearest.key - frame.key) <= same_instant_ns:
-                found.append((sequence, frame, nearest))
-    step = max(1, len(found) // limit) if found else 1
-    return found[::step][:limit]
-
-
-def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Matches, int]:
-    """The SIFT matches between cameras ``a`` and ``b`` pooled over up to ``instants`` same-instant images."""
-    found, used = [], _same_instants(layout, a, b, instants)
-    for sequence, frame_a, frame_b in used:
-        found.append(match_features(
-            _image(layout, sequence, a, frame_a), layout.cameras[a].camera,
-            _image(layout, sequence, b, frame_b), layout.cameras[b].camera,
-        ))  # fmt: skip
-    return Matches.pooled(found), len(used)
-
-
-def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:
-    """Each camera's extrinsics refined from its images (:mod:`.refine`): every pair of cameras matched at
-    up to ``instants`` shared instants; from the first camera, which is kept, each other camera is reached
-    through the pair with the most matches to a camera already placed (a maximum spanning tree), and its
-    rotation (``what="pose"``: and its translation's direction) relative to that camera refined, the
-    baseline's length kept. ``layout.cameras`` is updated in place; returns what changed, per camera, and
-    the cameras left as they were (no pair with ``min_inliers`` matches to the placed ones)."""
-    if what not in REFINE:
-        raise ValueError(f"--refine: {what!r}; choose from {', '.join(REFINE)}")
-    names = list(layout.cameras)
-    matches = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1 :]:
-            m, used = _pair_matches(layout, a, b, instants)
-            if len(m.rays_a) >= min_inliers:
-                matches[a, b] = (m, used)
-    placed, refined_cameras = [names[0]], {}
-    while True:
-        edges = [(len(m.rays_a), a, b) for (a, b), (m, _) in matches.items() if (a in placed) ^ (b in placed)]
-        if not edges:
-            break
-        _, a, b = max(edges)
-        m, used = matches[a, b]
-        if b in placed:  # refine the unplaced camera against the placed one
-            a, b, m = b, a, Matches(m.rays_b, m.rays_a, m.uv_b, m.uv_a)
-        E_a, E_b = layout.cameras[a].cam_to_body, layout.cameras[b].cam_to_body
-        T_a_to_b = torch.from_numpy(np.linalg.inv(E_b) @ E_a)
-        focal = float(np.mean(layout.cameras[b].camera.paraxial_focal()))
-        refined = refine_relative_pose(m, T_a_to_b, focal, direction=what == "pose")
-        layout.cameras[b] = dataclasses.replace(
-            layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
-        )
-        placed.append(b)
-        refined_cameras[b] = {"relative_to": a, "instants": used, "matches": refined.matches,
-                     "inliers": refined.inliers, "rotation_deg": round(refined.rotation_deg, 4),
-                     "direction_deg": round(refined.direction_deg, 4),
-                     "epipolar_px_before": round(refined.error_before_px, 3),
-                     "epipolar_px_after": round(refined.error_after_px, 3)}  # fmt: skip
-    unrefined = [n for n in names if n not in placed]
-    return {"what": what, "kept": names[0], "cameras": refined_cameras, "unrefined": unrefined}
-
-
-def refined_rig_yaml(layout: RigLayout) -> str:
-    """The recording's ``rig.yaml`` with each camera's ``cam_to_body`` replaced by ``layout``'s (its other
-    entries, paths relative to the recording, unchanged): a drop-in for the recording's own."""
-    import yaml
-
-    rig_file = layout.root / "rig.yaml"
-    rig = load_yaml(rig_file.read_text(encoding="utf-8"), rig_file)
-    if "cameras" not in rig:  # every camera of the calibration file
-        rig["cameras"] = [{"name": name} for name in layout.cameras]
-    for entry in rig["cameras"]:
-        if str(entry["name"]) in layout.cameras:
-            E = layout.cameras[str(entry["name"])].cam_to_body
-            entry["cam_to_body"] = [[float(v) for v in row] for row in E]
-    return yaml.safe_dump(rig, sort_keys=False, width=120)
-
-
-def score(distance: torch.Tensor, truth: torch.Tensor, among: torch.Tensor) -> dict[str, Any]:
-    """abs_rel, a1 and coverage of ``distance`` on ``among`` (pixels with truth), and the constant map at
-    the truth's median on the same scored pixels: a score of nothing is ``None``, never 0."""
-    among = among & (truth > 0)
-    kept = among & (distance > 0)
-    if not kept.any():
-        return {"abs_rel": None, "a1": None, "coverage": 0.0, "pixels": 0, "constant_abs_rel": None}
-    ratio = distance[kept] / truth[kept]
-    constant = truth[kept].median()
-    return {
-        "abs_rel": round(float((ratio - 1).abs().mean()), 4),
-        "a1": round(float((torch.maximum(ratio, 1 / ratio) < 1.25).float().mean()), 4),
-        "coverage": round(float(kept.sum() / among.sum().clamp(min=1)), 4),
-        "pixels": int(kept.sum()),
-        "constant_abs_rel": round(float(((constant - truth[kept]).abs() / truth[kept]).mean()), 4),
-    }
-
-
-def panel(image: torch.Tensor, result: StereoResult, truth: torch.Tensor | None) -> np.ndarray:
-    """image | checked | dense [| ground truth], BGR for cv2, on one colour scale."""
-    seen = result.dense[0][result.dense[0] > 0]
-    vmin, vmax = (0.3, 20.0) if seen.numel() == 0 else (float(seen.min()), float(seen.max()))
-    vmin, vmax = max(vmin, 0.05), max(vmax, vmin * 1.5)
-    tiles = [(image[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)]
-    tiles += [colourise(result.distance[0], vmin, vmax), colourise(result.dense[0], vmin, vmax)]
-    if truth is not None:
-        tiles.append(colourise(truth, vmin, vmax))
-    return np.concatenate(tiles, axis=1)[..., ::-1]
-
-
-def _npy(path: Path, array: torch.Tensor) -> None:
-    import io
-
+def _npy(path: Path, array: np.ndarray) -> None:
     buffer = io.BytesIO()
-    np.save(buffer, array.detach().cpu().numpy().astype(np.float32))
+    np.save(buffer, np.asarray(array, dtype=np.float32))
     atomic_write_bytes(path, buffer.getvalue())
 
 
 def run(
     root: str | Path,
     out: str | Path,
-    sweep: SweepStereo,
+    matcher: SweepStereo | StereoSettings,
     sources: tuple[str, ...] = SOURCES,
     overwrite: bool = False,
     progress: bool = True,
     max_images: int | None = None,
     refine: str | None = None,
 ) -> dict[str, Any]:
-    """The command's work: every pairing of ``root`` swept, its outputs and ``summary.json`` in ``out``;
-    with ``refine`` (:data:`REFINE`) the rig's extrinsics are refined from its images first
-    (:func:`refine_rig`), swept with, and written to ``out/rig.yaml``; the recording is never modified."""
+    """The command's work: every pairing of ``root`` matched (``matcher``: :class:`.pipeline.StereoSettings`
+    for the rectified pipeline, a :class:`.sweep.SweepStereo` for the sweep), its outputs and
+    ``summary.json`` in ``out``; with ``refine`` (:data:`.refine.REFINE`) the rig's extrinsics are refined
+    from its images first (:func:`.refine.refine_rig`), matched with, and written to ``out/rig.yaml``; the
+    recording is never modified."""
     layout, out = RigLayout(root), Path(out)
     check_sources(sources)
     if refine is not None and refine not in REFINE:
@@ -296,6 +247,7 @@ def run(
     for path in (summary_path, out / "rig.yaml") if refine else (summary_path,):
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} exists; pass --overwrite to replace the outputs")
+    begun = time.perf_counter()
     refinement = None
     if refine:
         refinement = refine_rig(layout, refine)
@@ -306,44 +258,78 @@ def run(
         if refinement["unrefined"]:
             log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
         atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
-    planned = pairings(layout, sources)
+    refine_seconds = time.perf_counter() - begun
+    min_baseline = matcher.min_baseline if isinstance(matcher, StereoSettings) else 0.05
+    planned = pairings(layout, sources, min_baseline=min_baseline)
     paired = [p for p in planned if p.partners][:max_images]
     unpaired = [p.name for p in planned if not p.partners]
     if unpaired:
         log.warning("%d images have no partner and are left out: %s", len(unpaired), ", ".join(unpaired[:5]))
+    timer = Timer()
+    store = PairStore(layout, matcher, timer) if isinstance(matcher, StereoSettings) else None
     images = []
-    for pairing in tqdm(paired, desc="sweep stereo", unit="image", disable=not progress):
-        result = estimate(layout, pairing, sweep)
+    bar = tqdm(paired, desc=f"stereo ({'sgbm' if store else 'sweep'})", unit="image", disable=not progress)
+    for pairing in bar:
+        start = time.perf_counter()
+        image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
+        own = (pairing.camera, pairing.frame)
+        if store is not None:
+            found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
+            used = [(p, m) for p, m in found if m is not None]
+            fuse_start = time.perf_counter()
+            fused = fuse([m for _, m in used]) if used else None
+            timer.add("fuse", fuse_start)
+        else:
+            used = [(p, None) for p in pairing.partners]
+            fused = _sweep(layout, pairing, matcher, image)
+        camera = layout.cameras[pairing.camera].camera
+        if fused is None:  # every partner without overlap: nothing to say about this image
+            fused = Fused(
+                *(np.zeros((camera.height, camera.width), dtype) for dtype in (np.float32,) * 3 + (np.uint8,))
+            )
         folder = out / pairing.sequence
         stem = f"{pairing.camera}/{pairing.frame.key}"
         for what, array in (
-            ("distance", result.distance),
-            ("dense", result.dense),
-            ("confidence", result.confidence),
+            ("distance", fused.distance),
+            ("dense", fused.dense),
+            ("confidence", fused.confidence),
         ):
-            _npy(folder / what / f"{stem}.npy", array[0])
+            _npy(folder / what / f"{stem}.npy", array)
         truth = _truth(layout, pairing)
-        image = _image(layout, pairing.sequence, pairing.camera, pairing.frame)
-        png = cv2.imencode(".png", panel(image, result, truth))[1].tobytes()
-        atomic_write_bytes(folder / "panels" / f"{stem}.png", png)
+        tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
+        atomic_write_bytes(folder / "panels" / f"{stem}.png", cv2.imencode(".png", tiles)[1].tobytes())
         record: dict[str, Any] = {
             "image": pairing.name,
-            "partners": [f"{p.camera}/{p.frame.key}" for p in pairing.partners],
-            "kept": round(float(result.valid.float().mean()), 4),
-            "seen": round(float(result.seen.float().mean()), 4),
+            "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
+            "kept": round(float((fused.distance > 0).mean()), 4),
+            "seen": round(float((fused.dense > 0).mean()), 4),
         }
         if truth is not None:
-            seen_by_partner = result.seen[0]
-            record["checked"] = score(result.distance[0], truth, seen_by_partner)
-            record["dense"] = score(result.dense[0], truth, seen_by_partner)
+            seen = fused.dense > 0
+            record["checked"] = score(fused.distance, truth, seen)
+            record["dense"] = score(fused.dense, truth, seen)
+        record["seconds"] = round(time.perf_counter() - start, 4)
         images.append(record)
+    seconds = time.perf_counter() - begun
+    if isinstance(matcher, StereoSettings):
+        settings = {"matcher": "sgbm", **{k: getattr(matcher, k) for k in ("min_distance", "max_distance",
+                    "resolution", "min_baseline", "smooth")}, **vars(matcher.matcher)}  # fmt: skip
+    else:
+        settings = {"matcher": "sweep", **{k: getattr(matcher, k) for k in matcher.__dataclass_fields__}}
     summary = {
         "root": str(root),
         "sources": list(sources),
-        "sweep": {k: getattr(sweep, k) for k in sweep.__dataclass_fields__},
+        "settings": settings,
         "refinement": refinement,
         "images": images,
         "unpaired": unpaired,
+        "pairs_without_overlap": store.unmatched if store is not None else {},
+        "seconds": {
+            "total": round(seconds, 3),
+            "refine": round(refine_seconds, 3),
+            **timer.rounded(),
+            "per_image": round((seconds - refine_seconds) / max(len(images), 1), 4),
+        },  # fmt: skip
     }
     atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     return summary
@@ -355,10 +341,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("root", type=Path, help="a recording in the rig layout")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--sources", default="rig,time", help="rig, time, or both (default)")
-    parser.add_argument("--hypotheses", type=int, default=128)
-    parser.add_argument("--min-distance", type=float, default=0.3)
-    parser.add_argument("--max-distance", type=float, default=80.0)
-    parser.add_argument("--cost", choices=("zncc", "census"), default="zncc")
+    parser.add_argument("--matcher", choices=MATCHERS, default="sgbm")
+    parser.add_argument("--min-distance", type=float, default=0.3, help="metres (default 0.3)")
+    parser.add_argument("--max-distance", type=float, default=80.0, help="metres (default 80)")
+    parser.add_argument("--resolution", type=float, default=None,
+                        help="degrees per rectified pixel (default: each pair's coarser camera)")  # fmt: skip
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
+    parser.add_argument("--hypotheses", type=int, default=128, help="--matcher sweep: distances swept")
+    parser.add_argument("--cost", choices=("zncc", "census"), default="zncc", help="--matcher sweep")
     parser.add_argument("--max-images", type=int, default=None)
     refine_help = "refine the rig's extrinsics from its images first (rotation, the default, or pose: also "
     refine_help += "the translation's direction); writes OUT/rig.yaml"
@@ -368,13 +358,31 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     try:
-        sweep = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
+        if args.threads is not None:
+            if args.threads < 1:
+                raise ValueError(f"--threads: {args.threads}; at least 1")
+            torch.set_num_threads(args.threads)
+            cv2.setNumThreads(args.threads)
+        if args.matcher == "sweep":
+            matcher = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
+        else:
+            resolution = None if args.resolution is None else math.radians(args.resolution)
+            matcher = StereoSettings(args.min_distance, args.max_distance, resolution)
         sources = tuple(args.sources.split(","))
         summary = run(
-            args.root, args.out, sweep, sources, args.overwrite, not args.quiet, args.max_images, args.refine
+            args.root,
+            args.out,
+            matcher,
+            sources,
+            args.overwrite,
+            not args.quiet,
+            args.max_images,
+            args.refine,
         )
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(f"{len(summary['images'])} images swept, {len(summary['unpaired'])} without a partner; {args.out}")
+    seconds = summary["seconds"]["per_image"]
+    print(f"{len(summary['images'])} images matched ({seconds:.2f} s each), {len(summary['unpaired'])} "
+          f"without a partner; {args.out}")  # fmt: skip
     return 0

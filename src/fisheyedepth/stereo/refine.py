@@ -13,6 +13,7 @@ A few pixels of the calibration's error are what stops sweep stereo (a degree tu
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -21,8 +22,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..cameras import load_yaml
 from ..cameras.base import CameraModel
+from ..data.layouts import Frame, RigLayout
 from ..geometry.se3 import axis_angle_to_matrix, make_pose
+from ..images import read_image
+
+REFINE = ("rotation", "pose")  # what --refine corrects of each camera's extrinsics (pose: also the direction)
 
 
 class Matches(NamedTuple):
@@ -196,3 +202,99 @@ def refine_pair(
     matches = match_features(image_a, camera_a, image_b, camera_b)
     focal = float(np.mean(camera_b.paraxial_focal()))
     return refine_relative_pose(matches, T_a_to_b, focal, direction=direction)
+
+
+# ------------------------------------------------------------------ a whole rig, from its recording
+def layout_image(layout: RigLayout, sequence: str, camera: str, frame: Frame) -> np.ndarray:
+    """The image of ``camera`` at ``frame`` as 8-bit BGR, checked against the camera's calibrated size."""
+    path = layout.image(sequence, camera, frame)
+    bgr = read_image(path).bgr
+    expected = (layout.cameras[camera].camera.width, layout.cameras[camera].camera.height)
+    if (bgr.shape[1], bgr.shape[0]) != expected:
+        raise ValueError(
+            f"{path}: {bgr.shape[1]}x{bgr.shape[0]} pixels, but the calibration of camera {camera!r} is "
+            f"{expected[0]}x{expected[1]}"
+        )
+    return bgr
+
+
+def _same_instants(layout: RigLayout, a: str, b: str, limit: int, same_instant_ns: int = 1_000_000):
+    """Up to ``limit`` (sequence, frame of a, frame of b) taken at one instant, spread over the recording."""
+    found = []
+    for sequence in layout.sequences():
+        theirs = layout.frames(sequence, b)
+        for frame in layout.frames(sequence, a):
+            nearest = min(theirs, key=lambda f: abs(f.key - frame.key), default=None)
+            if nearest is not None and abs(nearest.key - frame.key) <= same_instant_ns:
+                found.append((sequence, frame, nearest))
+    step = max(1, len(found) // limit) if found else 1
+    return found[::step][:limit]
+
+
+def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Matches, int]:
+    """The SIFT matches between cameras ``a`` and ``b`` pooled over up to ``instants`` same-instant images."""
+    found, used = [], _same_instants(layout, a, b, instants)
+    for sequence, frame_a, frame_b in used:
+        found.append(match_features(
+            layout_image(layout, sequence, a, frame_a), layout.cameras[a].camera,
+            layout_image(layout, sequence, b, frame_b), layout.cameras[b].camera,
+        ))  # fmt: skip
+    return Matches.pooled(found), len(used)
+
+
+def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:
+    """Each camera's extrinsics refined from its images (:mod:`.refine`): every pair of cameras matched at
+    up to ``instants`` shared instants; from the first camera, which is kept, each other camera is reached
+    through the pair with the most matches to a camera already placed (a maximum spanning tree), and its
+    rotation (``what="pose"``: and its translation's direction) relative to that camera refined, the
+    baseline's length kept. ``layout.cameras`` is updated in place; returns what changed, per camera, and
+    the cameras left as they were (no pair with ``min_inliers`` matches to the placed ones)."""
+    if what not in REFINE:
+        raise ValueError(f"--refine: {what!r}; choose from {', '.join(REFINE)}")
+    names = list(layout.cameras)
+    matches = {}
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            m, used = _pair_matches(layout, a, b, instants)
+            if len(m.rays_a) >= min_inliers:
+                matches[a, b] = (m, used)
+    placed, refined_cameras = [names[0]], {}
+    while True:
+        edges = [(len(m.rays_a), a, b) for (a, b), (m, _) in matches.items() if (a in placed) ^ (b in placed)]
+        if not edges:
+            break
+        _, a, b = max(edges)
+        m, used = matches[a, b]
+        if b in placed:  # refine the unplaced camera against the placed one
+            a, b, m = b, a, Matches(m.rays_b, m.rays_a, m.uv_b, m.uv_a)
+        E_a, E_b = layout.cameras[a].cam_to_body, layout.cameras[b].cam_to_body
+        T_a_to_b = torch.from_numpy(np.linalg.inv(E_b) @ E_a)
+        focal = float(np.mean(layout.cameras[b].camera.paraxial_focal()))
+        refined = refine_relative_pose(m, T_a_to_b, focal, direction=what == "pose")
+        layout.cameras[b] = dataclasses.replace(
+            layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
+        )
+        placed.append(b)
+        refined_cameras[b] = {"relative_to": a, "instants": used, "matches": refined.matches,
+                     "inliers": refined.inliers, "rotation_deg": round(refined.rotation_deg, 4),
+                     "direction_deg": round(refined.direction_deg, 4),
+                     "epipolar_px_before": round(refined.error_before_px, 3),
+                     "epipolar_px_after": round(refined.error_after_px, 3)}  # fmt: skip
+    unrefined = [n for n in names if n not in placed]
+    return {"what": what, "kept": names[0], "cameras": refined_cameras, "unrefined": unrefined}
+
+
+def refined_rig_yaml(layout: RigLayout) -> str:
+    """The recording's ``rig.yaml`` with each camera's ``cam_to_body`` replaced by ``layout``'s (its other
+    entries, paths relative to the recording, unchanged): a drop-in for the recording's own."""
+    import yaml
+
+    rig_file = layout.root / "rig.yaml"
+    rig = load_yaml(rig_file.read_text(encoding="utf-8"), rig_file)
+    if "cameras" not in rig:  # every camera of the calibration file
+        rig["cameras"] = [{"name": name} for name in layout.cameras]
+    for entry in rig["cameras"]:
+        if str(entry["name"]) in layout.cameras:
+            E = layout.cameras[str(entry["name"])].cam_to_body
+            entry["cam_to_body"] = [[float(v) for v in row] for row in E]
+    return yaml.safe_dump(rig, sort_keys=False, width=120)

@@ -1,0 +1,73 @@
+"""A disparity on the rectified grid brought back to every pixel of the camera's own image.
+
+Each pixel of the camera knows its grid position (its ray's two angles, from the cached rays) and its
+angle ``theta`` from the baseline; its parallax is the grid disparity there times the grid's step, and
+its distance the law of sines with its own ``theta`` (:meth:`.rectify.Rectification.distance`), so the
+grid's coarser step costs no precision of the angle. The disparity is interpolated bilinearly where the
+four grid pixels around the position are valid and agree within a pixel, else it is the nearest one's
+(a depth edge is not blurred into points floating between the two surfaces).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from .match import INVALID
+from .rectify import Rectification, Side
+
+EDGE = 1.0  # grid pixels: four neighbours further apart than this straddle a depth edge
+
+
+class PixelMaps(NamedTuple):
+    """One camera's image against one partner, at the image's own pixels (0 where nothing)."""
+
+    distance: np.ndarray  # [H, W] float32 metres along the ray, where the checks keep it
+    dense: np.ndarray  # [H, W] float32 metres, the filled map (every pixel the partner could match)
+    parallax: np.ndarray  # [H, W] float32 radians of the dense map (the kept ones included)
+    step: float  # radians of one grid pixel: a pixel of disparity error is step / parallax of distance
+
+
+def sample(grid: np.ndarray, side: Side) -> np.ndarray:
+    """``grid`` (a disparity on the rectified grid, :data:`INVALID` where none) at every pixel of the
+    side's camera: bilinear where the four neighbours are valid and within :data:`EDGE`, else the
+    nearest; :data:`INVALID` outside the grid or where the nearest is."""
+    col, row = side.grid_col, side.grid_row
+    valid = grid != INVALID
+    constant = {"borderMode": cv2.BORDER_CONSTANT, "borderValue": 0.0}
+    weight = cv2.remap(valid.astype(np.float32), col, row, cv2.INTER_LINEAR, **constant)
+    bilinear = cv2.remap(np.where(valid, grid, 0).astype(np.float32), col, row, cv2.INTER_LINEAR, **constant)
+    nearest = cv2.remap(
+        grid, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=INVALID
+    )
+    block = np.ones((2, 2), np.uint8)  # each pixel and its right, lower and lower-right neighbours
+    high = cv2.dilate(np.where(valid, grid, -1e6).astype(np.float32), block, anchor=(0, 0))
+    low = cv2.erode(np.where(valid, grid, 1e6).astype(np.float32), block, anchor=(0, 0))
+    corner = (np.floor(col), np.floor(row))  # the top-left of the four neighbours
+    spread = cv2.remap(high - low, *corner, cv2.INTER_NEAREST, **constant)
+    smooth = (weight > 1 - 1e-3) & (spread <= EDGE)
+    inside = side.inside & (col >= -0.5) & (col <= grid.shape[1] - 0.5)
+    out = np.where(smooth, bilinear, nearest)
+    return np.where(inside & (smooth | (nearest != INVALID)), out, INVALID).astype(np.float32)
+
+
+def to_pixels(checked: np.ndarray, filled: np.ndarray, rect: Rectification, side: str) -> PixelMaps:
+    """The checked and the filled grid disparity of camera ``side`` ("a" or "b") as distances at its
+    pixels (:class:`PixelMaps`)."""
+    own = rect.a if side == "a" else rect.b
+    step = rect.grid.step
+    out = []
+    for grid in (checked, filled):
+        disparity = sample(grid, own)
+        has = disparity > 0
+        alpha = disparity[has] * np.float32(step)
+        distance = rect.distance(side, own.theta[has], alpha)
+        good = np.isfinite(distance) & (distance > 0)
+        metres, radians = np.zeros(disparity.shape, np.float32), np.zeros(disparity.shape, np.float32)
+        metres[has] = np.where(good, distance, 0)
+        radians[has] = np.where(good, alpha, 0)
+        out.append((metres, radians))
+    (distance, _), (dense, parallax) = out
+    return PixelMaps(distance, dense, parallax, step)

@@ -1,0 +1,290 @@
+"""Distance for every camera of a rig from geometry: rectify, match, fill, map back, fuse.
+
+:func:`match_pair` runs one pair of images (a rig pair at one instant, or one camera at two instants)
+through :mod:`.rectify`, :mod:`.match`, :mod:`.fill` and :mod:`.mapback`, for either image or both.
+:class:`RigStereo` is the live API a robot calls once per instant: the rig's images, and optionally the
+previous instant's with the odometry between them; every camera gets its rig partners (the other cameras
+whose view overlaps its own) and its own previous image (once it moved far enough), fused (:mod:`.fuse`).
+Metric throughout: the calibration's baselines and the odometry's motion carry the scale.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import defaultdict
+from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+
+from ..cameras.base import CameraModel
+from .fill import fill, matchable
+from .fuse import Fused, fuse
+from .mapback import PixelMaps, to_pixels
+from .match import MatcherSettings, match_both
+from .rectify import (
+    Rectification,
+    RectificationCache,
+    angular_resolution,
+    build_rectification,
+    nearest_parallax,
+    remap,
+)
+
+STAGES = ("rectify", "match", "fill", "map_back", "fuse")
+# A rig pair whose parallax at the nearest distance is under this many grid pixels is left out: one pixel
+# of disparity error is already 6 % of the nearest distance there, and 25 % at four times it.
+MIN_PARALLAX = 16
+
+
+@dataclass(frozen=True)
+class StereoSettings:
+    """``min_distance``, ``max_distance``: metres, the range searched (the nearest sets the disparity
+    range; beyond the farthest nothing is kept, and the dense map stops there); ``resolution``: radians
+    per rectified pixel (None: the coarser camera of each pair); ``min_baseline``: metres a camera must
+    have moved for its previous image to be a partner; ``matcher``: :class:`~.match.MatcherSettings`;
+    ``smooth``: the median window over filled pixels (:func:`~.fill.fill`)."""
+
+    min_distance: float = 0.3
+    max_distance: float = 80.0
+    resolution: float | None = None
+    min_baseline: float = 0.05
+    matcher: MatcherSettings = field(default_factory=MatcherSettings)
+    smooth: int = 5
+
+    def __post_init__(self) -> None:
+        if not 0 < self.min_distance < self.max_distance < math.inf:
+            raise ValueError(
+                f"--min-distance, --max-distance: {self.min_distance}, {self.max_distance}; need "
+                "0 < min-distance < max-distance < inf"
+            )
+        if self.resolution is not None and not 0 < self.resolution < math.radians(10):
+            raise ValueError(f"--resolution: {math.degrees(self.resolution):g} degrees; need 0 < it < 10")
+        if not self.min_baseline > 0:
+            raise ValueError(f"min_baseline: {self.min_baseline} metres; must be > 0")
+        if self.smooth not in (0, 3, 5):
+            raise ValueError(f"smooth: {self.smooth}; 0, 3 or 5")
+
+
+class Timer:
+    """Seconds spent per stage (:data:`STAGES`), summed over calls; threads add up."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    def add(self, stage: str, since: float) -> float:
+        now = time.perf_counter()
+        self.seconds[stage] += now - since
+        return now
+
+    def rounded(self) -> dict[str, float]:
+        return {stage: round(self.seconds.get(stage, 0.0), 4) for stage in STAGES}
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """An ``H x W`` or ``H x W x C`` image (uint8, uint16 or float) as float32 grey, its own scale."""
+    image = np.asarray(image)
+    if image.ndim == 3:
+        image = image.astype(np.float32).mean(2)
+    return image.astype(np.float32)
+
+
+def match_pair(
+    image_a: np.ndarray,
+    image_b: np.ndarray,
+    rect: Rectification,
+    settings: StereoSettings,
+    directions: tuple[bool, bool] = (True, True),
+    timer: Timer | None = None,
+    masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+) -> tuple[PixelMaps | None, PixelMaps | None]:
+    """The pair's distance maps at each camera's own pixels (:class:`~.mapback.PixelMaps`), for camera a
+    and camera b as ``directions`` asks (None for the other). ``masks``: each camera's usable pixels
+    (``H x W``, nonzero: the scene; zero: its own body), None where all are."""
+    if any(want and not can for want, can in zip(directions, rect.directions, strict=True)):
+        raise ValueError(f"directions: {directions} asked of a rectification built for {rect.directions}")
+    timer = timer or Timer()
+    start = time.perf_counter()
+    a, b = remap(_grey(image_a), rect.a), remap(_grey(image_b), rect.b)
+    seen = []
+    for side, mask in zip((rect.a, rect.b), masks, strict=True):
+        usable = side.valid
+        if mask is not None:
+            usable = usable & (remap((np.asarray(mask) > 0).astype(np.uint8) * 255, side) > 127)
+        seen.append(usable)
+    start = timer.add("rectify", start)
+    d = rect.disparities
+    first = rect.first_disparity
+    found = match_both(a, b, seen[0], seen[1], d, rect.grid.step, settings.matcher, directions, first)
+    start = timer.add("match", start)
+    out: list[PixelMaps | None] = []
+    for side, disparity, own, partner, left in (
+        ("a", found[0], seen[0], seen[1], True),
+        ("b", found[1], seen[1], seen[0], False),
+    ):
+        if disparity is None:
+            out.append(None)
+            continue
+        where = matchable(own, partner, d, partner_left=left, first=first)
+        filled = fill(disparity.checked, where, settings.smooth, settings.matcher.block // 2)
+        start = timer.add("fill", start)
+        maps = to_pixels(disparity.checked, filled, rect, side)
+        far = settings.max_distance
+        maps = PixelMaps(
+            np.where(maps.distance <= far, maps.distance, 0).astype(np.float32),
+            np.where(maps.dense <= far, maps.dense, 0).astype(np.float32),
+            maps.parallax,
+            maps.step,
+        )
+        out.append(maps)
+        start = timer.add("map_back", start)
+    return out[0], out[1]
+
+
+def _relative(
+    cam_to_body_a: np.ndarray, cam_to_body_b: np.ndarray, b_body_from_a_body: np.ndarray | None = None
+):
+    """``T_a_to_b`` of two cameras (their ``cam_to_body``), optionally on two instants of the body
+    (``b_body_from_a_body``: a's body frame to b's)."""
+    motion = np.eye(4) if b_body_from_a_body is None else b_body_from_a_body
+    return np.linalg.inv(cam_to_body_b) @ motion @ cam_to_body_a
+
+
+class CameraResult(NamedTuple):
+    fused: Fused
+    partners: tuple[str, ...]  # "<camera>" for a rig partner, "<camera>@previous" for its own motion
+
+
+class RigStereo:
+    """Distance for every camera of a calibrated rig, one call per instant.
+
+    ``cameras``: name -> :class:`~fisheyedepth.cameras.base.CameraModel`; ``cam_to_body``: name -> 4x4
+    (camera to body, metres); ``masks``: name -> ``H x W`` usable pixels (nonzero; zero where the camera
+    sees the robot itself), optional. Rig pairs are every two cameras whose views overlap within the
+    disparity range (the others are listed in ``unpaired``); their rectification is built once, here.
+    ``threads``: pairs matched at once."""
+
+    def __init__(
+        self,
+        cameras: Mapping[str, CameraModel],
+        cam_to_body: Mapping[str, np.ndarray],
+        settings: StereoSettings | None = None,
+        threads: int = 1,
+        masks: Mapping[str, np.ndarray] | None = None,
+    ):
+        if set(cameras) != set(cam_to_body):
+            raise ValueError(
+                f"cameras, cam_to_body: name different cameras ({sorted(cameras)}, {sorted(cam_to_body)})"
+            )
+        self.cameras = dict(cameras)
+        self.cam_to_body = {n: np.asarray(T, dtype=np.float64) for n, T in cam_to_body.items()}
+        self.settings = settings or StereoSettings()
+        self.threads = max(1, int(threads))
+        self.masks = dict(masks or {})
+        self.timer = Timer()
+        self._motion_cache = RectificationCache(max_entries=2 * len(self.cameras))
+        self.pairs: dict[tuple[str, str], Rectification] = {}
+        self.unpaired: dict[tuple[str, str], str] = {}
+        names = list(self.cameras)
+        s = self.settings
+        for i, a in enumerate(names):
+            for b in names[i + 1 :]:
+                T = _relative(self.cam_to_body[a], self.cam_to_body[b])
+                baseline = float(np.linalg.norm(T[:3, 3]))
+                step = s.resolution or max(map(angular_resolution, (self.cameras[a], self.cameras[b])))
+                if baseline > 0 and nearest_parallax(baseline, s.min_distance, step) < MIN_PARALLAX:
+                    self.unpaired[a, b] = (
+                        f"a baseline of {baseline:.3g} m shows under {MIN_PARALLAX} pixels of parallax at "
+                        f"the nearest distance ({s.min_distance:g} m)"
+                    )
+                    continue
+                try:
+                    self.pairs[a, b] = build_rectification(
+                        self.cameras[a],
+                        self.cameras[b],
+                        T,
+                        s.min_distance,
+                        s.resolution,
+                        max_distance=s.max_distance,
+                    )
+                except ValueError as err:  # no overlap, or no baseline
+                    self.unpaired[a, b] = str(err)
+
+    def __call__(
+        self,
+        images: Mapping[str, np.ndarray],
+        previous: Mapping[str, np.ndarray] | None = None,
+        motion: np.ndarray | None = None,
+    ) -> dict[str, CameraResult]:
+        """Every camera's fused distance at this instant. ``images``: name -> ``H x W`` or ``H x W x 3``
+        image (every camera of the rig); ``previous``, ``motion``: the previous instant's images and the
+        transform of the body frame now to the body frame then (``inv(pose_then) @ pose_now``, from the
+        odometry)."""
+        missing = sorted(set(self.cameras) - set(images))
+        if missing:
+            raise ValueError(f"images: no image of camera {', '.join(missing)}")
+        if (previous is None) != (motion is None):
+            raise ValueError(
+                "previous, motion: give both (the previous images and the motion since) or neither"
+            )
+        s = self.settings
+        jobs = []  # (a's label, b's label, a image, b image, rectification or its pose, camera names)
+        for (a, b), rect in self.pairs.items():
+            jobs.append(((a, b), (b, a), images[a], images[b], rect, (a, b)))
+        if previous is not None:
+            motion = np.asarray(motion, dtype=np.float64)
+            for name in self.cameras:
+                E = self.cam_to_body[name]
+                T_now_to_then = _relative(E, E, motion)
+                if name in previous and np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline:
+                    label = (name, f"{name}@previous")
+                    jobs.append((label, None, images[name], previous[name], T_now_to_then, (name, name)))
+
+        def run(job):
+            timer = Timer()
+            first, second, a, b, rect, cameras = job
+            if not isinstance(rect, Rectification):  # a motion pair: built here, once per motion
+                start = time.perf_counter()
+                camera = self.cameras[cameras[0]]
+                rect = self._motion_cache.get(
+                    camera, camera, rect, s.min_distance, s.resolution, (True, False), s.max_distance
+                )
+                timer.add("rectify", start)
+            masks = tuple(self.masks.get(name) for name in cameras)
+            maps = match_pair(a, b, rect, s, rect.directions, timer, masks)
+            return first, second, maps, timer
+
+        per_camera: dict[str, list[tuple[str, PixelMaps]]] = defaultdict(list)
+        # the motion pairs first (their rectification is built in the job): the longest jobs start first
+        order = sorted(range(len(jobs)), key=lambda i: isinstance(jobs[i][4], Rectification))
+        if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's
+            threads = cv2.getNumThreads(), torch.get_num_threads()
+            cv2.setNumThreads(1)
+            torch.set_num_threads(1)
+            try:
+                with ThreadPoolExecutor(self.threads) as pool:
+                    results = dict(zip(order, pool.map(run, [jobs[i] for i in order]), strict=True))
+            finally:
+                cv2.setNumThreads(threads[0])
+                torch.set_num_threads(threads[1])
+        else:
+            results = {i: run(jobs[i]) for i in order}
+        done = [results[i] for i in range(len(jobs))]  # partners in the rig's order, then the motion
+        for first, second, (maps_a, maps_b), timer in done:
+            for stage, seconds in timer.seconds.items():
+                self.timer.seconds[stage] += seconds
+            if maps_a is not None:
+                per_camera[first[0]].append((first[1], maps_a))
+            if second is not None and maps_b is not None:
+                per_camera[second[0]].append((second[1], maps_b))
+        start = time.perf_counter()
+        out = {}
+        for name, found in per_camera.items():
+            out[name] = CameraResult(fuse([m for _, m in found]), tuple(p for p, _ in found))
+        self.timer.add("fuse", start)
+        return out

@@ -1,0 +1,212 @@
+"""Stereo scored on real photographs with metric ground truth (``make realscore``): the Aria Digital
+Twin's two SLAM fisheyes (frames 0 and 1, each camera as the reference, their rotation refined from
+the images' feature matches first) and Middlebury 2014 Motorcycle (a rectified pinhole pair); readers
+in :mod:`fisheyedepth.data.realpairs`.
+
+Each pair is scored on the reference's overlap (:func:`~fisheyedepth.data.realpairs.overlap`): the
+checked output on the overlap pixels it keeps, with its coverage of the overlap; the filled (dense) output
+on every overlap pixel it has; the constant map at the overlap's median distance on the same pixels as
+each. The matcher is the rectified one (``sgbm``, :mod:`.pipeline`) or the sweep (``sweep``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..data.realframes import Missing, adt_camera
+from ..data.realpairs import (
+    ADT_CAMERAS,
+    RealPair,
+    adt_instants,
+    adt_left_to_right,
+    adt_pairs,
+    motorcycle,
+    overlap,
+)
+from .pipeline import StereoSettings, match_pair
+from .rectify import rectification
+from .refine import Matches, match_features, refine_relative_pose
+from .scores import panel, score
+from .sweep import SweepStereo, View
+
+MATCHERS = ("sgbm", "sweep")
+# the range by the scene's kind, never tuned on the ground truth: indoors 0.2-10 m; Middlebury's scene
+# 1.5-10 m. The sweep: ZNCC indoors (the command's default), census on Middlebury's two exposures.
+ADT_RANGE, MIDDLEBURY_RANGE = (0.2, 10.0), (1.5, 10.0)
+ADT_SWEEP = SweepStereo(hypotheses=128, min_distance=0.2, max_distance=10.0, cost="zncc")
+MIDDLEBURY_SWEEP = SweepStereo(hypotheses=128, min_distance=1.5, max_distance=10.0, cost="census")
+HEADER = (
+    "| reference frame | its partner | overlap pixels | checked: abs_rel, a1, coverage "
+    "| constant map there | filled: abs_rel, a1 | constant map there "
+    "| models on the overlap: abs_rel, a1 |"
+)
+
+
+def refine_adt(folder: Path) -> tuple[Tensor, dict[str, Any]]:
+    """The right SLAM camera's pose relative to the left one, its rotation refined from the pooled matches
+    of every same-instant image pair in the folder; and what the refinement changed."""
+    T = adt_left_to_right(folder)
+    instants = adt_instants(folder)
+    left, right = (adt_camera(folder / "adt_sample.json", name) for name in ADT_CAMERAS)
+    matches = Matches.pooled([match_features(a, left, b, right) for a, b in instants])
+    refined = refine_relative_pose(matches, T, float(np.mean(right.paraxial_focal())), direction=False)
+    record = {"instants": len(instants), **{k: round(v, 4) if isinstance(v, float) else v
+              for k, v in refined._asdict().items() if k != "T_a_to_b"}}  # fmt: skip
+    return refined.T_a_to_b, record
+
+
+def distance_maps(
+    pair: RealPair, matcher: str, settings: StereoSettings | SweepStereo
+) -> tuple[np.ndarray, np.ndarray]:
+    """The checked and the filled distance ``[H, W]`` (0: none) of the pair's reference image."""
+    if matcher == "sweep":
+        result = settings(View(pair.image, pair.camera, torch.eye(4)),
+                          [View(pair.partner_image, pair.partner_camera, pair.T.float())])  # fmt: skip
+        return result.distance[0].numpy(), result.dense[0].numpy()
+    rect = rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
+                         settings.resolution, (True, False), settings.max_distance)  # fmt: skip
+    grey = [(x[0].mean(0).numpy() * 255).astype(np.float32) for x in (pair.image, pair.partner_image)]
+    maps, _ = match_pair(grey[0], grey[1], rect, settings, (True, False))
+    return maps.distance, maps.dense
+
+
+def score_pair(pair: RealPair, scored: Tensor, matcher: str, settings) -> tuple[dict[str, Any], tuple]:
+    """One pair, scored on ``scored`` (its overlap): the checked and the filled output, each with the
+    constant map on its own scored pixels (:func:`.scores.score`)."""
+    checked, dense = distance_maps(pair, matcher, settings)
+    record = {
+        "overlap_pixels": int(scored.sum()),
+        "checked": score(checked, pair.distance.numpy(), scored.numpy()),
+        "dense": score(dense, pair.distance.numpy(), scored.numpy()),
+    }
+    return record, (checked, dense)
+
+
+def real_pairs(root: Path, matcher: str = "sgbm", middlebury: bool = True, echo=print) -> list[tuple]:
+    """``(pair or Missing, refinement, settings)`` for every real pair under ``root``: the ADT pairs
+    (refined) and, when scikit-image is installed, Middlebury's."""
+    if matcher not in MATCHERS:
+        raise ValueError(f"matcher: {matcher!r}; choose from {', '.join(MATCHERS)}")
+    folder = Path(root) / "adt_slam"
+    found = adt_pairs(folder)
+    out: list[tuple] = []
+    if found and isinstance(found[0], Missing):
+        out += [(m, None, None) for m in found]
+    else:
+        T, refinement = refine_adt(folder)
+        near, far = ADT_RANGE
+        adt = ADT_SWEEP if matcher == "sweep" else StereoSettings(min_distance=near, max_distance=far)
+        out += [(p, refinement, adt) for p in adt_pairs(folder, T)]
+    if middlebury:
+        try:
+            near, far = MIDDLEBURY_RANGE
+            settings = (
+                MIDDLEBURY_SWEEP
+                if matcher == "sweep"
+                else StereoSettings(min_distance=near, max_distance=far)
+            )
+            out.append((motorcycle(), None, settings))
+        except ImportError as err:
+            echo(f"(Middlebury Motorcycle left out: {err})")
+    return out
+
+
+def _cell(metrics: dict[str, Any], keys=("abs_rel", "a1", "coverage")) -> str:
+    if metrics["abs_rel"] is None:
+        return "nothing kept"
+    return ", ".join(f"{metrics[k]:.3f}" for k in keys)
+
+
+def multiview_row(name: str, result: dict[str, Any]) -> str:
+    """One line of the table (:data:`HEADER`) from one frame's record."""
+    partner = "right" if "_left_" in name else "left" if name.startswith("adt") else "right image"
+    models = result.get("models") or {}
+    monocular = "; ".join(f"{m}: {_cell(r, ('abs_rel', 'a1'))}" for m, r in models.items()) or "-"
+    c, d = result["checked"], result["dense"]
+    return (
+        f"| {name} | {partner} | {result['overlap_pixels']:,} | {_cell(c)} | {c['constant_abs_rel']} "
+        f"| {_cell(d, ('abs_rel', 'a1'))} | {d['constant_abs_rel']} | {monocular} |"
+    )
+
+
+def multiview_records_table(paths) -> list[str]:
+    """The stereo real-world table kept in records (JSON files with a ``multiview`` entry, as
+    ``scripts/tools/real_world.py --json`` writes them), nothing re-scored."""
+    from ..cameras.io import load_json
+
+    lines = [HEADER, "|---|---|---|---|---|---|---|---|"]
+    for path in map(Path, paths):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such run record")
+        kept = load_json(path.read_bytes(), path).get("multiview")
+        if not isinstance(kept, dict):
+            continue
+        for name, result in kept.items():
+            lines.append(f"| {name} | missing: {result['missing']} | | | | | | |" if "missing" in result
+                         else multiview_row(name, result))  # fmt: skip
+    if len(lines) == 2:
+        raise ValueError(f"{', '.join(map(str, paths))}: no run record with stereo scores")
+    return lines
+
+
+def multiview_scores(
+    root: Path,
+    predictions: dict[str, dict[str, Tensor]] | None = None,
+    pictures: Path | None = None,
+    echo=print,
+    middlebury: bool = True,
+    matcher: str = "sgbm",
+) -> dict[str, Any]:
+    """Stereo (``matcher``) on every real pair (:func:`real_pairs`), a table row each through ``echo``,
+    beside each model of ``predictions`` (``{model: {frame: [H, W]}}``, as ``scripts/tools/real_world.py``
+    passes them) scored on the same overlap pixels, and panels ``multiview_<frame>.png`` (image | checked
+    | filled | ground truth) into ``pictures``. Returns the record: per frame, the scores, the settings and
+    the refinement."""
+    import cv2
+
+    from ..utils import atomic_write_bytes
+
+    predictions = predictions or {}
+    pairs = real_pairs(root, matcher, middlebury, echo)
+    echo("")
+    echo(HEADER)
+    echo("|---|---|---|---|---|---|---|---|")
+    record: dict[str, Any] = {}
+    for pair, refinement, settings in pairs:
+        if isinstance(pair, Missing):
+            record[pair.name] = {"missing": str(pair.path)}
+            echo(f"| {pair.name} | missing: {pair.path} | | | | | | |")
+            continue
+        scored = overlap(pair)
+        result, (checked, dense) = score_pair(pair, scored, matcher, settings)
+        truth = pair.distance
+        result["refinement"] = refinement
+        result["models"] = {
+            model: score(frames[pair.name].to(truth), truth, scored)
+            for model, frames in predictions.items()
+            if pair.name in frames
+        }
+        kept = ("min_distance", "max_distance") + (("hypotheses", "cost") if matcher == "sweep" else ())
+        result["stereo"] = {"matcher": matcher, **{k: getattr(settings, k) for k in kept}}
+        record[pair.name] = result
+        echo(multiview_row(pair.name, result))
+        if pictures is not None:
+            image = pair.image[0].permute(1, 2, 0).numpy()
+            tiles = panel(image, checked, dense, truth.numpy())
+            atomic_write_bytes(
+                Path(pictures) / f"multiview_{pair.name}.png", cv2.imencode(".png", tiles)[1].tobytes()
+            )
+    refinement = next((r for _, r, _ in pairs if r), None)
+    if refinement is not None:
+        r = refinement
+        echo(
+            f"\nADT slam right relative to left, refined from {r['instants']} image pairs: turned "
+            f"{r['rotation_deg']:.2f} degrees, median epipolar error {r['error_before_px']:.2f} -> "
+            f"{r['error_after_px']:.2f} px ({r['inliers']} of {r['matches']} matches)"
+        )
+    return record
