@@ -151,6 +151,39 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
     assert main([*args[:3], "--threads", "0", "--quiet"]) == 2
     assert "--threads: 0; at least 1" in capsys.readouterr().err
+    assert main([*args[:3], "--max-images", "-1", "--quiet"]) == 2  # not Python's [:-1]
+    assert "--max-images: -1; at least 1" in capsys.readouterr().err
+    assert main([*args[:3], "--hypotheses", "64", "--quiet"]) == 2  # the sweep's option, not ignored
+    assert "--hypotheses: an option of --matcher sweep, not sgbm" in capsys.readouterr().err
+    assert main([*args[:3], "--matcher", "sweep", "--resolution", "0.5", "--quiet"]) == 2
+    assert "--resolution: an option of --matcher sgbm, not sweep" in capsys.readouterr().err
+
+
+def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_path):
+    """Time partners need not be mutual (frames 0, 6 and 7 cm on: the third takes the first, the first
+    the second): a pair is matched in the directions its images ask for, and nothing is left held when
+    every image has taken its maps."""
+    from fisheyedepth.data.layouts import RigLayout
+    from fisheyedepth.stereo.pipeline import StereoSettings, Timer
+    from fisheyedepth.stereo.recording import PairStore, pairings
+
+    stamps = (1_000_000_000, 1_100_000_000, 1_200_000_000)
+    write_room_rig(tmp_path / "rec", size=256, stamps=stamps)
+    (tmp_path / "rec" / "seq" / "poses.txt").write_text(
+        "".join(f"{t} 0 0 {z} 0 0 0 1\n" for t, z in zip(stamps, (0.0, 0.06, 0.07), strict=True))
+    )
+    layout = RigLayout(tmp_path / "rec")
+    planned = [p for p in pairings(layout, ("time",)) if p.partners and p.camera == "left"]
+    partners = {p.frame.key: [q.frame.key for q in p.partners] for p in planned}
+    assert partners == {stamps[0]: [stamps[1]], stamps[1]: [stamps[0]], stamps[2]: [stamps[0]]}
+    store = PairStore(layout, StereoSettings(min_distance=0.2, max_distance=20.0), Timer(), planned)
+    for pairing in planned:
+        for partner in pairing.partners:
+            maps = store.get(
+                pairing.sequence, (pairing.camera, pairing.frame), (partner.camera, partner.frame)
+            )
+            assert maps is not None and maps.distance.shape == (256, 256)
+    assert store.maps == {} and store.wanted == {}
 
 
 def test_the_sweep_stays_as_a_matcher(tmp_path):
@@ -188,8 +221,8 @@ def test_refine_writes_the_rig_its_images_say(tmp_path, degrees):
     rec, out = tmp_path / "rec", tmp_path / "out"
     rig = write_room_rig(rec, size=384, calibrated={"right": turned(true_right, degrees)})
     before = (rec / "rig.yaml").read_text()
-    args = [str(rec), "--out", str(out), "--refine", "--sources", "rig", "--hypotheses", "32",
-            "--min-distance", "0.5", "--max-distance", "20", "--max-images", "1", "--quiet"]  # fmt: skip
+    args = [str(rec), "--out", str(out), "--refine", "--sources", "rig", "--min-distance", "0.5",
+            "--max-distance", "20", "--max-images", "1", "--quiet"]  # fmt: skip
     assert main(args) == 0
     assert (rec / "rig.yaml").read_text() == before
     refined = RigLayout(out)  # OUT/rig.yaml reads as a rig description (its models are inline)

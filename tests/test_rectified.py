@@ -192,7 +192,7 @@ def test_filling_takes_the_background_across_an_edge_and_interpolates_between_eq
         np.float32,
     )
     everywhere = np.ones(rows.shape, bool)
-    filled = fill_rows(rows, everywhere, step=1.0)
+    filled = fill_rows(rows, everywhere, min_jump=1.0)
     assert filled[0].tolist() == [5, 5, 5, 5, 9, 9]
     assert np.allclose(filled[1], [5, 5.1, 5.2, 5.3, 5.4, 6])
     assert filled[2].tolist() == [7, 7, 7, 7, 7, 7] and (filled[3] == I).all()
@@ -232,7 +232,8 @@ def test_map_back_interpolates_a_surface_and_not_an_edge():
 def test_fusion_averages_agreeing_partners_and_trusts_the_larger_parallax():
     def maps(distance, parallax, step=0.01):
         d = np.full((1, 3), distance, np.float32)
-        return PixelMaps(d, d, np.full((1, 3), parallax, np.float32), step)
+        angle = np.full((1, 3), parallax, np.float32)
+        return PixelMaps(d, d, angle, angle, step)
 
     agreeing = fuse([maps(10.0, 0.1), maps(10.4, 0.1)])  # sigma 0.1 each: within 0.2 of each other
     assert np.allclose(agreeing.distance, 10.2) and (agreeing.agreeing == 2).all()
@@ -325,7 +326,8 @@ def test_a_live_rig_gets_distance_for_every_camera():
         {n: (img[0, 0].numpy() * 255).astype(np.uint8) for n, (img, _) in s.items()} for s in (first, second)
     ]
     out = rig(images[0])
-    assert set(out) == {"left", "right"} and out["left"].partners == ("right",)
+    assert set(out) == {"left", "right", "back"} and out["left"].partners == ("right",)
+    assert out["back"].partners == () and not out["back"].fused.distance.any()  # no partner: nothing
     motion = (invert_pose(body[0]) @ body[1]).numpy()  # the body now, in the body then
     out = rig(images[1], previous=images[0], motion=motion)
     assert out["left"].partners == ("right", "left@previous") and out["back"].partners == ("back@previous",)
@@ -341,6 +343,14 @@ def test_a_live_rig_gets_distance_for_every_camera():
         rig({"left": images[0]["left"], "right": images[0]["right"]})
     with pytest.raises(ValueError, match="previous, motion: give both"):
         rig(images[1], previous=images[0])
+    with pytest.raises(
+        ValueError, match=r"previous\['back'\]: shape \(60, 80\), but camera 'back' is 160x120"
+    ):
+        rig(images[1], previous={**images[0], "back": images[0]["back"][::2, ::2]}, motion=motion)
+    with pytest.raises(ValueError, match="masks: 'top' is not a camera of the rig"):
+        RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()}, masks={"top": np.ones((4, 4))})
+    with pytest.raises(ValueError, match="threads: 0; at least 1"):
+        RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()}, threads=0)
 
 
 # ------------------------------------------------------------------ real photographs
@@ -402,3 +412,28 @@ def test_sift_matches_on_the_rectified_adt_pair_lie_on_one_row_once_refined(adt_
             assert np.median(near) > 1.2
         else:
             assert np.median(near) < bound
+
+
+def test_the_readme_live_rig_example_runs():
+    """README's live-rig snippet, run as written on two fisheyes in the textured room (named as it names
+    them) and their previous instant."""
+    import re
+    from pathlib import Path
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"```python\n(.*?)```", readme, re.S).group(1)
+    camera = kitti02().resize(160, 160)
+    cam_to_body = {"front": pose(-10, (-0.15, 0, 0)).numpy(), "right": pose(10, (0.15, 0, 0)).numpy()}
+    pose_then, pose_now = pose().numpy(), pose(0, (0, 0, 0.3)).numpy()
+
+    def shoot(P):
+        return {n: (render(camera, torch.from_numpy(P @ E), texture_volume(0))[0][0, 0].numpy() * 255)
+                .astype(np.uint8) for n, E in cam_to_body.items()}  # fmt: skip
+
+    scope = {"np": np, "cameras": {n: camera for n in cam_to_body}, "cam_to_body": cam_to_body,
+             "images": shoot(pose_now), "last_images": shoot(pose_then), "pose_then": pose_then,
+             "pose_now": pose_now}  # fmt: skip
+    exec(block, scope)
+    out = scope["out"]
+    assert out["front"].partners == ("right", "front@previous")
+    assert (out["front"].fused.distance > 0).mean() > 0.3

@@ -17,6 +17,8 @@ calibration) and not timed, as a robot builds them once.
 5. A four-camera rig: the Aria Gen2 rig (512x512 Fisheye624, metric odometry), every camera with its rig
    partners and its own image from the last instant that moved 5 cm or more, through ``RigStereo`` on 2
    threads: instants per second.
+6. The sweep (``--matcher sweep``: census 7x7, 128 hypotheses, round trip) on the Middlebury pair, once,
+   on the CPU and, where there is one, on CUDA.
 
 Usage: python scripts/bench/bench_stereo.py [--rounds 3] [--no-write] [--quick]
 """
@@ -38,7 +40,7 @@ import torch
 from fisheyedepth.cameras.rays import compute_rays, pixel_grid
 from fisheyedepth.data.realframes import adt_camera
 from fisheyedepth.data.realpairs import MOTORCYCLE, adt_left_to_right, adt_pairs, motorcycle, overlap
-from fisheyedepth.stereo import RigStereo, StereoSettings, build_rectification, fuse, match_pair
+from fisheyedepth.stereo import RigStereo, StereoSettings, fuse, match_pair, rectify_pair
 from fisheyedepth.stereo.match import normalise
 from fisheyedepth.stereo.scores import score
 
@@ -94,8 +96,7 @@ def middlebury_section(rounds: int, quick: bool) -> tuple[list[str], float]:
     threads(1)
     pair = motorcycle()
     settings = StereoSettings(min_distance=1.5, max_distance=10.0)
-    rect = build_rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
-                               directions=(True, False), max_distance=settings.max_distance)  # fmt: skip
+    rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings, (True, False))
     a, b = grey(pair.image), grey(pair.partner_image)
     m = settings.matcher
     seen = np.ones(a.shape, bool)
@@ -151,8 +152,7 @@ def adt_section(rounds: int, quick: bool) -> list[str]:
     threads(2)
     pair = adt_pairs(folder, adt_left_to_right(folder))[0]
     settings = StereoSettings(min_distance=0.2, max_distance=10.0)
-    rect = build_rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
-                               max_distance=settings.max_distance)  # fmt: skip
+    rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings)
     a, b = grey(pair.image), grey(pair.partner_image)
     seconds = statistics.median(
         interleaved({"": lambda: match_pair(a, b, rect, settings)}, 1 if quick else rounds, warmup=1)[""]
@@ -182,13 +182,11 @@ def rgb_section(rounds: int, quick: bool) -> list[str]:
     world[:3, 3] = torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)
     images = {n: grey(render(cameras[n], world @ to_device[n], texture_volume(0))[0]) for n in names}
     settings = StereoSettings(min_distance=0.3, max_distance=20.0)
+    rgb_to = {n: (torch.linalg.inv(to_device[n]) @ to_device["camera-rgb"]).numpy() for n in names[1:]}
     rects = {
-        n: build_rectification(cameras["camera-rgb"], cameras[n],
-                               (torch.linalg.inv(to_device[n]) @ to_device["camera-rgb"]).numpy(),
-                               settings.min_distance, directions=(True, False),
-                               max_distance=settings.max_distance)
-        for n in names[1:]
-    }  # fmt: skip
+        n: rectify_pair(cameras["camera-rgb"], cameras[n], T, settings, (True, False))
+        for n, T in rgb_to.items()
+    }
 
     def rgb():
         return fuse(
@@ -262,6 +260,28 @@ def rig_section(rounds: int, quick: bool) -> list[str]:
     ]
 
 
+def sweep_section(quick: bool) -> list[str]:
+    from fisheyedepth.stereo import SweepStereo, View
+
+    threads(1)
+    pair = motorcycle()
+    hypotheses = 16 if quick else 128
+    sweep = SweepStereo(hypotheses=hypotheses, min_distance=1.5, max_distance=10.0, cost="census")
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    cells = []
+    for device in devices:
+        reference = View(pair.image.to(device), pair.camera, torch.eye(4, device=device))
+        source = View(pair.partner_image.to(device), pair.partner_camera, pair.T.float().to(device))
+        sync = torch.cuda.synchronize if device == "cuda" else None
+        run = {"": lambda reference=reference, source=source: sweep(reference, [source])}
+        seconds = statistics.median(interleaved(run, 1, warmup=0 if device == "cpu" else 1, sync=sync)[""])
+        cells.append(f"{seconds:.2f} s on {'the CPU, one thread' if device == 'cpu' else 'CUDA'}")
+    where = "; ".join(cells)
+    return [
+        f"The sweep (census 7x7, {hypotheses} hypotheses, round trip) on the same Middlebury pair: {where}."
+    ]
+
+
 def main(argv=None) -> None:
     parser = bench_parser(__doc__)
     parser.add_argument("--rounds", type=int, default=3)
@@ -286,6 +306,8 @@ def main(argv=None) -> None:
         *rgb_section(args.rounds, args.quick),
         "",
         *rig_section(args.rounds, args.quick),
+        "",
+        *sweep_section(args.quick),
         END,
     ]
     publish("\n".join(lines) + "\n", args.output, START, END, not args.no_write)

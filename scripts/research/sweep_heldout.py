@@ -34,7 +34,7 @@ from fisheyedepth.cli import prepare_data
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.geometry.se3 import transform_points
 from fisheyedepth.plan import data_plan
-from fisheyedepth.stereo import StereoSettings, SweepStereo, View, fuse, match_pair, rectification
+from fisheyedepth.stereo import StereoSettings, SweepStereo, View, fuse, match_pair, rectify_pair
 from fisheyedepth.stereo.scores import score
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
@@ -74,8 +74,7 @@ def rectified(reference: View, sources: list[View], settings: StereoSettings) ->
     maps = []
     for source in sources:
         T = source.T_ref_to_view.double().numpy()
-        rect = rectification(reference.camera, source.camera, T, settings.min_distance, settings.resolution,
-                             (True, False), settings.max_distance)  # fmt: skip
+        rect = rectify_pair(reference.camera, source.camera, T, settings, (True, False))
         maps.append(match_pair(grey(reference), grey(source), rect, settings, (True, False))[0])
     fused = fuse(maps)
     return Result(torch.from_numpy(fused.distance)[None], torch.from_numpy(fused.dense)[None])

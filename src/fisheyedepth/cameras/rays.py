@@ -7,6 +7,7 @@ the predicted distance. Entries live on the device they are used on: nothing is 
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -177,6 +178,7 @@ class RayCache:
         self.max_entries = max_entries
         self._entries: OrderedDict[tuple, Rays] = OrderedDict()
         self._inside: OrderedDict[tuple, Tensor] = OrderedDict()  # eroded validity, by camera and margin
+        self._lock = threading.RLock()  # callers on several threads (the stereo pipeline's pairs)
         self.misses = 0
 
     def __len__(self) -> int:
@@ -188,20 +190,23 @@ class RayCache:
 
     def get(self, camera: CameraModel, device=None, dtype=torch.float32) -> Rays:
         key = (camera, _device_key(device), dtype)
-        if key not in self._entries:
-            self.misses += 1
-        return self._lookup(self._entries, key, lambda: compute_rays(camera, key[1], dtype))
+        with self._lock:
+            if key not in self._entries:
+                self.misses += 1
+            return self._lookup(self._entries, key, lambda: compute_rays(camera, key[1], dtype))
 
     def _lookup(self, store: OrderedDict, key: tuple, compute):
-        """``store[key]``, computed on a miss; the least recently used entry leaves past ``max_entries``."""
-        entry = store.get(key)
-        if entry is None:
-            entry = store[key] = compute()
-            if len(store) > self.max_entries:
-                store.popitem(last=False)
-        else:
-            store.move_to_end(key)
-        return entry
+        """``store[key]``, computed on a miss; the least recently used entry leaves past ``max_entries``.
+        Under the lock: one thread computes an entry, the others wait for it."""
+        with self._lock:
+            entry = store.get(key)
+            if entry is None:
+                entry = store[key] = compute()
+                if len(store) > self.max_entries:
+                    store.popitem(last=False)
+            else:
+                store.move_to_end(key)
+            return entry
 
     def batch(self, cameras: Sequence[CameraModel], device=None, dtype=torch.float32) -> Rays:
         """Stacked ``[B, H, W, 3]`` rays and ``[B, H, W]`` validity for one camera per sample."""

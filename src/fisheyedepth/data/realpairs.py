@@ -50,12 +50,12 @@ class RealPair(NamedTuple):
 
 def overlap(pair: RealPair) -> Tensor:
     """``[H, W]`` bool: reference pixels with ground truth whose point, at the ground-truth distance, the
-    partner sees inside its image."""
+    partner sees inside its image (to its outer edge, -0.5 to W - 0.5 under the pixel-centre convention)."""
     rays, has_ray = RAYS.get(pair.camera, dtype=torch.float64)
     points = rays * pair.distance.double()[..., None]
     uv, visible = pair.partner_camera.project(transform_points(pair.T.double(), points))
     w, h = pair.partner_camera.width, pair.partner_camera.height
-    inside = (uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1)
+    inside = (uv[..., 0] >= -0.5) & (uv[..., 0] <= w - 0.5) & (uv[..., 1] >= -0.5) & (uv[..., 1] <= h - 0.5)
     return has_ray & visible & inside & (pair.distance > 0)
 
 

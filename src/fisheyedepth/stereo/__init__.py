@@ -6,7 +6,7 @@ hypotheses (:mod:`.sweep`)."""
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
 from .match import MatcherSettings
-from .pipeline import RigStereo, StereoSettings, match_pair
+from .pipeline import RigStereo, StereoSettings, match_pair, rectify_pair
 from .rectify import Rectification, build_rectification, rectification, remap
 from .sweep import COSTS, StereoResult, SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
 
@@ -28,6 +28,7 @@ __all__ = [
     "hamming",
     "match_pair",
     "rectification",
+    "rectify_pair",
     "remap",
     "winner",
     "zncc_cost",

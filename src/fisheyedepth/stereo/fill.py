@@ -31,12 +31,14 @@ def matchable(
     return seen & (counts[:, hi] - counts[:, lo] > 0)
 
 
-def fill_rows(disparity: np.ndarray, where: np.ndarray, margin: float = 2.0, step: float = 1.0) -> np.ndarray:
+def fill_rows(
+    disparity: np.ndarray, where: np.ndarray, margin: float = 2.0, min_jump: float = 1.0
+) -> np.ndarray:
     """``disparity`` with every :data:`INVALID` pixel of ``where`` filled along its row from the nearest
     valid pixels to its left and right. A hole between a nearer and a farther surface (ends more than
-    ``step`` apart) no wider than their disparity jump and ``margin`` is what the nearer one hides from
-    the partner: it takes the smaller disparity (the background's). Any other hole is a surface without
-    texture: linear between its ends. Where only one side has a value, that one."""
+    ``min_jump`` grid pixels apart) no wider than their disparity jump and ``margin`` is what the nearer
+    one hides from the partner: it takes the smaller disparity (the background's). Any other hole is a
+    surface without texture: linear between its ends. Where only one side has a value, that one."""
     valid = disparity != INVALID
     todo = where & ~valid
     if not todo.any():
@@ -54,7 +56,7 @@ def fill_rows(disparity: np.ndarray, where: np.ndarray, margin: float = 2.0, ste
     with np.errstate(invalid="ignore"):
         between = from_left + (c - lo) / np.maximum(hi - lo, 1) * (from_right - from_left)
         jump = np.abs(from_right - from_left)
-        occluded = (jump > step) & (hi - lo - 1 <= jump + margin)
+        occluded = (jump > min_jump) & (hi - lo - 1 <= jump + margin)
     value = np.where(both & ~occluded, between, np.minimum(from_left, from_right))
     out = disparity.astype(np.float32, copy=True)
     known = np.isfinite(value)
@@ -69,7 +71,12 @@ def fill(disparity: np.ndarray, where: np.ndarray, smooth: int = 5, margin: floa
     smoothing)."""
     filled = fill_rows(disparity, where, margin)
     if smooth:
-        median = cv2.medianBlur(np.where(filled == INVALID, 0, filled).astype(np.float32), smooth)
-        new = (disparity == INVALID) & (filled != INVALID)
-        filled = np.where(new & (median > 0), median, filled)
+        known = filled != INVALID
+        median = cv2.medianBlur(np.where(known, filled, 0).astype(np.float32), smooth)
+        # only where the whole window is known: a median over missing pixels (0) would pull it farther
+        full = (
+            cv2.boxFilter(known.astype(np.float32), -1, (smooth, smooth), normalize=False) >= smooth * smooth
+        )
+        new = (disparity == INVALID) & known & full
+        filled = np.where(new, median, filled)
     return filled.astype(np.float32)

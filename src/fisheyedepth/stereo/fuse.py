@@ -8,9 +8,9 @@ largest parallax is the anchor; the others agree with it where they differ by le
 
     confidence = (partners that agree / partners that kept the pixel) / (1 + sigma_fused),
 
-in [0, 1]: 1 for many agreeing, precise partners, lower for one partner, a short baseline or a far
-point, and for partners that contradict each other. The dense map takes the fused checked distance where
-there is one, else the filled estimate of the partner with the largest parallax.
+in (0, 1): near 1 for agreeing, precise partners (sigma_fused small), lower for a short baseline or a far
+point, halved where half the partners contradict the anchor. The dense map takes the fused checked
+distance where there is one, else the filled estimate of the partner with the largest parallax.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def fuse(maps: Sequence[PixelMaps]) -> Fused:
     confidence = np.where(total > 0, share / (1 + fused_sigma), 0)
 
     dense = np.stack([m.dense for m in maps])
-    dense_parallax = np.where(dense > 0, np.stack([m.parallax for m in maps]) / steps, -1)
+    dense_parallax = np.where(dense > 0, np.stack([m.dense_parallax for m in maps]) / steps, -1)
     best = np.take_along_axis(dense, np.argmax(dense_parallax, axis=0)[None], 0)[0]
     dense_out = np.where(fused > 0, fused, best)
     return Fused(

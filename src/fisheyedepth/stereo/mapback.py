@@ -26,7 +26,8 @@ class PixelMaps(NamedTuple):
 
     distance: np.ndarray  # [H, W] float32 metres along the ray, where the checks keep it
     dense: np.ndarray  # [H, W] float32 metres, the filled map (every pixel the partner could match)
-    parallax: np.ndarray  # [H, W] float32 radians of the dense map (the kept ones included)
+    parallax: np.ndarray  # [H, W] float32 radians of the kept distance (0 where none)
+    dense_parallax: np.ndarray  # [H, W] float32 radians of the filled map
     step: float  # radians of one grid pixel: a pixel of disparity error is step / parallax of distance
 
 
@@ -48,9 +49,8 @@ def sample(grid: np.ndarray, side: Side) -> np.ndarray:
     corner = (np.floor(col), np.floor(row))  # the top-left of the four neighbours
     spread = cv2.remap(high - low, *corner, cv2.INTER_NEAREST, **constant)
     smooth = (weight > 1 - 1e-3) & (spread <= EDGE)
-    inside = side.inside & (col >= -0.5) & (col <= grid.shape[1] - 0.5)
     out = np.where(smooth, bilinear, nearest)
-    return np.where(inside & (smooth | (nearest != INVALID)), out, INVALID).astype(np.float32)
+    return np.where(side.inside & (smooth | (nearest != INVALID)), out, INVALID).astype(np.float32)
 
 
 def to_pixels(checked: np.ndarray, filled: np.ndarray, rect: Rectification, side: str) -> PixelMaps:
@@ -69,5 +69,5 @@ def to_pixels(checked: np.ndarray, filled: np.ndarray, rect: Rectification, side
         metres[has] = np.where(good, distance, 0)
         radians[has] = np.where(good, alpha, 0)
         out.append((metres, radians))
-    (distance, _), (dense, parallax) = out
-    return PixelMaps(distance, dense, parallax, step)
+    (distance, parallax), (dense, dense_parallax) = out
+    return PixelMaps(distance, dense, parallax, dense_parallax, step)

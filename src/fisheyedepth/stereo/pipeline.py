@@ -28,10 +28,10 @@ from .fuse import Fused, fuse
 from .mapback import PixelMaps, to_pixels
 from .match import MatcherSettings, match_both
 from .rectify import (
+    RECTIFICATIONS,
     Rectification,
     RectificationCache,
     angular_resolution,
-    build_rectification,
     nearest_parallax,
     remap,
 )
@@ -135,15 +135,45 @@ def match_pair(
         start = timer.add("fill", start)
         maps = to_pixels(disparity.checked, filled, rect, side)
         far = settings.max_distance
+        kept, filled = maps.distance <= far, maps.dense <= far
         maps = PixelMaps(
-            np.where(maps.distance <= far, maps.distance, 0).astype(np.float32),
-            np.where(maps.dense <= far, maps.dense, 0).astype(np.float32),
-            maps.parallax,
+            np.where(kept, maps.distance, 0).astype(np.float32),
+            np.where(filled, maps.dense, 0).astype(np.float32),
+            np.where(kept, maps.parallax, 0).astype(np.float32),
+            np.where(filled, maps.dense_parallax, 0).astype(np.float32),
             maps.step,
         )
         out.append(maps)
         start = timer.add("map_back", start)
     return out[0], out[1]
+
+
+def rectify_pair(
+    camera_a: CameraModel,
+    camera_b: CameraModel,
+    T_a_to_b: np.ndarray,
+    settings: StereoSettings,
+    directions: tuple[bool, bool] = (True, True),
+    cache: RectificationCache = RECTIFICATIONS,
+) -> Rectification:
+    """The pair's :class:`~.rectify.Rectification` for ``settings`` (its range, resolution and the
+    matcher's end margin), through ``cache``: built once per pair, calibration and motion."""
+    s = settings
+    return cache.get(camera_a, camera_b, T_a_to_b, s.min_distance, s.resolution, directions, s.max_distance,
+                     s.matcher.end_margin)  # fmt: skip
+
+
+def too_short(camera_a: CameraModel, camera_b: CameraModel, T_a_to_b: np.ndarray, settings: StereoSettings):
+    """Why the pair's baseline is too short to match (its parallax at the nearest distance under
+    :data:`MIN_PARALLAX` grid pixels), or None."""
+    baseline = float(np.linalg.norm(np.asarray(T_a_to_b)[:3, 3]))
+    step = settings.resolution or max(angular_resolution(camera_a), angular_resolution(camera_b))
+    if baseline > 0 and nearest_parallax(baseline, settings.min_distance, step) < MIN_PARALLAX:
+        return (
+            f"a baseline of {baseline:.3g} m shows under {MIN_PARALLAX} pixels of parallax at the nearest "
+            f"distance ({settings.min_distance:g} m)"
+        )
+    return None
 
 
 def _relative(
@@ -153,6 +183,12 @@ def _relative(
     (``b_body_from_a_body``: a's body frame to b's)."""
     motion = np.eye(4) if b_body_from_a_body is None else b_body_from_a_body
     return np.linalg.inv(cam_to_body_b) @ motion @ cam_to_body_a
+
+
+def nothing(camera: CameraModel) -> Fused:
+    """The fused maps of an image without a partner: every pixel 0."""
+    zeros = np.zeros((camera.height, camera.width), np.float32)
+    return Fused(zeros, zeros.copy(), zeros.copy(), np.zeros(zeros.shape, np.uint8))
 
 
 class CameraResult(NamedTuple):
@@ -177,6 +213,8 @@ class RigStereo:
         threads: int = 1,
         masks: Mapping[str, np.ndarray] | None = None,
     ):
+        if int(threads) < 1:
+            raise ValueError(f"threads: {threads}; at least 1")
         if set(cameras) != set(cam_to_body):
             raise ValueError(
                 f"cameras, cam_to_body: name different cameras ({sorted(cameras)}, {sorted(cam_to_body)})"
@@ -184,8 +222,9 @@ class RigStereo:
         self.cameras = dict(cameras)
         self.cam_to_body = {n: np.asarray(T, dtype=np.float64) for n, T in cam_to_body.items()}
         self.settings = settings or StereoSettings()
-        self.threads = max(1, int(threads))
+        self.threads = int(threads)
         self.masks = dict(masks or {})
+        self._check("masks", self.masks, every=False)
         self.timer = Timer()
         self._motion_cache = RectificationCache(max_entries=2 * len(self.cameras))
         self.pairs: dict[tuple[str, str], Rectification] = {}
@@ -195,25 +234,28 @@ class RigStereo:
         for i, a in enumerate(names):
             for b in names[i + 1 :]:
                 T = _relative(self.cam_to_body[a], self.cam_to_body[b])
-                baseline = float(np.linalg.norm(T[:3, 3]))
-                step = s.resolution or max(map(angular_resolution, (self.cameras[a], self.cameras[b])))
-                if baseline > 0 and nearest_parallax(baseline, s.min_distance, step) < MIN_PARALLAX:
-                    self.unpaired[a, b] = (
-                        f"a baseline of {baseline:.3g} m shows under {MIN_PARALLAX} pixels of parallax at "
-                        f"the nearest distance ({s.min_distance:g} m)"
-                    )
+                why = too_short(self.cameras[a], self.cameras[b], T, s)
+                if why is not None:
+                    self.unpaired[a, b] = why
                     continue
                 try:
-                    self.pairs[a, b] = build_rectification(
-                        self.cameras[a],
-                        self.cameras[b],
-                        T,
-                        s.min_distance,
-                        s.resolution,
-                        max_distance=s.max_distance,
-                    )
+                    self.pairs[a, b] = rectify_pair(self.cameras[a], self.cameras[b], T, s)
                 except ValueError as err:  # no overlap, or no baseline
                     self.unpaired[a, b] = str(err)
+
+    def _check(self, what: str, arrays: Mapping[str, np.ndarray], every: bool = True) -> None:
+        """Each image (or mask) at its camera's calibrated size; with ``every``, one for every camera."""
+        missing = sorted(set(self.cameras) - set(arrays)) if every else []
+        if missing:
+            raise ValueError(f"{what}: no image of camera {', '.join(missing)}")
+        for name, array in arrays.items():
+            if name not in self.cameras:
+                raise ValueError(f"{what}: {name!r} is not a camera of the rig ({', '.join(self.cameras)})")
+            camera, shape = self.cameras[name], np.shape(array)
+            if len(shape) not in (2, 3) or (shape[1], shape[0]) != (camera.width, camera.height):
+                raise ValueError(
+                    f"{what}[{name!r}]: shape {shape}, but camera {name!r} is {camera.width}x{camera.height}"
+                )
 
     def __call__(
         self,
@@ -221,13 +263,12 @@ class RigStereo:
         previous: Mapping[str, np.ndarray] | None = None,
         motion: np.ndarray | None = None,
     ) -> dict[str, CameraResult]:
-        """Every camera's fused distance at this instant. ``images``: name -> ``H x W`` or ``H x W x 3``
-        image (every camera of the rig); ``previous``, ``motion``: the previous instant's images and the
-        transform of the body frame now to the body frame then (``inv(pose_then) @ pose_now``, from the
-        odometry)."""
-        missing = sorted(set(self.cameras) - set(images))
-        if missing:
-            raise ValueError(f"images: no image of camera {', '.join(missing)}")
+        """Every camera's fused distance at this instant (all zeros, no partners, for a camera with none).
+        ``images``: name -> ``H x W`` or ``H x W x 3`` image (every camera of the rig); ``previous``,
+        ``motion``: the previous instant's images and the transform of the body frame now to the body
+        frame then (``inv(pose_then) @ pose_now``, from the odometry). Calls on one object are made one at
+        a time (the threads it matches on set OpenCV's and torch's thread counts for the process)."""
+        self._check("images", images)
         if (previous is None) != (motion is None):
             raise ValueError(
                 "previous, motion: give both (the previous images and the motion since) or neither"
@@ -237,11 +278,15 @@ class RigStereo:
         for (a, b), rect in self.pairs.items():
             jobs.append(((a, b), (b, a), images[a], images[b], rect, (a, b)))
         if previous is not None:
+            self._check("previous", previous, every=False)
             motion = np.asarray(motion, dtype=np.float64)
-            for name in self.cameras:
+            if motion.shape != (4, 4) or not np.isfinite(motion).all():
+                raise ValueError(f"motion: a finite 4x4 transform expected, got shape {motion.shape}")
+            for name, camera in self.cameras.items():
                 E = self.cam_to_body[name]
                 T_now_to_then = _relative(E, E, motion)
-                if name in previous and np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline:
+                moved = np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline
+                if name in previous and moved and too_short(camera, camera, T_now_to_then, s) is None:
                     label = (name, f"{name}@previous")
                     jobs.append((label, None, images[name], previous[name], T_now_to_then, (name, name)))
 
@@ -251,9 +296,10 @@ class RigStereo:
             if not isinstance(rect, Rectification):  # a motion pair: built here, once per motion
                 start = time.perf_counter()
                 camera = self.cameras[cameras[0]]
-                rect = self._motion_cache.get(
-                    camera, camera, rect, s.min_distance, s.resolution, (True, False), s.max_distance
-                )
+                try:
+                    rect = rectify_pair(camera, camera, rect, s, (True, False), self._motion_cache)
+                except ValueError:  # its two views do not overlap within the range: no partner
+                    return first, second, (None, None), timer
                 timer.add("rectify", start)
             masks = tuple(self.masks.get(name) for name in cameras)
             maps = match_pair(a, b, rect, s, rect.directions, timer, masks)
@@ -284,7 +330,11 @@ class RigStereo:
                 per_camera[second[0]].append((second[1], maps_b))
         start = time.perf_counter()
         out = {}
-        for name, found in per_camera.items():
-            out[name] = CameraResult(fuse([m for _, m in found]), tuple(p for p, _ in found))
+        for name, camera in self.cameras.items():
+            found = per_camera.get(name)
+            if found:
+                out[name] = CameraResult(fuse([m for _, m in found]), tuple(p for p, _ in found))
+            else:
+                out[name] = CameraResult(nothing(camera), ())
         self.timer.add("fuse", start)
         return out

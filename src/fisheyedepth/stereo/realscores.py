@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..data.realframes import Missing, adt_camera
+from ..data.realframes import Missing, adt_camera, load_adt
 from ..data.realpairs import (
     ADT_CAMERAS,
     RealPair,
@@ -28,8 +28,7 @@ from ..data.realpairs import (
     motorcycle,
     overlap,
 )
-from .pipeline import StereoSettings, match_pair
-from .rectify import rectification
+from .pipeline import StereoSettings, match_pair, rectify_pair
 from .refine import Matches, match_features, refine_relative_pose
 from .scores import panel, score
 from .sweep import SweepStereo, View
@@ -38,8 +37,8 @@ MATCHERS = ("sgbm", "sweep")
 # the range by the scene's kind, never tuned on the ground truth: indoors 0.2-10 m; Middlebury's scene
 # 1.5-10 m. The sweep: ZNCC indoors (the command's default), census on Middlebury's two exposures.
 ADT_RANGE, MIDDLEBURY_RANGE = (0.2, 10.0), (1.5, 10.0)
-ADT_SWEEP = SweepStereo(hypotheses=128, min_distance=0.2, max_distance=10.0, cost="zncc")
-MIDDLEBURY_SWEEP = SweepStereo(hypotheses=128, min_distance=1.5, max_distance=10.0, cost="census")
+ADT_SWEEP = SweepStereo(128, *ADT_RANGE, cost="zncc")
+MIDDLEBURY_SWEEP = SweepStereo(128, *MIDDLEBURY_RANGE, cost="census")
 HEADER = (
     "| reference frame | its partner | overlap pixels | checked: abs_rel, a1, coverage "
     "| constant map there | filled: abs_rel, a1 | constant map there "
@@ -68,8 +67,7 @@ def distance_maps(
         result = settings(View(pair.image, pair.camera, torch.eye(4)),
                           [View(pair.partner_image, pair.partner_camera, pair.T.float())])  # fmt: skip
         return result.distance[0].numpy(), result.dense[0].numpy()
-    rect = rectification(pair.camera, pair.partner_camera, pair.T.numpy(), settings.min_distance,
-                         settings.resolution, (True, False), settings.max_distance)  # fmt: skip
+    rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings, (True, False))
     grey = [(x[0].mean(0).numpy() * 255).astype(np.float32) for x in (pair.image, pair.partner_image)]
     maps, _ = match_pair(grey[0], grey[1], rect, settings, (True, False))
     return maps.distance, maps.dense
@@ -93,10 +91,10 @@ def real_pairs(root: Path, matcher: str = "sgbm", middlebury: bool = True, echo=
     if matcher not in MATCHERS:
         raise ValueError(f"matcher: {matcher!r}; choose from {', '.join(MATCHERS)}")
     folder = Path(root) / "adt_slam"
-    found = adt_pairs(folder)
+    gone = [f for f in load_adt(folder) if isinstance(f, Missing)]
     out: list[tuple] = []
-    if found and isinstance(found[0], Missing):
-        out += [(m, None, None) for m in found]
+    if gone:
+        out += [(m, None, None) for m in gone]
     else:
         T, refinement = refine_adt(folder)
         near, far = ADT_RANGE

@@ -19,8 +19,8 @@ with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined `
 changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
 its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
 <timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels; the
-seconds of each stage; the images with no partner, by name. Nothing existing is replaced without
-``--overwrite``.
+seconds of each stage; the images with no partner and the pairs left out (no overlap within the range, too
+short a baseline), by name. Nothing existing is replaced without ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import logging
 import math
 import sys
 import time
+from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from ..data.layouts import Frame, RigLayout
 from ..utils import atomic_write_bytes, atomic_write_text
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
-from .pipeline import StereoSettings, Timer, match_pair
+from .pipeline import StereoSettings, Timer, match_pair, nothing, rectify_pair, too_short
 from .rectify import RectificationCache
 from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
 from .scores import panel, score
@@ -153,46 +154,61 @@ def _T(layout: RigLayout, camera_a: str, frame_a: Frame, camera_b: str, frame_b:
 
 
 class PairStore:
-    """The recording's pairs through the rectified pipeline: each pair of images matched once (both
-    directions), kept until both of its images have taken their maps."""
+    """The recording's pairs through the rectified pipeline: each pair of images matched once, for the
+    images of the pair that ask for it (``pairings``: one, or both), and kept until they have taken
+    their maps."""
 
-    def __init__(self, layout: RigLayout, settings: StereoSettings, timer: Timer):
+    def __init__(self, layout: RigLayout, settings: StereoSettings, timer: Timer, pairings: list[Pairing]):
         self.layout, self.settings, self.timer = layout, settings, timer
         self.masks = masks(layout)
         self.rectifications = RectificationCache(max_entries=64)
+        self.wanted: dict[tuple, set[tuple[str, int]]] = defaultdict(set)  # pair -> the images asking
+        for pairing in pairings:
+            for partner in pairing.partners:
+                key, _, _ = self._key(
+                    pairing.sequence, (pairing.camera, pairing.frame), (partner.camera, partner.frame)
+                )
+                self.wanted[key].add((pairing.camera, pairing.frame.key))
         self.maps: dict[tuple, dict[tuple, PixelMaps | None]] = {}
-        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, no baseline)
+        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, too short a baseline)
+
+    @staticmethod
+    def _key(sequence: str, one: tuple[str, Frame], other: tuple[str, Frame]) -> tuple:
+        a, b = sorted((one, other), key=lambda x: (x[1].key, x[0]))  # the earlier image is camera a
+        return (sequence, a[0], a[1].key, b[0], b[1].key), a, b
 
     def get(self, sequence: str, own: tuple[str, Frame], other: tuple[str, Frame]) -> PixelMaps | None:
-        """``own``'s maps against ``other`` (None where the pair has no overlap)."""
-        a, b = sorted((own, other), key=lambda x: (x[1].key, x[0]))
-        key = (sequence, a[0], a[1].key, b[0], b[1].key)
+        """``own``'s maps against ``other`` (None where the pair is left out)."""
+        key, a, b = self._key(sequence, own, other)
         if key not in self.maps:
-            self.maps[key] = self._match(sequence, a, b)
+            self.maps[key] = self._match(sequence, a, b, self.wanted.pop(key, {(own[0], own[1].key)}))
         entry = self.maps[key]
-        side = (own[0], own[1].key)
-        found = entry.pop(side, None)
+        found = entry.pop((own[0], own[1].key), None)
         if not entry:
             del self.maps[key]
         return found
 
-    def _match(self, sequence: str, a: tuple[str, Frame], b: tuple[str, Frame]) -> dict:
+    def _match(self, sequence: str, a: tuple[str, Frame], b: tuple[str, Frame], wanted: set) -> dict:
         layout, s = self.layout, self.settings
+        sides = (a[0], a[1].key), (b[0], b[1].key)
+        directions = tuple(side in wanted for side in sides)
         start = time.perf_counter()
         T = _T(layout, a[0], a[1], b[0], b[1])
-        try:
-            cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
-            rect = self.rectifications.get(
-                *cameras, T, s.min_distance, s.resolution, max_distance=s.max_distance
-            )
-        except ValueError as err:  # no overlap within the range, or no baseline
-            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = str(err)
-            return {(a[0], a[1].key): None, (b[0], b[1].key): None}
+        cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
+        why = too_short(*cameras, T, s)
+        if why is None:
+            try:
+                rect = rectify_pair(*cameras, T, s, directions, self.rectifications)
+            except ValueError as err:  # no overlap within the range
+                why = str(err)
+        if why is not None:
+            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = why
+            return {side: None for side, want in zip(sides, directions, strict=True) if want}
         self.timer.add("rectify", start)
         images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
         pair_masks = (self.masks[a[0]], self.masks[b[0]])
-        maps_a, maps_b = match_pair(images[0], images[1], rect, s, (True, True), self.timer, pair_masks)
-        return {(a[0], a[1].key): maps_a, (b[0], b[1].key): maps_b}
+        maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks)
+        return {side: m for side, m, want in zip(sides, maps, directions, strict=True) if want}
 
 
 def _sweep(layout: RigLayout, pairing: Pairing, sweep: SweepStereo, image: np.ndarray) -> Fused:
@@ -259,14 +275,17 @@ def run(
             log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
         atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
     refine_seconds = time.perf_counter() - begun
-    min_baseline = matcher.min_baseline if isinstance(matcher, StereoSettings) else 0.05
+    min_baseline = (
+        matcher.min_baseline if isinstance(matcher, StereoSettings) else StereoSettings.min_baseline
+    )
     planned = pairings(layout, sources, min_baseline=min_baseline)
+    planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
     paired = [p for p in planned if p.partners][:max_images]
     unpaired = [p.name for p in planned if not p.partners]
     if unpaired:
         log.warning("%d images have no partner and are left out: %s", len(unpaired), ", ".join(unpaired[:5]))
     timer = Timer()
-    store = PairStore(layout, matcher, timer) if isinstance(matcher, StereoSettings) else None
+    store = PairStore(layout, matcher, timer, paired) if isinstance(matcher, StereoSettings) else None
     images = []
     bar = tqdm(paired, desc=f"stereo ({'sgbm' if store else 'sweep'})", unit="image", disable=not progress)
     for pairing in bar:
@@ -282,11 +301,8 @@ def run(
         else:
             used = [(p, None) for p in pairing.partners]
             fused = _sweep(layout, pairing, matcher, image)
-        camera = layout.cameras[pairing.camera].camera
-        if fused is None:  # every partner without overlap: nothing to say about this image
-            fused = Fused(
-                *(np.zeros((camera.height, camera.width), dtype) for dtype in (np.float32,) * 3 + (np.uint8,))
-            )
+        if fused is None:  # every partner left out: nothing to say about this image
+            fused = nothing(layout.cameras[pairing.camera].camera)
         folder = out / pairing.sequence
         stem = f"{pairing.camera}/{pairing.frame.key}"
         for what, array in (
@@ -323,7 +339,7 @@ def run(
         "refinement": refinement,
         "images": images,
         "unpaired": unpaired,
-        "pairs_without_overlap": store.unmatched if store is not None else {},
+        "pairs_left_out": store.unmatched if store is not None else {},
         "seconds": {
             "total": round(seconds, 3),
             "refine": round(refine_seconds, 3),
@@ -347,8 +363,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", type=float, default=None,
                         help="degrees per rectified pixel (default: each pair's coarser camera)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
-    parser.add_argument("--hypotheses", type=int, default=128, help="--matcher sweep: distances swept")
-    parser.add_argument("--cost", choices=("zncc", "census"), default="zncc", help="--matcher sweep")
+    parser.add_argument("--hypotheses", type=int, default=None, help="--matcher sweep: distances (128)")
+    parser.add_argument("--cost", choices=("zncc", "census"), default=None, help="--matcher sweep (zncc)")
     parser.add_argument("--max-images", type=int, default=None)
     refine_help = "refine the rig's extrinsics from its images first (rotation, the default, or pose: also "
     refine_help += "the translation's direction); writes OUT/rig.yaml"
@@ -363,8 +379,17 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"--threads: {args.threads}; at least 1")
             torch.set_num_threads(args.threads)
             cv2.setNumThreads(args.threads)
+        if args.max_images is not None and args.max_images < 1:
+            raise ValueError(f"--max-images: {args.max_images}; at least 1 (or leave it out: every image)")
+        only = {"sweep": ("hypotheses", "cost"), "sgbm": ("resolution",)}
+        for matcher, options in only.items():
+            given = [f"--{o}" for o in options if getattr(args, o) is not None]
+            if given and args.matcher != matcher:
+                raise ValueError(f"{', '.join(given)}: an option of --matcher {matcher}, not {args.matcher}")
         if args.matcher == "sweep":
-            matcher = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
+            matcher = SweepStereo(
+                args.hypotheses or 128, args.min_distance, args.max_distance, args.cost or "zncc"
+            )
         else:
             resolution = None if args.resolution is None else math.radians(args.resolution)
             matcher = StereoSettings(args.min_distance, args.max_distance, resolution)

@@ -37,6 +37,7 @@ from ..cameras.rays import RayCache
 
 RAYS = RayCache(max_entries=32)  # each camera's rays at its own size, unprojected once
 MAX_GRID_PIXELS = 16_000_000  # a rectified grid larger than this is a mistake (a step far too fine)
+SEAM = 4  # rows repeated past each end of a grid that wraps around the whole circle: the matcher's window
 
 
 @dataclass(frozen=True)
@@ -63,8 +64,8 @@ class SphericalGrid:
         return cos_t * e + sin_t * around
 
     def angles(self, directions: Tensor) -> tuple[Tensor, Tensor]:
-        """``phi`` in ``[phi0 - pi, phi0 + pi)`` (the grid's side of the seam behind it) and ``theta`` of
-        directions ``[..., 3]`` in a's frame."""
+        """``phi`` within pi of the grid's middle row (the seam where it wraps lies behind the grid) and
+        ``theta`` of directions ``[..., 3]`` in a's frame."""
         local = directions @ torch.from_numpy(self.frame).to(directions.dtype).T
         across = torch.sqrt(local[..., 1] ** 2 + local[..., 2] ** 2)
         theta = torch.atan2(across, local[..., 0])
@@ -88,7 +89,7 @@ class Side:
     pixel, for ``cv2.remap``; ``valid``: the grid pixels it sees. ``grid_row``, ``grid_col``: ``[H, W]``
     float32 grid position of each of the camera's own pixels (at its calibrated size), for ``cv2.remap``
     the other way; ``theta``: their angle from the baseline; ``inside``: pixels with a ray that fall
-    inside the grid's rows."""
+    inside the grid. The three are empty where the grid does not answer the camera's pixels."""
 
     camera: CameraModel
     image_size: tuple[int, int]
@@ -186,7 +187,8 @@ def _side(
         to_grid, angle = grid.pixels(rays @ R)  # this camera's rays in a's frame
         row, col = (np.ascontiguousarray(to_grid[..., i].float().numpy()) for i in (0, 1))
         theta = angle.float().numpy()
-        inside = (has_ray & (to_grid[..., 0] >= -0.5) & (to_grid[..., 0] <= grid.rows - 0.5)).numpy()
+        inside = has_ray.numpy() & (row >= -0.5) & (row <= grid.rows - 0.5) & (col >= -0.5)
+        inside &= col <= grid.cols - 0.5
     return Side(
         camera=camera,
         image_size=size,
@@ -202,8 +204,8 @@ def _side(
 
 def _occupancy(grid: SphericalGrid, camera: CameraModel, R: Tensor) -> Tensor:
     """``[rows, cols]`` bool: the cells of ``grid`` (the whole sphere) that some ray of ``camera`` falls
-    in (``R``: the rotation from a's frame to the camera's), closed over one cell so that no cell between
-    two rays is missed."""
+    in (``R``: the rotation from a's frame to the camera's), closed over two cells so that no cell between
+    two rays is missed (a ray a cell at the principal point; where the image compresses, two)."""
     rays, has_ray = RAYS.get(camera)
     stride = max(1, int(grid.step / angular_resolution(camera)))  # a ray a cell: the closing fills the rest
     rc, _ = grid.pixels(rays[::stride, ::stride][has_ray[::stride, ::stride]] @ R.float())
@@ -224,12 +226,15 @@ def _any_within(seen: Tensor, before: int, after: int) -> Tensor:
     return (counts[:, hi] - counts[:, lo]) > 0
 
 
-def _extent(frame, baseline, step, nearest, max_distance, camera_a, camera_b, R_ab, directions) -> tuple:
+def _extent(
+    frame, baseline, step, nearest, max_distance, margin, camera_a, camera_b, R_ab, directions
+) -> tuple:
     """The grid's ``phi0``, ``psi0``, rows and columns, and the matcher's first disparity and count: the
     rows and columns where a's cells have a partner in b within the parallax of the nearest distance (a
     point at ``psi`` in a lies at ``psi - alpha`` in b) or b's in a (each as ``directions`` asks); the
-    range from two pixels below the least parallax of the farthest distance in those columns (0 where an
-    epipole is in view; the matcher's end checks reject there) up to the nearest's, a multiple of 16;
+    range from ``margin`` pixels below the least parallax of the farthest distance in those columns (0
+    where an epipole is in view) to as far above the nearest's (the matcher's end checks reject within
+    ``margin`` of either end), a multiple of 16;
     a's columns padded by it on the left, b's on the right. Found on the whole sphere in cells of up to a
     few grid pixels (about a million cells), then widened by a cell."""
     cell = max(1, math.ceil(math.sqrt(2 * math.pi * math.pi / step**2 / 1e6)))
@@ -239,7 +244,7 @@ def _extent(frame, baseline, step, nearest, max_distance, camera_a, camera_b, R_
     )
     seen_a = _occupancy(sphere, camera_a, torch.eye(3, dtype=torch.float64))
     seen_b = _occupancy(sphere, camera_b, torch.from_numpy(R_ab))
-    reach = math.ceil((nearest + 1) / cell)
+    reach = math.ceil((nearest + 1 + margin) / cell)
     matched_a = seen_a & _any_within(seen_b, reach, 0) & directions[0]
     matched_b = seen_b & _any_within(seen_a, 0, reach) & directions[1]
     both = matched_a | matched_b
@@ -251,8 +256,10 @@ def _extent(frame, baseline, step, nearest, max_distance, camera_a, camera_b, R_
     if max_distance is not None:
         theta_a, theta_b = (math.pi - coarse * np.arange(c.min() - 1, c.max() + 2) if len(c) else c
                             for c in (cols_a, cols_b))  # fmt: skip
-        first = max(0, math.floor(farthest_parallax(theta_a, theta_b, baseline, max_distance) / step) - 2)
-    count = max(16, 16 * math.ceil((nearest + 1 - first) / 16))
+        first = max(
+            0, math.floor(farthest_parallax(theta_a, theta_b, baseline, max_distance) / step) - margin
+        )
+    count = max(16, 16 * math.ceil((nearest + 1 + margin - first) / 16))
     pad = first + count
     lows, highs = [], []
     if len(cols_a):  # in grid pixels of step, a cell of margin
@@ -263,8 +270,9 @@ def _extent(frame, baseline, step, nearest, max_distance, camera_a, camera_b, R_
         highs.append((int(cols_b.max()) + 1) * cell + pad)
     first_row, last_row = (int(rows_used.min()) - 1) * cell, (int(rows_used.max()) + 1) * cell
     phi_lo, rows = sphere.phi0 + step * first_row, last_row - first_row + 1
-    if rows * step >= 2 * math.pi - 2 * coarse:  # the whole circle (an epipole in view): a row past each end
-        phi_lo, rows = -math.pi - step, math.ceil(2 * math.pi / step) + 2
+    if rows * step >= 2 * math.pi - 2 * coarse:  # the whole circle (an epipole in view): it wraps, and the
+        # matcher's window at the seam sees the rows past it
+        phi_lo, rows = -math.pi - SEAM * step, math.ceil(2 * math.pi / step) + 2 * SEAM
     return phi_lo, step * min(lows), rows, max(highs) - min(lows) + 1, first, count
 
 
@@ -276,12 +284,16 @@ def build_rectification(
     step: float | None = None,
     directions: tuple[bool, bool] = (True, True),
     max_distance: float | None = None,
+    margin: int = 2,
 ) -> Rectification:
     """The grid and both cameras' tables for the pair (``T_a_to_b``: ``X_b = R X_a + t``, metres).
     ``step``: radians per grid pixel; None: the coarser camera's :func:`angular_resolution`;
     ``directions``: the cameras whose pixels it must answer (a motion pair answers the newer image only:
     its grid is narrower by the disparity range); ``min_distance``, ``max_distance``: metres, the range
-    searched (None: to infinity)."""
+    searched (None: to infinity); ``margin``: grid pixels the matcher rejects at each end of its range
+    (:attr:`.match.MatcherSettings.end_margin`), added to it."""
+    if not 0 < min_distance < (math.inf if max_distance is None else max_distance):
+        raise ValueError(f"min_distance, max_distance: {min_distance}, {max_distance}; need 0 < min < max")
     T = np.asarray(T_a_to_b, dtype=np.float64)
     R_ab, t_ab = T[:3, :3], T[:3, 3]
     centre_b = -R_ab.T @ t_ab
@@ -299,7 +311,7 @@ def build_rectification(
     if not any(directions):
         raise ValueError("directions: neither camera asked for; nothing to rectify for")
     phi_lo, psi_lo, rows, cols, first, count = _extent(
-        frame, baseline, step, nearest, max_distance, camera_a, camera_b, R_ab, directions
+        frame, baseline, step, nearest, max_distance, math.ceil(margin), camera_a, camera_b, R_ab, directions
     )
     if rows * cols > MAX_GRID_PIXELS:
         raise ValueError(
@@ -339,18 +351,20 @@ class RectificationCache:
 
     def get(
         self, camera_a, camera_b, T_a_to_b, min_distance: float, step: float | None = None,
-        directions: tuple[bool, bool] = (True, True), max_distance: float | None = None,
+        directions: tuple[bool, bool] = (True, True), max_distance: float | None = None, margin: int = 2,
     ) -> Rectification:  # fmt: skip
         T = np.asarray(T_a_to_b, dtype=np.float64)
         pose = tuple(np.round(T[:3].ravel(), 6))
-        key = (camera_a, camera_b, pose, float(min_distance), max_distance, step, tuple(directions))
+        key = (camera_a, camera_b, pose, float(min_distance), max_distance, step, tuple(directions), margin)
         with self._lock:
             entry = self._entries.get(key)
             if entry is not None:
                 self._entries.move_to_end(key)
                 return entry
             self.misses += 1
-        entry = build_rectification(camera_a, camera_b, T, min_distance, step, directions, max_distance)
+        entry = build_rectification(
+            camera_a, camera_b, T, min_distance, step, directions, max_distance, margin
+        )
         with self._lock:
             self._entries[key] = entry
             if len(self._entries) > self.max_entries:
@@ -363,7 +377,9 @@ RECTIFICATIONS = RectificationCache()
 
 def rectification(
     camera_a, camera_b, T_a_to_b, min_distance: float, step: float | None = None,
-    directions: tuple[bool, bool] = (True, True), max_distance: float | None = None,
+    directions: tuple[bool, bool] = (True, True), max_distance: float | None = None, margin: int = 2,
 ) -> Rectification:  # fmt: skip
     """:func:`build_rectification` through the module's cache (rig pairs are built once)."""
-    return RECTIFICATIONS.get(camera_a, camera_b, T_a_to_b, min_distance, step, directions, max_distance)
+    return RECTIFICATIONS.get(
+        camera_a, camera_b, T_a_to_b, min_distance, step, directions, max_distance, margin
+    )
