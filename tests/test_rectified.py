@@ -198,6 +198,10 @@ def test_filling_takes_the_background_across_an_edge_and_interpolates_between_eq
     assert filled[2].tolist() == [7, 7, 7, 7, 7, 7] and (filled[3] == I).all()
     nowhere = fill_rows(rows, np.zeros(rows.shape, bool))
     assert (nowhere == rows).all()  # only where a partner could match
+    rim = np.full((1, 40), I, np.float32)
+    rim[0, 30:] = 8.0  # a kept stretch at the rim of the partner's view, nothing to its left
+    reached = fill_rows(rim, np.ones(rim.shape, bool), reach=10)
+    assert (reached[0, 20:] == 8.0).all() and (reached[0, :20] == I).all()  # ten pixels out, no farther
     smoothed = fill(rows, everywhere, smooth=3)
     assert (smoothed[rows != I] == rows[rows != I]).all()  # measured pixels keep their measurement
 

@@ -4,8 +4,10 @@ A pixel the checks rejected is occluded (seen by one camera only, beside a neare
 untextured. Along its epipolar row (a grid row) it is filled from the nearest kept pixels on either
 side: an occluded stretch is as wide as the disparity jump of the surface that hides it and lies behind
 it, so it takes the background's (the smaller) disparity; a wider stretch is a surface without texture,
-interpolated between its ends. The filled pixels are then smoothed by a median over the window around
-them (the kept ones keep their measurement).
+interpolated between its ends. A stretch with a kept pixel on one side only (the rim of the partner's
+view, where it sees at 60-80 degrees of incidence) takes that pixel's value up to four matching windows
+from it, no farther. The filled pixels are then smoothed by a median over the window around them (the
+kept ones keep their measurement).
 """
 
 from __future__ import annotations
@@ -32,13 +34,14 @@ def matchable(
 
 
 def fill_rows(
-    disparity: np.ndarray, where: np.ndarray, margin: float = 2.0, min_jump: float = 1.0
+    disparity: np.ndarray, where: np.ndarray, margin: float = 2.0, reach: float = 20.0, min_jump: float = 1.0
 ) -> np.ndarray:
     """``disparity`` with every :data:`INVALID` pixel of ``where`` filled along its row from the nearest
     valid pixels to its left and right. A hole between a nearer and a farther surface (ends more than
     ``min_jump`` grid pixels apart) no wider than their disparity jump and ``margin`` is what the nearer
     one hides from the partner: it takes the smaller disparity (the background's). Any other hole is a
-    surface without texture: linear between its ends. Where only one side has a value, that one."""
+    surface without texture: linear between its ends. Where only one side has a value (the rim of the
+    partner's view), that one, up to ``reach`` grid pixels from it: beyond, nothing bounds the guess."""
     valid = disparity != INVALID
     todo = where & ~valid
     if not todo.any():
@@ -58,18 +61,22 @@ def fill_rows(
         jump = np.abs(from_right - from_left)
         occluded = (jump > min_jump) & (hi - lo - 1 <= jump + margin)
     value = np.where(both & ~occluded, between, np.minimum(from_left, from_right))
+    gap = np.minimum(np.where(has_left, c - lo, reach + 1), np.where(has_right, hi - c, reach + 1))
+    value = np.where(both | (gap <= reach), value, np.inf)  # one side only: no farther than ``reach``
     out = disparity.astype(np.float32, copy=True)
     known = np.isfinite(value)
     out[r[known], c[known]] = value[known]
     return out
 
 
-def fill(disparity: np.ndarray, where: np.ndarray, smooth: int = 5, margin: float = 2.0) -> np.ndarray:
+def fill(
+    disparity: np.ndarray, where: np.ndarray, smooth: int = 5, margin: float = 2.0, reach: float = 20.0
+) -> np.ndarray:
     """:func:`fill_rows` (``margin``: how much wider than its jump an occluded hole may be: the matcher's
-    half block, which a foreground surface is widened by), then the filled pixels replaced by the median
-    of the ``smooth`` x ``smooth`` window around them (3 or 5: what OpenCV's float median takes; 0: no
-    smoothing)."""
-    filled = fill_rows(disparity, where, margin)
+    half block, which a foreground surface is widened by; ``reach``: how far a one-sided stretch is
+    filled), then the filled pixels replaced by the median of the ``smooth`` x ``smooth`` window around
+    them (3 or 5: what OpenCV's float median takes; 0: no smoothing)."""
+    filled = fill_rows(disparity, where, margin, reach)
     if smooth:
         known = filled != INVALID
         median = cv2.medianBlur(np.where(known, filled, 0).astype(np.float32), smooth)

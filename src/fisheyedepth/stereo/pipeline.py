@@ -131,7 +131,8 @@ def match_pair(
             out.append(None)
             continue
         where = matchable(own, partner, d, partner_left=left, first=first)
-        filled = fill(disparity.checked, where, settings.smooth, settings.matcher.block // 2)
+        block = settings.matcher.block
+        filled = fill(disparity.checked, where, settings.smooth, block // 2, 4 * block)
         start = timer.add("fill", start)
         maps = to_pixels(disparity.checked, filled, rect, side)
         far = settings.max_distance
