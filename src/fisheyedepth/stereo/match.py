@@ -24,6 +24,7 @@ Disparities are SGBM's sixteenths of a grid pixel: sub-pixel from its parabola t
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -112,6 +113,12 @@ def normalise(image: np.ndarray, seen: np.ndarray, window: int) -> np.ndarray:
     return np.where(seen, np.clip(128 + 32 * z, 1, 255), 0).astype(np.uint8)
 
 
+@functools.lru_cache(maxsize=8)
+def _rows(rows: int, cols: int) -> np.ndarray:
+    """``[rows, cols]`` float32: each pixel's row, for ``cv2.remap`` along the rows."""
+    return np.ascontiguousarray(np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], (rows, cols)))
+
+
 def despeckle(disparity: np.ndarray, pixels: int, spread: float) -> np.ndarray:
     """``disparity`` without its regions of fewer than ``pixels`` pixels whose neighbours differ by at
     most ``spread`` (OpenCV's ``filterSpeckles``, on sixteenths of a pixel)."""
@@ -142,9 +149,8 @@ def match(
     ok = left_seen & (raw >= lowest) & (raw <= highest)
     # the partner's pixel, looked up at column - disparity: outside its view, no match
     rows, cols = raw.shape
-    at = (np.arange(cols, dtype=np.float32)[None] - np.where(ok, raw, 0)).astype(np.float32)
-    row = np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], raw.shape)
-    ok &= cv2.remap(right_seen.astype(np.uint8), at, np.ascontiguousarray(row), cv2.INTER_NEAREST,
+    at = np.arange(cols, dtype=np.float32)[None] - np.where(ok, raw, np.float32(0))
+    ok &= cv2.remap(right_seen.astype(np.uint8), at, _rows(rows, cols), cv2.INTER_NEAREST,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0  # fmt: skip
     matched = np.where(ok, raw, INVALID).astype(np.float32)
     return Disparity(matched, despeckle(matched, settings.speckle_pixels(step), settings.speckle_range))
