@@ -144,8 +144,9 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     assert cv2.imread(str(out / "seq" / "panels" / "left" / f"{t0}.png")).shape == (192, 4 * 192, 3)
 
     assert main(args) == 2  # the outputs exist: replaced only with --overwrite
+    first = out / "seq" / "distance" / "left" / f"{t0}.npy"  # the first file the run would write
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        f"error: {out / 'summary.json'} exists; pass --overwrite to replace the outputs"
+        f"error: {first} exists; pass --overwrite to replace the outputs"
     )
     assert main([*args[:3], "--sources", "rig,gps", "--quiet"]) == 2
     assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
@@ -157,6 +158,54 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     assert "--hypotheses: an option of --matcher sweep, not sgbm" in capsys.readouterr().err
     assert main([*args[:3], "--matcher", "sweep", "--resolution", "0.5", "--quiet"]) == 2
     assert "--resolution: an option of --matcher sgbm, not sweep" in capsys.readouterr().err
+
+
+def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path, capsys, monkeypatch):
+    """--out may not be the recording, lie inside it or hold it; a file of the run's outputs that exists
+    already is named and kept; a second run into one --out is refused while the first holds it; a run
+    that fails halfway leaves nothing in --out."""
+    from fisheyedepth.stereo import recording
+
+    rec = tmp_path / "rec"
+    rig = write_room_rig(rec, size=96, stamps=(1_000_000_000, 1_100_000_000))
+    t0 = rig["stamps"][0]
+    common = ["--min-distance", "0.3", "--max-distance", "20", "--quiet"]
+    for out, what in ((rec, "is the recording"), (rec / "seq" / "out", "lies inside the recording"),
+                      (tmp_path, "holds the recording")):  # fmt: skip
+        assert recording.main([str(rec), "--out", str(out), *common]) == 2
+        assert f"error: --out: {out} {what} {rec}" in capsys.readouterr().err
+    assert sorted(p.name for p in (rec / "seq").iterdir()) == ["distance", "images", "poses.txt"]  # untouched
+
+    out = tmp_path / "out"
+    mine = out / "seq" / "distance" / "left" / f"{t0}.npy"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("mine")
+    assert recording.main([str(rec), "--out", str(out), *common]) == 2
+    assert f"error: {mine} exists; pass --overwrite" in capsys.readouterr().err
+    assert mine.read_text() == "mine" and sorted(out.rglob("*.*")) == [mine]  # nothing else written
+
+    with recording.sole_writer(out):  # another run holds --out
+        assert recording.main([str(rec), "--out", str(out), "--overwrite", *common]) == 2
+        assert (
+            f"error: --out: {out}: another fisheyedepth-multiview writes into it" in capsys.readouterr().err
+        )
+
+    calls = []
+
+    def fails_on_the_third(maps):
+        calls.append(1)
+        if len(calls) == 3:
+            raise ValueError("maps: a failure halfway")
+        return recording.fuse(maps)
+
+    monkeypatch.setattr(recording, "fuse", fails_on_the_third)
+    fresh = tmp_path / "fresh"
+    assert recording.main([str(rec), "--out", str(fresh), *common]) == 2
+    assert "maps: a failure halfway" in capsys.readouterr().err
+    assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))  # no output, no staging, no lock left
+    monkeypatch.undo()
+    assert recording.main([str(rec), "--out", str(out), "--overwrite", *common]) == 0
+    assert np.load(mine).shape == (96, 96) and (out / "summary.json").is_file()
 
 
 def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_path):

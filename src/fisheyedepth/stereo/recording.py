@@ -20,16 +20,21 @@ changed, and the epipolar error before and after, in the summary); and ``OUT/sum
 its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
 <timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels; the
 seconds of each stage; the images with no partner and the pairs left out (no overlap within the range, too
-short a baseline), by name. Nothing existing is replaced without ``--overwrite``.
+short a baseline), by name. ``OUT`` is checked before any work (a folder of its own, writable, none of
+these files there unless ``--overwrite``, no other run writing into it); the files are written beside it
+and moved into place when the run completes.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import fcntl
 import io
 import json
 import logging
 import math
+import os
 import sys
 import time
 from collections import defaultdict
@@ -44,7 +49,7 @@ from tqdm import tqdm
 
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
-from ..utils import atomic_write_bytes, atomic_write_text
+from ..utils import atomic_write_bytes, atomic_write_text, check_writable, move_into_place, staged_folder
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
 from .pipeline import StereoSettings, Timer, match_pair, nothing, rectify_pair, too_short
@@ -251,6 +256,48 @@ def _npy(path: Path, array: np.ndarray) -> None:
     atomic_write_bytes(path, buffer.getvalue())
 
 
+OUTPUTS = ("distance", "dense", "confidence")  # the .npy maps of an image, beside its panel
+
+
+def outputs(pairing: Pairing) -> list[Path]:
+    """The files one image gets, relative to ``--out``."""
+    stem = f"{pairing.camera}/{pairing.frame.key}"
+    folder = Path(pairing.sequence)
+    return [*(folder / what / f"{stem}.npy" for what in OUTPUTS), folder / "panels" / f"{stem}.png"]
+
+
+def check_out(root: Path, out: Path) -> None:
+    """``--out`` is a folder of its own: neither the recording, nor inside it (its ground truth lies at the
+    outputs' own paths), nor around it."""
+    top, where = (os.path.normpath(os.path.abspath(p)) for p in (root, out))
+    if os.path.commonpath([top, where]) in (top, where):
+        what = "is the recording" if top == where else "lies inside the recording" if where.startswith(top) \
+            else "holds the recording"  # fmt: skip
+        raise ValueError(f"--out: {out} {what} {root}; write the outputs to a folder of their own")
+
+
+@contextlib.contextmanager
+def sole_writer(out: Path):
+    """Hold ``.<out>.multiview.lock`` beside ``out`` while the block runs; a second run into the same
+    ``out`` is refused by name, not interleaved."""
+    lock = out.parent / f".{out.name}.multiview.lock"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FileExistsError(
+                f"--out: {out}: another fisheyedepth-multiview writes into it ({lock})"
+            ) from None
+        try:
+            yield
+        finally:
+            lock.unlink(missing_ok=True)
+    finally:
+        os.close(fd)
+
+
 def run(
     root: str | Path,
     out: str | Path,
@@ -264,16 +311,39 @@ def run(
     """The command's work: every pairing of ``root`` matched (``matcher``: :class:`.pipeline.StereoSettings`
     for the rectified pipeline, a :class:`.sweep.SweepStereo` for the sweep), its outputs and
     ``summary.json`` in ``out``; with ``refine`` (:data:`.refine.REFINE`) the rig's extrinsics are refined
-    from its images first (:func:`.refine.refine_rig`), matched with, and written to ``out/rig.yaml``; the
-    recording is never modified."""
+    from its images first (:func:`.refine.refine_rig`), matched with, and written to ``out/rig.yaml``. The
+    recording is never modified. Before any work: ``out`` is a folder of its own that can be written, no
+    file the run would write exists there (unless ``overwrite``), and no other run writes into it; the
+    outputs are written into a staging folder beside ``out`` and put in place when the run completes
+    (``summary.json`` last), so an interrupted or refused run leaves nothing in ``out``."""
     layout, out = RigLayout(root), Path(out)
     check_sources(sources)
     if refine is not None and refine not in REFINE:
         raise ValueError(f"--refine: {refine!r}; choose from {', '.join(REFINE)}")
-    summary_path = out / "summary.json"
-    for path in (summary_path, out / "rig.yaml") if refine else (summary_path,):
-        if path.exists() and not overwrite:
-            raise FileExistsError(f"{path} exists; pass --overwrite to replace the outputs")
+    check_out(layout.root, out)
+    check_writable(out, "--out")
+    min_baseline = (
+        matcher.min_baseline if isinstance(matcher, StereoSettings) else StereoSettings.min_baseline
+    )
+    planned = pairings(layout, sources, min_baseline=min_baseline)
+    planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
+    paired = [p for p in planned if p.partners][:max_images]
+    unpaired = [p.name for p in planned if not p.partners]
+    parts = [path for pairing in paired for path in outputs(pairing)]
+    parts += [Path("rig.yaml"), Path("summary.json")] if refine else [Path("summary.json")]
+    taken = next((out / part for part in parts if os.path.lexists(out / part)), None)
+    if taken is not None and not overwrite:
+        raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
+    with sole_writer(out), staged_folder(out, "multiview") as staging:
+        summary = _work(layout, staging, matcher, sources, paired, unpaired, refine, progress)
+        summary["root"] = str(root)
+        atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
+        move_into_place(staging, out, parts, overwrite)
+    return summary
+
+
+def _work(layout, out, matcher, sources, paired, unpaired, refine, progress) -> dict[str, Any]:
+    """The matching itself: every output of ``paired`` written into ``out``; the summary, returned."""
     begun = time.perf_counter()
     refinement = None
     if refine:
@@ -286,13 +356,6 @@ def run(
             log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
         atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
     refine_seconds = time.perf_counter() - begun
-    min_baseline = (
-        matcher.min_baseline if isinstance(matcher, StereoSettings) else StereoSettings.min_baseline
-    )
-    planned = pairings(layout, sources, min_baseline=min_baseline)
-    planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
-    paired = [p for p in planned if p.partners][:max_images]
-    unpaired = [p.name for p in planned if not p.partners]
     if unpaired:
         log.warning("%d images have no partner and are left out: %s", len(unpaired), ", ".join(unpaired[:5]))
     timer = Timer()
@@ -314,17 +377,12 @@ def run(
             fused = _sweep(layout, pairing, matcher, image)
         if fused is None:  # every partner left out: nothing to say about this image
             fused = nothing(layout.cameras[pairing.camera].camera)
-        folder = out / pairing.sequence
-        stem = f"{pairing.camera}/{pairing.frame.key}"
-        for what, array in (
-            ("distance", fused.distance),
-            ("dense", fused.dense),
-            ("confidence", fused.confidence),
-        ):
-            _npy(folder / what / f"{stem}.npy", array)
+        *maps, picture = outputs(pairing)
+        for path, array in zip(maps, (fused.distance, fused.dense, fused.confidence), strict=True):
+            _npy(out / path, array)
         truth = _truth(layout, pairing)
         tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
-        atomic_write_bytes(folder / "panels" / f"{stem}.png", cv2.imencode(".png", tiles)[1].tobytes())
+        atomic_write_bytes(out / picture, cv2.imencode(".png", tiles)[1].tobytes())
         record: dict[str, Any] = {
             "image": pairing.name,
             "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
@@ -343,8 +401,8 @@ def run(
                     "resolution", "min_baseline", "smooth")}, **vars(matcher.matcher)}  # fmt: skip
     else:
         settings = {"matcher": "sweep", **{k: getattr(matcher, k) for k in matcher.__dataclass_fields__}}
-    summary = {
-        "root": str(root),
+    return {
+        "root": None,
         "sources": list(sources),
         "settings": settings,
         "refinement": refinement,
@@ -358,8 +416,6 @@ def run(
             "per_image": round((seconds - refine_seconds) / max(len(images), 1), 4),
         },  # fmt: skip
     }
-    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
-    return summary
 
 
 def main(argv: list[str] | None = None) -> int:
