@@ -26,7 +26,6 @@ import sys
 from pathlib import Path
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from fisheyedepth.cameras.rays import RayCache
@@ -67,15 +66,11 @@ class Result(NamedTuple):
 
 def rectified(reference: View, sources: list[View], settings: StereoSettings) -> Result:
     """The rectified pipeline on the reference against each source, fused."""
-
-    def grey(view: View) -> np.ndarray:
-        return (view.image[0].mean(0).numpy() * 255).astype(np.float32)
-
     maps = []
     for source in sources:
         T = source.T_ref_to_view.double().numpy()
         rect = rectify_pair(reference.camera, source.camera, T, settings, (True, False))
-        maps.append(match_pair(grey(reference), grey(source), rect, settings, (True, False))[0])
+        maps.append(match_pair(reference.image, source.image, rect, settings, (True, False))[0])
     fused = fuse(maps)
     return Result(torch.from_numpy(fused.distance)[None], torch.from_numpy(fused.dense)[None])
 

@@ -8,7 +8,6 @@ inverse-distance space). ``ExportableNet`` freezes one input size and camera int
 
 from __future__ import annotations
 
-import io
 import logging
 import os
 from pathlib import Path
@@ -20,7 +19,7 @@ from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
 from .runtimes import TorchRuntime, as_runtime
-from .utils import atomic_write_bytes
+from .utils import atomic_write_bytes, atomic_write_npy
 from .viz import colourise
 
 PNG_SCALES = {"mm": 1000.0, "256": 256.0}  # uint16 PNG value per metre
@@ -187,21 +186,15 @@ class PredictionWriter:
         self.check_free([name])
         self.out.mkdir(parents=True, exist_ok=True)
         d = distance.detach().float().cpu().numpy()
-        _save_npy(self.out / f"{name}_distance.npy", d)
+        atomic_write_npy(self.out / f"{name}_distance.npy", d)
         _write_png(self.out / f"{name}_distance.png", distance_png(d, self.png_scale))
         vis = colour_bar(colourise(d, self.vmin, self.vmax), self.vmin, self.vmax)
         _write_png(self.out / f"{name}_colour.png", vis[..., ::-1])
         if self.z_depth:
             rays, _ = self.rays.get(camera, dtype=torch.float64)
-            _save_npy(self.out / f"{name}_z.npy", (d * rays[..., 2].numpy()).astype(np.float32))
+            atomic_write_npy(self.out / f"{name}_z.npy", (d * rays[..., 2].numpy()).astype(np.float32))
         if self.point_cloud:
             write_ply(self.out / f"{name}.ply", *point_cloud(distance.cpu(), camera, rgb, self.rays))
-
-
-def _save_npy(path: Path, array: np.ndarray) -> None:
-    buffer = io.BytesIO()
-    np.save(buffer, np.ascontiguousarray(array, dtype=np.float32))
-    atomic_write_bytes(path, buffer.getvalue())
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:

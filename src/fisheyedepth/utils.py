@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import hashlib
+import io
 import os
 import shutil
 import tempfile
@@ -12,6 +13,7 @@ import unicodedata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 
@@ -136,6 +138,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def atomic_write_npy(path: str | os.PathLike, array) -> Path:
+    """``array`` as a float32 ``.npy`` file, written atomically (:func:`atomic_write_bytes`)."""
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array, dtype=np.float32))
+    return atomic_write_bytes(path, buffer.getvalue())
 
 
 @contextlib.contextmanager

@@ -7,7 +7,7 @@ from .fuse import Fused, fuse
 from .mapback import PixelMaps
 from .match import MatcherSettings
 from .pipeline import RigStereo, StereoSettings, match_pair, rectify_pair
-from .rectify import Rectification, build_rectification, rectification, remap
+from .rectify import Rectification, build_rectification, remap
 from .sweep import COSTS, StereoResult, SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
 
 __all__ = [
@@ -27,7 +27,6 @@ __all__ = [
     "fuse",
     "hamming",
     "match_pair",
-    "rectification",
     "rectify_pair",
     "remap",
     "winner",

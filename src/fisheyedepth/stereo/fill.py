@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from .match import INVALID
+from .rectify import any_within
 
 
 def matchable(
@@ -24,13 +25,10 @@ def matchable(
     """Grid pixels this camera sees whose partner sees some pixel of the same row within the disparity
     range (``disparities`` from ``first`` on): to the left of it (``partner_left``, the left image's
     partner) or to the right."""
-    counts = np.pad(np.cumsum(partner_seen, axis=1, dtype=np.int32), ((0, 0), (1, 0)))
-    cols = seen.shape[1]
-    j = np.arange(cols)
     last = first + disparities - 1
-    lo, hi = (j - last, j - first) if partner_left else (j + first, j + last)
-    lo, hi = np.clip(lo, 0, cols), np.clip(hi + 1, 0, cols)
-    return seen & (counts[:, hi] - counts[:, lo] > 0)
+    return seen & (
+        any_within(partner_seen, last, -first) if partner_left else any_within(partner_seen, -first, last)
+    )
 
 
 def fill_rows(

@@ -31,8 +31,8 @@ from .rectify import (
     RECTIFICATIONS,
     Rectification,
     RectificationCache,
-    angular_resolution,
     nearest_parallax,
+    pair_step,
     remap,
 )
 
@@ -86,8 +86,11 @@ class Timer:
         return {stage: round(self.seconds.get(stage, 0.0), 4) for stage in STAGES}
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
-    """An ``H x W`` or ``H x W x C`` image (uint8, uint16 or float) as float32 grey, its own scale."""
+def grey(image: np.ndarray | torch.Tensor) -> np.ndarray:
+    """An ``H x W`` or ``H x W x C`` array (uint8, uint16 or float), or a ``[1, C, H, W]`` tensor, as
+    ``H x W`` float32 grey on its own scale (the matcher normalises contrast)."""
+    if isinstance(image, torch.Tensor):
+        return image.detach().cpu().float().reshape(-1, *image.shape[-2:]).mean(0).numpy()
     image = np.asarray(image)
     if image.ndim == 3:
         image = image.astype(np.float32).mean(2)
@@ -95,8 +98,8 @@ def _grey(image: np.ndarray) -> np.ndarray:
 
 
 def match_pair(
-    image_a: np.ndarray,
-    image_b: np.ndarray,
+    image_a: np.ndarray | torch.Tensor,
+    image_b: np.ndarray | torch.Tensor,
     rect: Rectification,
     settings: StereoSettings,
     directions: tuple[bool, bool] = (True, True),
@@ -104,13 +107,14 @@ def match_pair(
     masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
 ) -> tuple[PixelMaps | None, PixelMaps | None]:
     """The pair's distance maps at each camera's own pixels (:class:`~.mapback.PixelMaps`), for camera a
-    and camera b as ``directions`` asks (None for the other). ``masks``: each camera's usable pixels
+    and camera b as ``directions`` asks (None for the other). Images: whatever :func:`grey` takes.
+    ``masks``: each camera's usable pixels
     (``H x W``, nonzero: the scene; zero: its own body), None where all are."""
     if any(want and not can for want, can in zip(directions, rect.directions, strict=True)):
         raise ValueError(f"directions: {directions} asked of a rectification built for {rect.directions}")
     timer = timer or Timer()
     start = time.perf_counter()
-    a, b = remap(_grey(image_a), rect.a), remap(_grey(image_b), rect.b)
+    a, b = remap(grey(image_a), rect.a), remap(grey(image_b), rect.b)
     seen = []
     for side, mask in zip((rect.a, rect.b), masks, strict=True):
         usable = side.valid
@@ -164,17 +168,28 @@ def rectify_pair(
                      s.matcher.end_margin)  # fmt: skip
 
 
-def too_short(camera_a: CameraModel, camera_b: CameraModel, T_a_to_b: np.ndarray, settings: StereoSettings):
-    """Why the pair's baseline is too short to match (its parallax at the nearest distance under
-    :data:`MIN_PARALLAX` grid pixels), or None."""
+def partner_pair(
+    camera_a: CameraModel,
+    camera_b: CameraModel,
+    T_a_to_b: np.ndarray,
+    settings: StereoSettings,
+    directions: tuple[bool, bool] = (True, True),
+    cache: RectificationCache = RECTIFICATIONS,
+) -> Rectification | str:
+    """:func:`rectify_pair` for a pair the rig or the recording offers, or why it is left out: its
+    baseline shows under :data:`MIN_PARALLAX` grid pixels of parallax at the nearest distance, or its
+    views do not overlap within the range."""
     baseline = float(np.linalg.norm(np.asarray(T_a_to_b)[:3, 3]))
-    step = settings.resolution or max(angular_resolution(camera_a), angular_resolution(camera_b))
+    step = pair_step(camera_a, camera_b, settings.resolution)
     if baseline > 0 and nearest_parallax(baseline, settings.min_distance, step) < MIN_PARALLAX:
         return (
             f"a baseline of {baseline:.3g} m shows under {MIN_PARALLAX} pixels of parallax at the nearest "
             f"distance ({settings.min_distance:g} m)"
         )
-    return None
+    try:
+        return rectify_pair(camera_a, camera_b, T_a_to_b, settings, directions, cache)
+    except ValueError as err:
+        return str(err)
 
 
 def _relative(
@@ -234,15 +249,13 @@ class RigStereo:
         s = self.settings
         for i, a in enumerate(names):
             for b in names[i + 1 :]:
-                T = _relative(self.cam_to_body[a], self.cam_to_body[b])
-                why = too_short(self.cameras[a], self.cameras[b], T, s)
-                if why is not None:
-                    self.unpaired[a, b] = why
-                    continue
-                try:
-                    self.pairs[a, b] = rectify_pair(self.cameras[a], self.cameras[b], T, s)
-                except ValueError as err:  # no overlap, or no baseline
-                    self.unpaired[a, b] = str(err)
+                found = partner_pair(
+                    self.cameras[a], self.cameras[b], _relative(*(self.cam_to_body[n] for n in (a, b))), s
+                )
+                if isinstance(found, Rectification):
+                    self.pairs[a, b] = found
+                else:
+                    self.unpaired[a, b] = found
 
     def _check(self, what: str, arrays: Mapping[str, np.ndarray], every: bool = True) -> None:
         """Each image (or mask) at its camera's calibrated size; with ``every``, one for every camera."""
@@ -283,11 +296,10 @@ class RigStereo:
             motion = np.asarray(motion, dtype=np.float64)
             if motion.shape != (4, 4) or not np.isfinite(motion).all():
                 raise ValueError(f"motion: a finite 4x4 transform expected, got shape {motion.shape}")
-            for name, camera in self.cameras.items():
+            for name in self.cameras:
                 E = self.cam_to_body[name]
                 T_now_to_then = _relative(E, E, motion)
-                moved = np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline
-                if name in previous and moved and too_short(camera, camera, T_now_to_then, s) is None:
+                if name in previous and np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline:
                     label = (name, f"{name}@previous")
                     jobs.append((label, None, images[name], previous[name], T_now_to_then, (name, name)))
 
@@ -297,9 +309,8 @@ class RigStereo:
             if not isinstance(rect, Rectification):  # a motion pair: built here, once per motion
                 start = time.perf_counter()
                 camera = self.cameras[cameras[0]]
-                try:
-                    rect = rectify_pair(camera, camera, rect, s, (True, False), self._motion_cache)
-                except ValueError:  # its two views do not overlap within the range: no partner
+                rect = partner_pair(camera, camera, rect, s, (True, False), self._motion_cache)
+                if not isinstance(rect, Rectification):  # left out: no partner
                     return first, second, (None, None), timer
                 timer.add("rectify", start)
             masks = tuple(self.masks.get(name) for name in cameras)

@@ -68,8 +68,7 @@ def distance_maps(
                           [View(pair.partner_image, pair.partner_camera, pair.T.float())])  # fmt: skip
         return result.distance[0].numpy(), result.dense[0].numpy()
     rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings, (True, False))
-    grey = [(x[0].mean(0).numpy() * 255).astype(np.float32) for x in (pair.image, pair.partner_image)]
-    maps, _ = match_pair(grey[0], grey[1], rect, settings, (True, False))
+    maps, _ = match_pair(pair.image, pair.partner_image, rect, settings, (True, False))
     return maps.distance, maps.dense
 
 

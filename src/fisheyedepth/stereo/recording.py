@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import fcntl
-import io
 import json
 import logging
 import math
@@ -49,11 +48,18 @@ from tqdm import tqdm
 
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
-from ..utils import atomic_write_bytes, atomic_write_text, check_writable, move_into_place, staged_folder
+from ..utils import (
+    atomic_write_bytes,
+    atomic_write_npy,
+    atomic_write_text,
+    check_writable,
+    move_into_place,
+    staged_folder,
+)
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
-from .pipeline import StereoSettings, Timer, match_pair, nothing, rectify_pair, too_short
-from .rectify import RectificationCache
+from .pipeline import StereoSettings, Timer, match_pair, nothing, partner_pair
+from .rectify import Rectification, RectificationCache
 from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
 from .scores import panel, score
 from .sweep import SweepStereo, View
@@ -211,14 +217,9 @@ class PairStore:
         start = time.perf_counter()
         T = _T(layout, a[0], a[1], b[0], b[1])
         cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
-        why = too_short(*cameras, T, s)
-        if why is None:
-            try:
-                rect = rectify_pair(*cameras, T, s, directions, self.rectifications)
-            except ValueError as err:  # no overlap within the range
-                why = str(err)
-        if why is not None:
-            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = why
+        rect = partner_pair(*cameras, T, s, directions, self.rectifications)
+        if not isinstance(rect, Rectification):  # left out, and why
+            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = rect
             return {side: None for side, want in zip(sides, directions, strict=True) if want}
         self.timer.add("rectify", start)
         images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
@@ -248,12 +249,6 @@ def _sweep(layout: RigLayout, pairing: Pairing, sweep: SweepStereo, image: np.nd
     )
     return Fused(distance, dense, np.where(distance > 0, confidence, 0).astype(np.float32),
                  (distance > 0).astype(np.uint8))  # fmt: skip
-
-
-def _npy(path: Path, array: np.ndarray) -> None:
-    buffer = io.BytesIO()
-    np.save(buffer, np.asarray(array, dtype=np.float32))
-    atomic_write_bytes(path, buffer.getvalue())
 
 
 OUTPUTS = ("distance", "dense", "confidence")  # the .npy maps of an image, beside its panel
@@ -379,7 +374,7 @@ def _work(layout, out, matcher, sources, paired, unpaired, refine, progress) -> 
             fused = nothing(layout.cameras[pairing.camera].camera)
         *maps, picture = outputs(pairing)
         for path, array in zip(maps, (fused.distance, fused.dense, fused.confidence), strict=True):
-            _npy(out / path, array)
+            atomic_write_npy(out / path, array)
         truth = _truth(layout, pairing)
         tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
         atomic_write_bytes(out / picture, cv2.imencode(".png", tiles)[1].tobytes())

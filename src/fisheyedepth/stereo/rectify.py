@@ -129,6 +129,11 @@ def angular_resolution(camera: CameraModel) -> float:
     return 1.0 / min(camera.paraxial_focal())
 
 
+def pair_step(camera_a: CameraModel, camera_b: CameraModel, step: float | None = None) -> float:
+    """Radians per grid pixel of a pair: ``step``, or the coarser camera's :func:`angular_resolution`."""
+    return max(angular_resolution(camera_a), angular_resolution(camera_b)) if step is None else float(step)
+
+
 def nearest_parallax(baseline: float, min_distance: float, step: float) -> int:
     """Grid pixels of the largest parallax a point ``min_distance`` or farther from a camera can show,
     ``asin(L / min_distance)``, rounded up."""
@@ -217,13 +222,14 @@ def _occupancy(grid: SphericalGrid, camera: CameraModel, R: Tensor) -> Tensor:
     return F.max_pool2d(seen[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
 
 
-def _any_within(seen: Tensor, before: int, after: int) -> Tensor:
-    """``[rows, cols]``: some cell of ``seen`` in columns ``[j - before, j + after]`` of the same row."""
-    counts = torch.nn.functional.pad(seen.long().cumsum(1), (1, 0))
+def any_within(seen: np.ndarray, before: int, after: int) -> np.ndarray:
+    """``[rows, cols]`` bool: some pixel of ``seen`` in columns ``[j - before, j + after]`` of row ``j``'s
+    row (``after`` may be negative: a window wholly to the left)."""
+    counts = np.pad(np.cumsum(seen, axis=1, dtype=np.int32), ((0, 0), (1, 0)))
     cols = seen.shape[1]
-    j = torch.arange(cols)
-    hi, lo = (j + after + 1).clamp(max=cols), (j - before).clamp(min=0)
-    return (counts[:, hi] - counts[:, lo]) > 0
+    j = np.arange(cols)
+    lo, hi = np.clip(j - before, 0, cols), np.clip(j + after + 1, 0, cols)
+    return counts[:, hi] - counts[:, lo] > 0
 
 
 def _extent(
@@ -245,13 +251,14 @@ def _extent(
     seen_a = _occupancy(sphere, camera_a, torch.eye(3, dtype=torch.float64))
     seen_b = _occupancy(sphere, camera_b, torch.from_numpy(R_ab))
     reach = math.ceil((nearest + 1 + margin) / cell)
-    matched_a = seen_a & _any_within(seen_b, reach, 0) & directions[0]
-    matched_b = seen_b & _any_within(seen_a, 0, reach) & directions[1]
+    seen_a, seen_b = seen_a.numpy(), seen_b.numpy()
+    matched_a = seen_a & any_within(seen_b, reach, 0) & directions[0]
+    matched_b = seen_b & any_within(seen_a, 0, reach) & directions[1]
     both = matched_a | matched_b
     if not bool(both.any()):
         raise ValueError("cameras: no ray of one is seen by the other within the disparity range; no overlap")
-    rows_used = both.any(1).nonzero()[:, 0]
-    cols_a, cols_b = matched_a.any(0).nonzero()[:, 0].numpy(), matched_b.any(0).nonzero()[:, 0].numpy()
+    rows_used = np.flatnonzero(both.any(1))
+    cols_a, cols_b = np.flatnonzero(matched_a.any(0)), np.flatnonzero(matched_b.any(0))
     first = 0
     if max_distance is not None:
         theta_a, theta_b = (math.pi - coarse * np.arange(c.min() - 1, c.max() + 2) if len(c) else c
@@ -302,7 +309,7 @@ def build_rectification(
         raise ValueError(
             "T_a_to_b: the two camera centres coincide; a pair without a baseline has no parallax"
         )
-    step = max(angular_resolution(camera_a), angular_resolution(camera_b)) if step is None else float(step)
+    step = pair_step(camera_a, camera_b, step)
     if not step > 0:
         raise ValueError(f"step: {step} radians per pixel; must be > 0")
     e = centre_b / baseline
@@ -373,13 +380,3 @@ class RectificationCache:
 
 
 RECTIFICATIONS = RectificationCache()
-
-
-def rectification(
-    camera_a, camera_b, T_a_to_b, min_distance: float, step: float | None = None,
-    directions: tuple[bool, bool] = (True, True), max_distance: float | None = None, margin: int = 2,
-) -> Rectification:  # fmt: skip
-    """:func:`build_rectification` through the module's cache (rig pairs are built once)."""
-    return RECTIFICATIONS.get(
-        camera_a, camera_b, T_a_to_b, min_distance, step, directions, max_distance, margin
-    )
