@@ -598,6 +598,10 @@ def test_bad_rig_description_names_file_and_key(kitti_data, tmp_path):
         RigLayout(tmp_path / "rig")
     data["cameras"][1]["cam_to_body"] = {"translation": [1, 2, 3], "quaternion_xyzw": [0, 0, 0, 2]}
     rig_yaml.write_text(yaml.safe_dump(data))
+    with pytest.raises(ValueError, match=r"cameras\[1\].cam_to_body.quaternion_xyzw'.*norm 2; .*unit"):
+        RigLayout(tmp_path / "rig")  # a norm of 2 is a column gone wrong, never normalised silently
+    data["cameras"][1]["cam_to_body"] = {"translation": [1, 2, 3], "quaternion_xyzw": [0, 0, 0, 1.0005]}
+    rig_yaml.write_text(yaml.safe_dump(data))
     name = data["cameras"][1]["name"]
     assert np.allclose(RigLayout(tmp_path / "rig").cameras[name].cam_to_body[:3, 3], (1, 2, 3))
 

@@ -95,12 +95,22 @@ def missing(path: Path) -> FileNotFoundError:
     return FileNotFoundError(f"{path}: image not found")
 
 
-def read_image(path: str | os.PathLike, max_pixels: int | None = None) -> Image:
+def data_bits(raw: np.ndarray) -> int:
+    """The bits of data in a 16-bit image, by its range: the highest set bit of its largest value (at
+    least 8). A 12-bit camera's PNG holds 0-4095 in 16 bits; read as 16 bits it would be near-black
+    (4095 / 65535 = 6 %, 0-15 of 255), and nothing could be matched or learnt on it."""
+    return max(8, int(raw.max()).bit_length())
+
+
+def read_image(path: str | os.PathLike, max_pixels: int | None = None, bit_depth: int | None = None) -> Image:
     """Decode ``path`` as 8-bit BGR. Raises :class:`ImageError` naming the file when it is empty,
     truncated, not an image or larger than ``max_pixels`` (default: :func:`max_image_pixels`; checked
     on the header, before decoding), and ``FileNotFoundError`` when it is missing or a broken symbolic
-    link. 16-bit images are scaled to 8 bits; an alpha channel is dropped; a grayscale image is
-    replicated to three channels and reported through ``Image.channels``."""
+    link. 16-bit images are scaled to 8 bits from ``bit_depth`` bits of data (default: by the image's
+    range, :func:`data_bits`); an alpha channel is dropped; a grayscale image is replicated to three
+    channels and reported through ``Image.channels``."""
+    if bit_depth is not None and not 8 <= int(bit_depth) <= 16:
+        raise ValueError(f"bit_depth: {bit_depth}; expected 8 to 16 bits of data in a 16-bit image")
     path = Path(path)
     if not path.is_file():
         raise missing(path)
@@ -121,7 +131,8 @@ def read_image(path: str | os.PathLike, max_pixels: int | None = None) -> Image:
     if raw is None:
         raise ImageError(f"{path}: not a readable image (corrupt or not an image)")
     if raw.dtype == np.uint16:
-        raw = (raw.astype(np.uint32) * 255 // 65535).astype(np.uint8)
+        top = 2 ** (bit_depth or data_bits(raw)) - 1
+        raw = (np.minimum(raw, top).astype(np.uint32) * 255 // top).astype(np.uint8)
     elif raw.dtype != np.uint8:
         raise ImageError(f"{path}: unsupported pixel type {raw.dtype} (expected 8 or 16 bits)")
     channels = 1 if raw.ndim == 2 else raw.shape[2]

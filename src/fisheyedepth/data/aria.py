@@ -35,7 +35,7 @@ from tqdm import tqdm
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
 from ..utils import inside, move_into_place, path_name, staged_folder
-from .layouts import RigLayout, _transform
+from .layouts import RigLayout, _transform, unit_quaternion
 
 CALIBRATION = "calib_slam_fisheye624.json"
 POSES = "vio_high_frequency_T_odometry_device.csv"
@@ -59,8 +59,9 @@ def read_aria_poses(path: str | os.PathLike) -> list[tuple[int, list[float]]]:
                 values = [float(row[c]) for c in POSE_COLUMNS[1:]]
             except (TypeError, ValueError):
                 raise ValueError(f"{path}:{line}: expected an integer timestamp and 7 numbers") from None
-            if not all(np.isfinite(values)) or not np.linalg.norm(values[3:]) > 0:
-                raise ValueError(f"{path}:{line}: a non-finite value or a zero quaternion")
+            if not all(np.isfinite(values)):
+                raise ValueError(f"{path}:{line}: a non-finite value")
+            unit_quaternion(values[3:], f"{path}:{line}")
             if stamp in lines:
                 raise ValueError(
                     f"{path}:{line}: timestamp {stamp // 1000} us already has a pose on line {lines[stamp]}"
@@ -182,6 +183,13 @@ def aria_to_rig(
             raise ValueError(
                 f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
             ) from None
+        if not any(kept.values()):  # a rig of images without poses: nothing to train or match on
+            first = min(min(files) for files in images.values())
+            raise ValueError(
+                f"{src / POSES}: no image lies within the poses' time range (poses {poses[0][0]}-"
+                f"{poses[-1][0]} ns, the first image at {first} ns): is tracking_timestamp_us in "
+                "microseconds?"
+            )
         move_into_place(staging, out, [*targets[1:], targets[0]], overwrite)  # file by file, rig.yaml last
     return {
         "cameras": names,

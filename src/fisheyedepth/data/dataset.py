@@ -110,6 +110,9 @@ def binary_mask(
     return torch.from_numpy((mask > 127).astype(np.float32))[None]
 
 
+MAX_TRUE_DISTANCE = 1e4  # metres: ten kilometres, beyond any LiDAR's or depth sensor's range
+
+
 def read_distance(path: Path, native) -> np.ndarray:
     """A ground-truth distance map as float32 metres: an ``H x W`` float ``.npy`` at the size of its
     image (``native``, the camera at its calibrated size), finite, 0 where there is no ground truth and
@@ -117,8 +120,17 @@ def read_distance(path: Path, native) -> np.ndarray:
     scored in the wrong unit without a word."""
     try:
         d = np.load(path, allow_pickle=False)  # never unpickle: a data file must not run code
-    except (ValueError, OSError, EOFError) as exc:
+    except ValueError as exc:
+        if "allow_pickle" in str(exc):  # numpy's own line would suggest unpickling it
+            raise ValueError(
+                f"{path}: holds Python objects (a pickled array), which are never loaded: a data file "
+                "must not run code; save the distance as a float array (np.save(path, d.astype(np.float32)))"
+            ) from None
         raise ValueError(f"{path}: not a NumPy .npy array: {exc}") from None
+    except (OSError, EOFError) as exc:
+        raise ValueError(
+            f"{path}: not a NumPy .npy array ({'empty' if not path.stat().st_size else exc})"
+        ) from None
     if not isinstance(d, np.ndarray):  # an .npz archive
         raise ValueError(f"{path}: not a NumPy .npy array: a {type(d).__name__}")
     want = (native.height, native.width)
@@ -143,6 +155,13 @@ def read_distance(path: Path, native) -> np.ndarray:
         raise ValueError(
             f"{path}: {int(negative.sum())} negative value(s) (smallest {float(d.min()):g}) in the "
             "ground-truth distance; write 0 where a pixel has no ground truth"
+        )
+    far = d > MAX_TRUE_DISTANCE
+    if far.any():
+        raise ValueError(
+            f"{path}: {int(far.sum())} value(s) beyond {MAX_TRUE_DISTANCE:g} m (largest {float(d.max()):g}) "
+            "in the ground-truth distance: metres expected (not millimetres, no sentinel for 'far'); "
+            "write 0 where a pixel has no ground truth"
         )
     return d.astype(np.float32)
 

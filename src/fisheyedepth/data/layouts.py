@@ -92,11 +92,15 @@ class RigLayout:
             raise CalibrationError(rig_file, "cameras", "expected a non-empty list of cameras")
         self.cameras = {}
         self.mask_paths: dict[str, Path | None] = {}
+        named: dict[str, int] = {}
         for i, entry in enumerate(entries):
             where = f"cameras[{i}]"
             if not isinstance(entry, dict) or "name" not in entry:
                 raise CalibrationError(rig_file, f"{where}.name", "missing")
             name = path_name(str(entry["name"]), f"{where}.name", rig_file)  # images/<name>/ under root
+            if name in named:  # one folder of images, two calibrations: neither may win silently
+                raise CalibrationError(rig_file, f"{where}.name", f"{name!r} is also cameras[{named[name]}]")
+            named[name] = i
             if cameras is not None and name not in cameras:
                 continue
             calibrated_as = None  # the camera of the top-level calibration file this entry takes
@@ -150,6 +154,7 @@ class RigLayout:
         self._frames: dict[tuple[str, str], list[Frame]] = {}
         self.outside: dict[tuple[str, str], list[int]] = {}
         self.in_gaps: dict[tuple[str, str], list[int]] = {}
+        self.not_understood: dict[tuple[str, str], list[str]] = {}  # file names that are no timestamp
         self._order_checked: set[Path] = set()
 
     def _calibration_file(self, rig, rig_file: Path) -> tuple[list[CalibratedCamera] | None, np.ndarray]:
@@ -189,8 +194,7 @@ class RigLayout:
                 raise ValueError(f"{path}:{lineno}: expected 'timestamp_ns tx ty tz qx qy qz qw'") from None
             if len(values) != 7 or not all(math.isfinite(v) for v in values):
                 raise ValueError(f"{path}:{lineno}: expected 8 finite numbers, got {len(values) + 1}")
-            if not np.linalg.norm(values[3:]) > 0:
-                raise ValueError(f"{path}:{lineno}: quaternion is zero")
+            unit_quaternion(values[3:], f"{path}:{lineno}")
             if stamp in lines:
                 raise ValueError(
                     f"{path}:{lineno}: timestamp {stamp} already has a pose on line {lines[stamp]}"
@@ -217,7 +221,14 @@ class RigLayout:
             path_name(camera, "camera", self.root)
             times, trans, quats = self._poses(sequence)
             folder = self.root / sequence / "images" / camera
-            stamps = sorted(int(p.stem) for p in folder.glob("*.png") if re.fullmatch(r"\d+", p.stem))
+            stamps, self.not_understood[key] = image_stamps(folder)
+            if self.not_understood[key]:
+                log.warning(
+                    "%s: %d files are not named <timestamp_ns>.png and are left out: %s",
+                    folder,
+                    len(self.not_understood[key]),
+                    ", ".join(self.not_understood[key][:5]),
+                )
             if not stamps:
                 raise FileNotFoundError(f"{folder}: no images named <timestamp_ns>.png")
             inside = [t for t in stamps if times[0] <= t <= times[-1]]
@@ -257,6 +268,41 @@ class RigLayout:
         """The frame's mask of pixels that see a moving object (a PNG, nonzero = moving), if any."""
         path = self.root / sequence / "moving" / camera / f"{frame.key}.png"
         return path if path.is_file() else None
+
+
+STAMP = re.compile(r"(0|[1-9]\d*)\.png")  # a timestamp in ns, written as an integer is written
+
+
+def image_stamps(folder: Path) -> tuple[list[int], list[str]]:
+    """The timestamps of ``folder``'s images (``<timestamp_ns>.png``, sorted) and the names of the files
+    that are not named so (``frame_x.png``, ``1.PNG``, ``0012.png``: a leading zero would name another
+    file than the one the timestamp writes), which are reported, never read."""
+    if not folder.is_dir():
+        return [], []
+    stamps, other = [], []
+    for path in sorted(folder.iterdir()):
+        if STAMP.fullmatch(path.name) and not path.is_dir():
+            stamps.append(int(path.stem))
+        elif not path.name.startswith("."):
+            other.append(path.name)
+    return sorted(stamps), other
+
+
+QUATERNION_NORM_TOLERANCE = 1e-3
+
+
+def unit_quaternion(values, where: str) -> np.ndarray:
+    """``values`` as a unit quaternion, refused (naming ``where``) unless its norm lies within
+    ``QUATERNION_NORM_TOLERANCE`` of 1: a norm of 2 or 1e-6 is a unit or a column gone wrong, not a
+    rotation to normalise silently."""
+    q = np.asarray(values, dtype=float)
+    norm = float(np.linalg.norm(q))
+    if not abs(norm - 1) <= QUATERNION_NORM_TOLERANCE:
+        raise ValueError(
+            f"{where}: quaternion of norm {norm:.6g}; a rotation is a unit quaternion "
+            f"(norm within {QUATERNION_NORM_TOLERANCE:g} of 1)"
+        )
+    return q / norm
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
@@ -339,6 +385,16 @@ def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t:
 
 def _transform(value, path: Path, key: str) -> np.ndarray:
     """A 4x4 / 3x4 matrix (nested lists) or ``{translation: [3], quaternion_xyzw: [4]}``."""
+    if isinstance(value, dict) and "quaternion_xyzw" in value:
+        try:
+            norm = float(np.linalg.norm(np.asarray(value["quaternion_xyzw"], float)))
+        except (ValueError, TypeError):
+            norm = 1.0  # not numbers: the message below
+        if not abs(norm - 1) <= QUATERNION_NORM_TOLERANCE:
+            raise CalibrationError(
+                path, f"{key}.quaternion_xyzw", f"norm {norm:.6g}; a rotation is a unit quaternion "
+                f"(norm within {QUATERNION_NORM_TOLERANCE:g} of 1)"
+            )  # fmt: skip
     try:
         if isinstance(value, dict):
             q = np.asarray(value["quaternion_xyzw"], float)

@@ -43,7 +43,7 @@ from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
 from ..utils import inside, move_into_place, path_name, staged_folder
-from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix
+from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
 from .layouts import _transform as read_transform
 
 log = logging.getLogger(__name__)
@@ -379,6 +379,11 @@ def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics
                 for t in msg.transforms:
                     edge = (t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/"))
                     if topic == "/tf_static":
+                        r = t.transform.rotation
+                        try:
+                            unit_quaternion([r.x, r.y, r.z, r.w], f"{bag}: /tf_static {edge[0]} -> {edge[1]}")
+                        except ValueError as err:
+                            raise RosbagError(str(err)) from None
                         static[edge] = _transform(t.transform)
                     elif tf_poses and edge == (tf_poses[0].lstrip("/"), tf_poses[1].lstrip("/")):
                         r, tr = t.transform.rotation, t.transform.translation
@@ -398,6 +403,11 @@ def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics
             f"{poses[clashes[0]][0]} ns); a pose file holds one pose per stamp"
         )
     poses = [p for i, p in enumerate(poses) if i == 0 or p[0] != poses[i - 1][0]]  # exact repeats: one
+    for stamp, values in poses:
+        try:
+            unit_quaternion(values[3:], f"{bag}: {source}: the pose at {stamp} ns")
+        except ValueError as err:
+            raise RosbagError(str(err)) from None
     if len(poses) < 2:
         raise RosbagError(f"{bag}: {source}: fewer than two poses")
     times = np.array([p[0] for p in poses], np.int64)

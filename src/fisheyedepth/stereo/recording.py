@@ -52,13 +52,15 @@ from ..utils import (
     atomic_write_bytes,
     atomic_write_npy,
     atomic_write_text,
+    check_memory_for,
     check_writable,
     move_into_place,
     staged_folder,
 )
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
-from .pipeline import StereoSettings, Timer, match_pair, nothing, partner_pair
+from .match import MatcherSettings, textured
+from .pipeline import StereoSettings, Timer, grey, match_pair, nothing, pair_step, partner_pair
 from .rectify import Rectification, RectificationCache
 from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
 from .scores import panel, score
@@ -271,6 +273,98 @@ def check_out(root: Path, out: Path) -> None:
         raise ValueError(f"--out: {out} {what} {root}; write the outputs to a folder of their own")
 
 
+NO_PARTNER = "no partner at its instant or among its camera's neighbours"
+
+
+def images_left_out(layout: RigLayout, planned: list[Pairing]) -> dict[str, str]:
+    """Every image of the recording the run does not match, by name, with why: no partner, outside the
+    poses' time range, in a gap of the poses, or a file name that is not a timestamp."""
+    out = {p.name: NO_PARTNER for p in planned if not p.partners}
+    for (sequence, camera), stamps in layout.outside.items():
+        out.update({f"{sequence}/{camera}/{t}": "outside the poses' time range" for t in stamps})
+    for (sequence, camera), stamps in layout.in_gaps.items():
+        out.update({f"{sequence}/{camera}/{t}": "in a gap of the poses (max_pose_gap)" for t in stamps})
+    for (sequence, camera), names in layout.not_understood.items():
+        out.update(
+            {f"{sequence}/images/{camera}/{n}": "name not understood (<timestamp_ns>.png)" for n in names}
+        )
+    return out
+
+
+def nothing_to_match(layout: RigLayout, sources: tuple[str, ...], left_out: dict[str, str]) -> str:
+    """Why a recording gives the run no image to match, in one line."""
+    reasons: dict[str, int] = defaultdict(int)
+    for why in left_out.values():
+        reasons[why] += 1
+    said = "; ".join(f"{n} {why}" for why, n in reasons.items()) or "no images"
+    if sources == ("rig",) and len(layout.cameras) < 2:
+        said += " (--sources rig pairs the rig's cameras, and it has one)"
+    return said
+
+
+# Peak memory of matching one pair, per pixel of its larger image at the cameras' own resolution: the
+# rays, the rectification's tables, both rectified images, SGBM's buffers and the maps back. Measured
+# 618, 509 and 476 bytes for two 512, 1024 and 2048 px fisheyes (tests/test_multiview.py checks a pair
+# against it); this bound leaves a margin over the largest.
+MEMORY_PER_PIXEL = 640
+SWEEP_MEMORY_PER_VOXEL = 20  # the sweep's cost sums, counts and volume (float32) and a chunk's warps
+
+
+def check_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -> None:
+    """Refuse, before any work, a run whose largest image would need more memory than the machine has
+    available, naming the camera (or the option) and both numbers."""
+    name, spec = max(layout.cameras.items(), key=lambda kv: kv[1].camera.width * kv[1].camera.height)
+    pixels = spec.camera.width * spec.camera.height
+    if isinstance(matcher, StereoSettings):
+        scale = 1.0
+        if matcher.resolution is not None:  # a finer grid than the camera's own
+            scale = max(1.0, (pair_step(spec.camera, spec.camera, None) / matcher.resolution) ** 2)
+        need, what = (
+            MEMORY_PER_PIXEL * pixels * scale,
+            f"camera {name!r} ({spec.camera.width}x{spec.camera.height})",
+        )
+        if scale > 1:
+            what += f" at --resolution {math.degrees(matcher.resolution):g} degrees"
+    else:
+        need = SWEEP_MEMORY_PER_VOXEL * matcher.hypotheses * pixels
+        size = f"{spec.camera.width}x{spec.camera.height}"
+        what = f"--hypotheses {matcher.hypotheses} over camera {name!r} ({size})"
+    check_memory_for(need, what)
+
+
+def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True) -> None:
+    """Every image the run reads (each image it matches and their partners) decoded and checked against
+    its camera's size, and every ground-truth file checked (:func:`~..data.dataset.read_distance`), before
+    any output exists: a bad file is named before the first map is written, not after."""
+    images = {}
+    for pairing in paired:
+        for camera, frame in (
+            (pairing.camera, pairing.frame),
+            *((p.camera, p.frame) for p in pairing.partners),
+        ):
+            images[pairing.sequence, camera, frame.key] = (pairing.sequence, camera, frame)
+    for sequence, camera, frame in tqdm(images.values(), desc="checking images", unit="image",
+                                        disable=not progress):  # fmt: skip
+        layout_image(layout, sequence, camera, frame)
+    for pairing in paired:
+        _truth(layout, pairing)
+
+
+def flat_fraction(image: np.ndarray, camera) -> float:
+    """The share of the image's pixels whose matching window has no contrast (:func:`.match.textured`):
+    nothing there can be matched, and the summary says so."""
+    from ..cameras.rays import compute_rays
+
+    _, valid = compute_rays(camera)
+    seen = valid.numpy()
+    inner = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0  # as textured()
+    if not inner.any():
+        return 1.0
+    seen = inner
+    flat = seen & ~textured(grey(image), valid.numpy(), MatcherSettings.block)
+    return round(float(flat.sum() / seen.sum()), 4)
+
+
 @contextlib.contextmanager
 def sole_writer(out: Path):
     """Hold ``.<out>.multiview.lock`` beside ``out`` while the block runs; a second run into the same
@@ -323,34 +417,40 @@ def run(
     planned = pairings(layout, sources, min_baseline=min_baseline)
     planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
     paired = [p for p in planned if p.partners][:max_images]
-    unpaired = [p.name for p in planned if not p.partners]
+    left_out = images_left_out(layout, planned)
+    if not paired:
+        raise ValueError(f"{root}: no image to match: {nothing_to_match(layout, sources, left_out)}")
+    check_memory(layout, matcher)
     parts = [path for pairing in paired for path in outputs(pairing)]
     parts += [Path("rig.yaml"), Path("summary.json")] if refine else [Path("summary.json")]
     taken = next((out / part for part in parts if os.path.lexists(out / part)), None)
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
+    check_inputs(layout, paired, progress)
     with sole_writer(out), staged_folder(out, "multiview") as staging:
-        summary = _work(layout, staging, matcher, sources, paired, unpaired, refine, progress)
+        summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress)
         summary["root"] = str(root)
         atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
         move_into_place(staging, out, parts, overwrite)
     return summary
 
 
-def _work(layout, out, matcher, sources, paired, unpaired, refine, progress) -> dict[str, Any]:
+def _work(layout, out, matcher, sources, paired, left_out, refine, progress) -> dict[str, Any]:
     """The matching itself: every output of ``paired`` written into ``out``; the summary, returned."""
     begun = time.perf_counter()
     refinement = None
     if refine:
         refinement = refine_rig(layout, refine)
         for name, change in refinement["cameras"].items():
-            log.info("%s refined against %s: %.3f degrees; epipolar error %.2f -> %.2f px (%d inliers)",
+            log.info("%s refined against %s: %.3f degrees; epipolar error %.2f -> %.2f px (%d inliers): %s",
                      name, change["relative_to"], change["rotation_deg"], change["epipolar_px_before"],
-                     change["epipolar_px_after"], change["inliers"])  # fmt: skip
+                     change["epipolar_px_after"], change["inliers"],
+                     "applied" if change["applied"] else "not applied (within the noise)")  # fmt: skip
         if refinement["unrefined"]:
             log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
         atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
     refine_seconds = time.perf_counter() - begun
+    unpaired = [name for name, why in left_out.items() if why == NO_PARTNER]
     if unpaired:
         log.warning("%d images have no partner and are left out: %s", len(unpaired), ", ".join(unpaired[:5]))
     timer = Timer()
@@ -381,6 +481,7 @@ def _work(layout, out, matcher, sources, paired, unpaired, refine, progress) -> 
         record: dict[str, Any] = {
             "image": pairing.name,
             "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
+            "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
             "kept": round(float((fused.distance > 0).mean()), 4),
             "seen": round(float((fused.dense > 0).mean()), 4),
         }
@@ -402,8 +503,9 @@ def _work(layout, out, matcher, sources, paired, unpaired, refine, progress) -> 
         "settings": settings,
         "refinement": refinement,
         "images": images,
-        "unpaired": unpaired,
+        "images_left_out": left_out,
         "pairs_left_out": store.unmatched if store is not None else {},
+        "kept_nothing": [r["image"] for r in images if not r["kept"]],
         "seconds": {
             "total": round(seconds, 3),
             "refine": round(refine_seconds, 3),
@@ -470,6 +572,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     seconds = summary["seconds"]["per_image"]
-    print(f"{len(summary['images'])} images matched ({seconds:.2f} s each), {len(summary['unpaired'])} "
-          f"without a partner; {args.out}")  # fmt: skip
+    left = len(summary["images_left_out"])
+    print(f"{len(summary['images'])} images matched ({seconds:.2f} s each), {left} left out "
+          f"(summary.json says why); {args.out}")  # fmt: skip
+    if len(summary["kept_nothing"]) == len(summary["images"]):  # nothing done: no exit 0 for it
+        why = "; ".join(sorted(set(summary["pairs_left_out"].values()))) or "no pixel passed the checks"
+        print(f"error: {args.out}: no image kept a pixel ({why})", file=sys.stderr)
+        return 1
     return 0

@@ -242,13 +242,23 @@ def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Mat
     return Matches.pooled(found), len(used)
 
 
+def worth_it(refined: Refinement) -> bool:
+    """Whether a refinement corrects the calibration rather than fitting the matches' noise: it lowers
+    the median epipolar error by more than the error left after it (the matches' own noise, what the
+    best pose cannot explain). A correct 128 px rig was otherwise turned by 0.54 degrees for a drop
+    within that noise, and its distance's abs_rel went from 0.057 to 0.168."""
+    gain = refined.error_before_px - refined.error_after_px
+    return bool(math.isfinite(gain) and gain > refined.error_after_px)
+
+
 def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:
     """Each camera's extrinsics refined from its images (:mod:`.refine`): every pair of cameras matched at
     up to ``instants`` shared instants; from the first camera, which is kept, each other camera is reached
     through the pair with the most matches to a camera already placed (a maximum spanning tree), and its
     rotation (``what="pose"``: and its translation's direction) relative to that camera refined, the
-    baseline's length kept. ``layout.cameras`` is updated in place; returns what changed, per camera, and
-    the cameras left as they were (no pair with ``min_inliers`` matches to the placed ones)."""
+    baseline's length kept. ``layout.cameras`` is updated in place where the refinement is worth it
+    (:func:`worth_it`); returns per camera what was found and whether it was applied, and the cameras left
+    as they were (no pair with ``min_inliers`` matches to the placed ones)."""
     if what not in REFINE:
         raise ValueError(f"--refine: {what!r}; choose from {', '.join(REFINE)}")
     names = list(layout.cameras)
@@ -271,15 +281,19 @@ def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min
         T_a_to_b = torch.from_numpy(np.linalg.inv(E_b) @ E_a)
         focal = float(np.mean(layout.cameras[b].camera.paraxial_focal()))
         refined = refine_relative_pose(m, T_a_to_b, focal, direction=what == "pose")
-        layout.cameras[b] = dataclasses.replace(
-            layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
-        )
+        applied = worth_it(refined)
+        if applied:
+            layout.cameras[b] = dataclasses.replace(
+                layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
+            )
         placed.append(b)
         refined_cameras[b] = {"relative_to": a, "instants": used, "matches": refined.matches,
-                     "inliers": refined.inliers, "rotation_deg": round(refined.rotation_deg, 4),
+                     "inliers": refined.inliers, "applied": applied,
+                     "rotation_deg": round(refined.rotation_deg, 4),
                      "direction_deg": round(refined.direction_deg, 4),
                      "epipolar_px_before": round(refined.error_before_px, 3),
-                     "epipolar_px_after": round(refined.error_after_px, 3)}  # fmt: skip
+                     "epipolar_px_after": round(refined.error_after_px, 3),
+                     "noise_px": round(refined.error_after_px, 3)}  # fmt: skip
     unrefined = [n for n in names if n not in placed]
     return {"what": what, "kept": names[0], "cameras": refined_cameras, "unrefined": unrefined}
 
