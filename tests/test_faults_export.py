@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 
 import fisheyedepth.cli.export as export_module
 import fisheyedepth.outputs as outputs_module
+import fisheyedepth.utils as utils_module
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.runtimes import META, OnnxRuntime, add_metadata
@@ -262,7 +263,7 @@ def test_a_folder_that_refuses_the_file_is_one_line_and_leaves_nothing(
     def refused(*args, dir=None, **kwargs):  # noqa: A002 - tempfile's keyword
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), dir)
 
-    hold_during_export(monkeypatch, lambda: monkeypatch.setattr(outputs_module.tempfile, "mkstemp", refused))
+    hold_during_export(monkeypatch, lambda: monkeypatch.setattr(utils_module.tempfile, "mkstemp", refused))
     assert one_line_error(export, export_cfg(checkpoint, out), capsys) == (
         f"error: {out}: cannot be written (Permission denied: {tmp_path}); choose another output=FILE"
     )

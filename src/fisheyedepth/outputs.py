@@ -10,10 +10,9 @@ import contextlib
 import errno
 import fcntl
 import os
-import tempfile
 from pathlib import Path
 
-from .utils import WRITE_ERRORS, current_umask
+from .utils import WRITE_ERRORS, temporary_beside
 
 
 def record_path(path: Path) -> Path:
@@ -82,16 +81,11 @@ def place(path: Path, data: bytes, record: str, overwrite: bool) -> None:
 
 @contextlib.contextmanager
 def staged(path: Path, data: bytes):
-    """``data`` in a temporary file beside ``path`` with a plain file's permissions (0666 less the
-    umask); removed when the block ends, unless it was moved into place."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            os.fchmod(handle.fileno(), 0o666 & ~current_umask())
-        yield tmp
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+    """``data`` in a temporary file beside ``path`` (:func:`~fisheyedepth.utils.temporary_beside`);
+    removed when the block ends, unless it was moved into place."""
+    with temporary_beside(path) as tmp:
+        tmp.write_bytes(data)
+        yield str(tmp)
 
 
 def place_new(tmp: str, path: Path) -> None:

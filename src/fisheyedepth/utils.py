@@ -10,6 +10,7 @@ import os
 import shutil
 import tempfile
 import unicodedata
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -106,7 +107,8 @@ def check_writable(folder: str | os.PathLike, option: str) -> Path:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and an atomic rename."""
+    """Write ``text`` to ``path`` through a temporary file in the same folder and an atomic rename
+    (:func:`atomic_target`)."""
     return atomic_write_bytes(path, text.encode())
 
 
@@ -123,21 +125,43 @@ def current_umask() -> int:
     return mask
 
 
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Like :func:`atomic_write_text`, for bytes. The file gets the permissions a plain ``open`` would
-    give it (0666 less the umask), not ``mkstemp``'s private 0600."""
+@contextlib.contextmanager
+def temporary_beside(path: str | os.PathLike) -> Iterator[Path]:
+    """A hidden temporary file beside ``path`` (``.NAME.*.tmp``, in the same folder, so that a rename puts
+    it in place atomically) with the permissions a plain ``open`` would give (0666 less the umask), not
+    ``mkstemp``'s private 0600. It is removed when the block ends unless the block moved it away: a
+    failed write leaves nothing."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            os.fchmod(handle.fileno(), 0o666 & ~current_umask())
-        os.replace(tmp, path)
-    except BaseException:
+        os.fchmod(fd, 0o666 & ~current_umask())
+        os.close(fd)
+        yield Path(tmp)
+    finally:
         Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+
+
+@contextlib.contextmanager
+def atomic_target(path: str | os.PathLike, sync: bool = False) -> Iterator[Path]:
+    """The one way the package writes a file: the block writes the yielded temporary file beside ``path``
+    (:func:`temporary_beside`), which is renamed over ``path`` when the block completes (``sync``: its
+    data flushed to disk first, for a file whose loss costs hours, as a checkpoint). A reader sees the
+    old file or the new one, whole; an interrupted or failed write leaves ``path`` as it was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with temporary_beside(path) as tmp:
+        yield tmp
+        if sync:
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
+        os.replace(tmp, path)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Like :func:`atomic_write_text`, for bytes (:func:`atomic_target`)."""
+    with atomic_target(path) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
 
 
 def atomic_write_npy(path: str | os.PathLike, array) -> Path:
