@@ -66,12 +66,12 @@ class Bag:
             binning_y=0, roi=roi,
         )))  # fmt: skip
 
-    def odometry(self, stamps, shift: float = 0.0):
+    def odometry(self, stamps, shift: float = 0.0, norm: float = 1.0):
         T = self.T
         zero, cov = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0), np.zeros(36)
         for stamp in stamps:
             M = body_pose(stamp)
-            q = quaternion_xyzw(M[:3, :3])
+            q = [v * norm for v in quaternion_xyzw(M[:3, :3])]
             pose = T["geometry_msgs/msg/Pose"](
                 position=T["geometry_msgs/msg/Point"](x=M[0, 3] + shift, y=M[1, 3], z=M[2, 3]),
                 orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
@@ -243,6 +243,25 @@ def test_repeated_odometry_stamps_with_two_poses_are_refused_naming_bag_topic_an
     bag.write(tmp_path / "repeat")
     assert run(tmp_path / "repeat", tmp_path / "rig")["repeated_poses"] == 1
     assert len(RigLayout(tmp_path / "rig").frames("seq0", "cam")) == 4
+
+
+def test_an_odometry_quaternion_not_of_norm_one_is_refused_naming_bag_topic_and_stamp(tmp_path):
+    from fisheyedepth.data.rosbag import RosbagError
+
+    stamps = odometry_30hz(0.3)
+    bag = Bag()
+    bag.info()
+    for i in range(4):
+        bag.image(T0 + i * 100 * MS, grey(i))
+    bag.odometry([s for s in stamps if s != stamps[5]])
+    bag.odometry([stamps[5]], norm=2.0)  # a column gone wrong, not a rotation
+    bag.write(tmp_path / "bag")
+    where = re.escape(str(tmp_path / "bag"))
+    with pytest.raises(
+        RosbagError, match=rf"^{where}: /odom: the pose at {stamps[5]} ns: quaternion of norm 2;"
+    ):
+        run(tmp_path / "bag", tmp_path / "rig")
+    assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
 
 
 @pytest.mark.parametrize("kind", ["Image", "CompressedImage"])

@@ -125,6 +125,31 @@ def test_an_aria_export_converts(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig", "src"]  # no staging folder left
 
 
+def test_aria_poses_of_another_unit_or_a_quaternion_not_of_norm_one_are_refused(tmp_path, capsys):
+    """A VIO CSV in nanoseconds (no image within the poses' time range once read as microseconds) and a
+    quaternion of norm 2 or 1e-6 are refused naming the file (and the line), and nothing is written."""
+    from fisheyedepth.data.aria import main
+
+    src, out = aria_export(tmp_path / "src"), tmp_path / "rig"
+    rows = (src / POSES).read_text().splitlines()
+    in_ns = [rows[0], *(",".join([str(int(r.split(",")[0]) * 1000), *r.split(",")[1:]]) for r in rows[1:])]
+    (src / POSES).write_text("\n".join(in_ns) + "\n")
+    assert main(["--src", str(src), "--out", str(out)]) == 2
+    assert f"error: {src / POSES}: no image lies within the poses' time range" in capsys.readouterr().err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["src"]
+    for w in ("2", "1e-6"):
+        (src / POSES).write_text(
+            "\n".join([*rows[:3], rows[3].rsplit(",", 1)[0] + f",{w}", *rows[4:]]) + "\n"
+        )
+        assert main(["--src", str(src), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert (
+            f"error: {src / POSES}:4: quaternion of norm {float(w):.6g}; a rotation is a unit quaternion"
+            in err
+        )
+        assert not out.exists()
+
+
 def test_two_aria_frames_with_one_capture_time_are_an_error(tmp_path, capsys):
     src = aria_export(tmp_path / "src")
     cv2.imwrite(str(src / "cam" / f"03_{STAMPS[1]}.png"), texture(9))
