@@ -149,11 +149,11 @@ def test_a_native_size_map_is_resized_with_the_camera(rig):
 @pytest.mark.parametrize(
     "write,what",
     [
-        (lambda p: p.write_bytes(pickle.dumps(np.ones((64, 64)))), "not a NumPy .npy array: "),
+        (lambda p: p.write_bytes(pickle.dumps(np.ones((64, 64)))), "holds Python objects (a pickled array)"),
         (lambda p: p.write_text("5.0 5.0\n5.0 5.0\n"), "not a NumPy .npy array: "),
-        (lambda p: np.save(p, np.array([None, 1.0], dtype=object)), "not a NumPy .npy array: "),
+        (lambda p: np.save(p, np.array([None, 1.0], dtype=object)), "holds Python objects (a pickled array)"),
         (lambda p: np.savez(p.with_suffix(""), d=np.ones((64, 64))), "not a NumPy .npy array: a NpzFile"),
-        (lambda p: p.write_bytes(b""), "not a NumPy .npy array: "),
+        (lambda p: p.write_bytes(b""), "not a NumPy .npy array (empty)"),
     ],
     ids=["pickle", "text", "object-array", "npz", "empty"],
 )
@@ -173,8 +173,9 @@ def test_a_distance_file_that_is_not_an_npy_array_is_named(rig, write, what):
         (np.nan, "3 non-finite value(s) (NaN or inf)"),
         (np.inf, "3 non-finite value(s) (NaN or inf)"),
         (-1.0, "3 negative value(s) (smallest -1)"),
+        (1e30, "3 value(s) beyond 10000 m (largest 1e+30)"),
     ],
-    ids=["nan", "inf", "negative"],
+    ids=["nan", "inf", "negative", "1e30"],
 )
 def test_bad_values_name_the_npy_file_and_count(rig, value, what):
     path = gt_path(rig, STAMPS[1])

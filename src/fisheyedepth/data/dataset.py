@@ -121,7 +121,10 @@ def read_distance(path: Path, native) -> np.ndarray:
     try:
         d = np.load(path, allow_pickle=False)  # never unpickle: a data file must not run code
     except ValueError as exc:
-        if "allow_pickle" in str(exc):  # numpy's own line would suggest unpickling it
+        with open(path, "rb") as handle:
+            head = handle.read(6)
+        pickled = head.startswith(b"\x80") or (head == b"\x93NUMPY" and "allow_pickle" in str(exc))
+        if pickled:  # numpy's own line would suggest unpickling it
             raise ValueError(
                 f"{path}: holds Python objects (a pickled array), which are never loaded: a data file "
                 "must not run code; save the distance as a float array (np.save(path, d.astype(np.float32)))"
