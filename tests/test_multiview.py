@@ -287,6 +287,22 @@ def test_bad_inputs_are_named_before_any_work(tmp_path, capsys, case):
     assert not out.exists() and not list(tmp_path.glob(".out*"))
 
 
+def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    import errno
+
+    from fisheyedepth.stereo import recording
+
+    def full(path, array):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(recording, "atomic_write_npy", full)
+    rec, out = spoilt(tmp_path, lambda r: None), tmp_path / "out"
+    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --out: ") and "cannot be written (No space left on device)" in err
+    assert err.count("\n") == 1 and not out.exists() and not list(tmp_path.glob(".out*"))
+
+
 def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     """Uniform grey images and a rig pair at one centre keep no pixel (the summary says why, exit 1); file
     names that are no timestamp are named as left out, never read as another image; 12-bit data in 16-bit

@@ -18,11 +18,15 @@ For each image it can pair it writes, under ``OUT/<sequence>/``:
 with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
 changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
 its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
-<timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels; the
-seconds of each stage; the images with no partner and the pairs left out (no overlap within the range, too
-short a baseline), by name. ``OUT`` is checked before any work (a folder of its own, writable, none of
-these files there unless ``--overwrite``, no other run writing into it); the files are written beside it
-and moved into place when the run completes.
+<timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels, and the
+share of its pixels too flat to match (``flat``); the seconds of each stage; every image left out, by
+name, with why (no partner, outside the poses, in a gap of the poses, a file name that is no timestamp);
+the pairs left out (no overlap within the range, too short a baseline, one centre), by name; and the
+images that kept no pixel. ``OUT`` is checked before any work (a folder of its own, writable, none of
+these files there unless ``--overwrite``, no other run writing into it), and so is every input the run
+reads (images, ground truth) and the memory its largest image needs; the files are written beside ``OUT``
+and moved into place when the run completes. Exit status: 0, 2 for a refused input (one ``error:`` line),
+1 when the run completed but no image kept a pixel.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from tqdm import tqdm
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
 from ..utils import (
+    WRITE_ERRORS,
     atomic_write_bytes,
     atomic_write_npy,
     atomic_write_text,
@@ -570,6 +575,12 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # the disk filled or the folder turned read-only during the run
+        if err.errno not in WRITE_ERRORS:
+            raise
+        where = err.filename or args.out
+        print(f"error: --out: {where}: cannot be written ({err.strerror})", file=sys.stderr)
         return 2
     seconds = summary["seconds"]["per_image"]
     left = len(summary["images_left_out"])
