@@ -287,7 +287,9 @@ def test_bad_inputs_are_named_before_any_work(tmp_path, capsys, case):
     assert not out.exists() and not list(tmp_path.glob(".out*"))
 
 
-def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_killed_run_is_cleared(
+    tmp_path, capsys, monkeypatch
+):
     import errno
 
     from fisheyedepth.stereo import recording
@@ -301,6 +303,11 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing(tmp_pat
     err = capsys.readouterr().err
     assert err.startswith("error: --out: ") and "cannot be written (No space left on device)" in err
     assert err.count("\n") == 1 and not out.exists() and not list(tmp_path.glob(".out*"))
+    stale = tmp_path / ".out.multiview-killed"  # what a SIGKILLed run leaves (no clean-up runs)
+    (stale / "seq").mkdir(parents=True)
+    monkeypatch.undo()
+    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 0
+    assert not stale.exists() and (out / "summary.json").is_file()
 
 
 def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):

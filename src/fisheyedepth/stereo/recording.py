@@ -432,12 +432,25 @@ def run(
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
     check_inputs(layout, paired, progress)
-    with sole_writer(out), staged_folder(out, "multiview") as staging:
-        summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress)
-        summary["root"] = str(root)
-        atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
-        move_into_place(staging, out, parts, overwrite)
+    with sole_writer(out):
+        remove_stale_staging(out)
+        with staged_folder(out, "multiview") as staging:
+            summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress)
+            summary["root"] = str(root)
+            atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
+            move_into_place(staging, out, parts, overwrite)
     return summary
+
+
+def remove_stale_staging(out: Path) -> None:
+    """The staging folders a killed run left beside ``out`` (``SIGKILL`` runs no clean-up): while this
+    run holds ``out``'s lock no other run is writing them, so they are removed, and said so."""
+    import shutil
+
+    for stale in out.parent.glob(f".{out.name}.multiview-*"):
+        if stale.is_dir():
+            log.warning("removing %s, left by an interrupted run", stale)
+            shutil.rmtree(stale, ignore_errors=True)
 
 
 def _work(layout, out, matcher, sources, paired, left_out, refine, progress) -> dict[str, Any]:
