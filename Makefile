@@ -14,7 +14,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet -c constraints.txt "$(TORCH_SPEC)"
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,export]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,export,viz]"
 	touch $(STAMP)
 
 # One pytest-xdist worker per core, each test file on one worker (its module fixtures built once).

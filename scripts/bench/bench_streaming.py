@@ -1,10 +1,13 @@
 #!/usr/bin/env python
 """Streaming over a long video: ``predict.py`` end to end (decode, network, every output written) for a
 short and a long clip of the same frames, in each runtime; its fps and its peak resident memory, which
-must not grow with the video's length (BENCHMARKS.md "Streaming").
+must not grow with the video's length (BENCHMARKS.md "Streaming"). Beside it, the live rig: the Aria Gen2
+rig (``realdata/aria_gen2_rig``) replayed through :class:`fisheyedepth.stereo.RigStereo` as
+``scripts/tools/live_rig.py`` runs it, instants per second without and with its Rerun recording.
 
-Usage: python scripts/bench/bench_streaming.py --ckpt CKPT [--frames 50 1000] [--size 384] [--threads 2]
+Usage: python scripts/bench/bench_streaming.py [--ckpt CKPT] [--frames 50 1000] [--size 384] [--threads 2]
            [--calibration DIR] [--no-write] [--quick]
+Without ``--ckpt`` only the live rig is measured; predict's rows are kept as published.
 
 The clip repeats rendered frames of the synthetic default world (rendered on first use by ``make train``)
 resized to ``--size``; each runtime's network runs at ``--size`` too (``export.py size=``).
@@ -13,6 +16,8 @@ resized to ``--size``; each runtime's network runs at ``--size`` too (``export.p
 from __future__ import annotations
 
 import json
+import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -20,6 +25,8 @@ import time
 from pathlib import Path
 
 import cv2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))  # live_rig
 
 from _benchmarks import ROOT, WORLD, bench_parser, markers, parse_args, peak_rss_of, publish
 
@@ -47,14 +54,8 @@ def peak_run(args: list[str], threads: int) -> tuple[float, dict]:
     return peak / 1024.0, json.loads((Path(out) / "summary.json").read_text())
 
 
-def main(argv=None) -> int:
-    parser = bench_parser(__doc__)
-    parser.add_argument("--ckpt", required=True)
-    parser.add_argument("--frames", nargs=2, type=int, default=[50, 1000])
-    parser.add_argument("--size", type=int, default=384)
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--calibration", type=Path, default=WORLD / "data_2d_raw")
-    args = parse_args(parser, argv, quick={"frames": [2, 4], "size": 64})
+def predict_section(args) -> list[str]:
+    """predict.py streaming a short and a long clip in each runtime: the section's lines."""
     calib = WORLD / "calibration" / "image_02.yaml"
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -95,8 +96,7 @@ def main(argv=None) -> int:
             )
             print(rows[-1], flush=True)
     short, long = args.frames
-    lines = [
-        START,
+    return [
         "## Streaming (`scripts/bench/bench_streaming.py`)",
         "",
         f"Command: `python scripts/bench/bench_streaming.py --ckpt CKPT --frames {short} {long} "
@@ -109,8 +109,83 @@ def main(argv=None) -> int:
         f"peak RSS, {long} frames (MB) | growth (MB) |",
         "|---|---|---|---|---|",
         *rows,
-        END,
     ]
+
+
+def published_predict(path: Path) -> list[str]:
+    """The predict part of the section as published in ``path`` (everything before the live rig's)."""
+    text = path.read_text() if path.exists() else ""
+    if START not in text:
+        return ["## Streaming (`scripts/bench/bench_streaming.py`)", "", "(predict.py: run with --ckpt)"]
+    section = text.split(START, 1)[1].split(END, 1)[0].strip("\n")
+    return section.split(RIG_HEADING, 1)[0].rstrip("\n").splitlines()
+
+
+RIG_HEADING = "### The live rig"
+
+
+def rig_section(threads: int, quick: bool) -> list[str]:
+    """The Aria Gen2 rig replayed live, without and with the Rerun recording: the section's lines."""
+    src = Path(os.environ.get("FISHEYEDEPTH_REALDATA", ROOT.parent / "shared" / "realdata")) / "aria_gen2_rig"
+    if not src.is_dir():
+        return [RIG_HEADING, "", f"(no {src}: set FISHEYEDEPTH_REALDATA)"]
+    from fisheyedepth.rerun3d import RigRecorder
+    from fisheyedepth.stereo import RigStereo, StereoSettings
+    from live_rig import body_masks, instants, replay, rig_layout
+
+    measured = {}
+    with rig_layout(src) as layout, tempfile.TemporaryDirectory() as tmp:
+        found, _ = instants(layout, layout.sequences()[0])
+        found = found[:3] if quick else found
+        names = list(found[0].images)
+        cameras = {n: layout.cameras[n].camera for n in names}
+        extrinsics = {n: layout.cameras[n].cam_to_body for n in names}
+        for recorded in (False, True):
+            stereo = RigStereo(cameras, extrinsics, StereoSettings(), threads, body_masks(layout, names))
+            path = Path(tmp) / "recording.rrd"
+            start = time.perf_counter()
+            if recorded:
+                with RigRecorder(path, "bench") as recorder:
+                    recorder.rig(extrinsics)
+                    seconds = [s for *_, s in replay(layout, stereo, found, recorder, quiet=True)]
+            else:
+                seconds = [s for *_, s in replay(layout, stereo, found, quiet=True)]
+            total = time.perf_counter() - start  # the recording's closing included
+            size = path.stat().st_size / 1e6 if recorded else 0.0
+            measured[recorded] = (len(seconds) / total, statistics.median(seconds), size)
+            print(f"recorded={recorded}: {measured[recorded]}", flush=True)
+    camera = next(iter(cameras.values()))
+    rows = [
+        f"| {'with' if recorded else 'without'} | {fps:.2f} | {median:.2f} | "
+        f"{f'{size:.0f} MB' if recorded else '-'} |"
+        for recorded, (fps, median, size) in measured.items()
+    ]
+    return [
+        RIG_HEADING,
+        "",
+        f"{time.strftime('%Y-%m-%d')}; `scripts/tools/live_rig.py`'s loop on the Aria Gen2 rig: "
+        f"{len(names)} cameras of {camera.width}x{camera.height}, {len(found)} instants, each camera against "
+        "the rig's overlapping cameras and its own image of the latest instant 5 cm or more away, "
+        f"{threads} threads; the Rerun recording holds every image (JPEG), the kept and the filled map of "
+        "each (colourised and in metres) and "
+        "up to 100,000 world points per map.",
+        "",
+        "| Rerun recording | instants per second | median seconds an instant | recording size |",
+        "|---|---|---|---|",
+        *rows,
+    ]
+
+
+def main(argv=None) -> int:
+    parser = bench_parser(__doc__)
+    parser.add_argument("--ckpt", default=None, help="predict's rows; without it they are kept as published")
+    parser.add_argument("--frames", nargs=2, type=int, default=[50, 1000])
+    parser.add_argument("--size", type=int, default=384)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--calibration", type=Path, default=WORLD / "data_2d_raw")
+    args = parse_args(parser, argv, quick={"frames": [2, 4], "size": 64})
+    predict_lines = predict_section(args) if args.ckpt else published_predict(args.output)
+    lines = [START, *predict_lines, "", *rig_section(args.threads, args.quick), END]
     publish("\n".join(lines) + "\n", args.output, START, END, write=not args.no_write)
     return 0
 

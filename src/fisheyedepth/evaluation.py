@@ -12,6 +12,7 @@ method that is right on the road and wrong on cars cannot hide.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 import torch
 from torch import Tensor
 from torch.nn import functional as F
@@ -29,7 +31,7 @@ from .data.kitti360 import OCCLUSION, occlusion_filter
 from .metrics import NAMES, DepthMetrics
 from .models.cost_volume import Sources
 from .runtimes import as_runtime
-from .viz import panel
+from .viz import panel, to_uint8
 
 log = logging.getLogger(__name__)
 
@@ -274,11 +276,13 @@ def evaluate(
     pictures: Path | None = None,
     n_pictures: int = 4,
     where: str = "the scored split",
+    recording: ScoredRecording | None = None,
 ) -> dict[str, Any]:
     """Run ``model`` over a loader of native-resolution samples with ground truth ``distance``. ``model``:
     a trained module (run in float32 at ``train_size``) or a runtime of :mod:`fisheyedepth.runtimes`
     (an exported file, bf16), which brings its own input size. ``where`` names the split in messages; a
-    split of which no pixel could be scored is a ``ValueError``, never a perfect score."""
+    split of which no pixel could be scored is a ``ValueError``, never a perfect score. ``recording``:
+    every image also goes into it, scored by the first protocol (``eval.py rerun=true``)."""
     model = as_runtime(model, train_size)
     rays = RayCache()  # one per run, shared by the protocols
     evaluators = {name: Evaluator(PROTOCOLS[name], scalings, camera_height, rays) for name in protocols}
@@ -300,6 +304,8 @@ def evaluate(
             moves = None if moving[i] is None else moving[i][0]
             for ev in evaluators.values():
                 ev.update(pred[i, 0], gt[i, 0], mask[i, 0], cam, names[i], sources[i], frames[i], moves)
+            if recording is not None:
+                recording.add(batch, i, pred[i, 0], evaluators[protocols[0]])
             if pictures is not None and written < n_pictures:
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body
@@ -313,3 +319,69 @@ def evaluate(
         if not any(ev.seen for ev in evaluators.values()):
             raise ValueError(f"{where}: none of its {len(skipped)} frame(s) could be read: {skipped[0]}")
     return {name: ev.compute(where) | {"skipped_frames": len(skipped)} for name, ev in evaluators.items()}
+
+
+@contextlib.contextmanager
+def scored_recording(path: Path | None):
+    """A :class:`ScoredRecording` into ``path`` (a :class:`fisheyedepth.rerun3d.RigRecorder`: put in place
+    whole when the block ends, not at all when it fails); None without a path."""
+    if path is None:
+        yield None
+        return
+    from .rerun3d import RigRecorder
+
+    with RigRecorder(path, "fisheyedepth-eval") as recorder:
+        yield ScoredRecording(recorder)
+
+
+class ScoredRecording:
+    """The scored images of an evaluation as instants of a Rerun recording
+    (:class:`fisheyedepth.rerun3d.RigRecorder`), each logged as it is scored: the images of one frame
+    (``<sequence>/<camera>/<key>``: every camera of the rig at that key, whatever order the split
+    gives them in) make one instant, their cameras placed on the body by the layout's ``cam_to_body``
+    (the body at the identity: a split has no world pose), each with its ``distance``, its
+    ``ground_truth`` where the protocol scores it, and its unscaled ``abs_rel`` there. ``frame``: the
+    instant's index, in the order frames first appear; ``time``: the frame's key where it is a whole
+    number (a rig's timestamp in nanoseconds, a KITTI-360 frame's number), else that index."""
+
+    def __init__(self, recorder):
+        self.recorder = recorder
+        self.instants: dict[tuple[str, str], int] = {}  # (sequence, key) -> instant index
+        self.images = 0
+
+    def add(self, batch, i: int, pred: Tensor, evaluator: Evaluator) -> None:
+        """Image ``i`` of ``batch`` and its prediction ``pred`` (``[H, W]`` metres), its ground truth where
+        ``evaluator`` scores it."""
+        from .rerun3d import CameraView
+
+        camera = batch.camera[i]
+        frame, named = (batch.frame[i] if batch.frame else None), batch.camera_name
+        sequence, name, key = _frame_parts(frame, named[i] if named else None, self.images)
+        self.images += 1
+        index = self.instants.setdefault((sequence, key), len(self.instants))
+        source = batch.distance_source[i] if batch.distance_source else None
+        gt = batch.distance[i, 0].to(pred)
+        scored = evaluator.scored(gt, batch.mask[i, 0].to(pred) > 0.5, camera, source)
+        distance, truth = pred.cpu().numpy(), (gt * scored).cpu().numpy()
+        scores = {"abs_rel": abs_rel(distance, truth)}
+        view = CameraView(camera, to_uint8(batch.image[i]), {"distance": distance}, truth, scores)
+        extrinsic = batch.cam_to_body[i].double().numpy() if batch.cam_to_body is not None else np.eye(4)
+        time_ns = int(key) if key.isdigit() else index
+        self.recorder.instant(time_ns, index, {name: view}, cam_to_body={name: extrinsic})
+
+
+def _frame_parts(frame: str | None, camera_name: str | None, index: int) -> tuple[str, str, str]:
+    """``(sequence, camera, key)`` of a frame named ``<sequence>/<camera>/<key>`` (the camera as the
+    dataset names it where it does); an unnamed image is its own instant."""
+    parts = (frame or "").split("/")
+    if len(parts) >= 3:
+        return "/".join(parts[:-2]), camera_name or parts[-2], parts[-1]
+    return "", camera_name or "camera", f"image{index}"
+
+
+def abs_rel(distance: np.ndarray, truth: np.ndarray) -> float:
+    """Mean ``|distance - truth| / truth`` over the pixels with both (NaN where none has)."""
+    both = (truth > 0) & np.isfinite(distance) & (distance > 0)
+    if not both.any():
+        return float("nan")
+    return float((np.abs(distance[both] - truth[both]) / truth[both]).mean())

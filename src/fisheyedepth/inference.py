@@ -8,8 +8,10 @@ inverse-distance space). ``ExportableNet`` freezes one input size and camera int
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import time
 from pathlib import Path
 
 import cv2
@@ -219,7 +221,8 @@ class FramePrediction:
     :class:`DistancePredictor` with the calibration resized to it, and a :class:`PredictionWriter`
     writes every frame. ``add`` frames, then ``flush`` once at the end; ``written`` counts frames.
     ``runtime``: a :class:`~fisheyedepth.runtimes.TorchRuntime` or an ``OnnxRuntime``.
-    ``batch_size`` 1 writes each frame as soon as it is decoded (a live camera)."""
+    ``batch_size`` 1 writes each frame as soon as it is decoded (a live camera); ``recording``: each
+    written frame also goes into it (``predict.py rerun=true``)."""
 
     def __init__(
         self,
@@ -228,9 +231,10 @@ class FramePrediction:
         calibration: str | os.PathLike,
         writer: PredictionWriter,
         batch_size: int = 4,
+        recording: FrameRecording | None = None,
     ):
         self.runtime, self.camera, self.calibration, self.writer = runtime, camera, calibration, writer
-        self.batch_size = batch_size
+        self.batch_size, self.recording = batch_size, recording
         self.predictors: dict[tuple[int, int], DistancePredictor] = {}
         self.pending: list = []
         self.written = 0
@@ -262,4 +266,90 @@ class FramePrediction:
         frames, self.pending = self.pending, []  # an interrupt while writing loses no frame twice
         for frame, d, colour in zip(frames, distance[:, 0], rgb, strict=True):
             self.writer.write(frame.name, d, colour, predictor.camera)
+            if self.recording is not None:
+                self.recording.add(frame.name, d.numpy(), colour, predictor.camera)
             self.written += 1
+
+
+@contextlib.contextmanager
+def frame_recording(path: Path | None, source, overwrite: bool = False):
+    """A :class:`FrameRecording` of ``source``'s frames (an ``images.FrameSource``) into ``path`` (refused at
+    once if the file exists, without ``overwrite``; put in place whole when the block ends, not at all
+    when it fails); None without a path."""
+    if path is None:
+        yield None
+        return
+    from .rerun3d import RigRecorder
+
+    odometry = None if source.live or source.files is None else layout_odometry(source.source)
+    with RigRecorder(path, "fisheyedepth-predict", overwrite=overwrite) as recorder:
+        yield FrameRecording(recorder, source.live, video_fps(source), odometry)
+
+
+def video_fps(source) -> float:
+    """The frame rate a video file states (0 where it states none, or for another source)."""
+    if source.live or source.files is not None:
+        return 0.0
+    video = cv2.VideoCapture(str(source.source))
+    try:
+        return float(video.get(cv2.CAP_PROP_FPS) or 0.0)
+    finally:
+        video.release()
+
+
+class FrameRecording:
+    """The frames of one prediction run as instants of a Rerun recording
+    (:class:`fisheyedepth.rerun3d.RigRecorder`, camera ``camera``, map ``distance``): each frame is an
+    instant, ``frame`` its index. ``time``: for an image of a rig layout (``<timestamp_ns>.png`` with
+    ``odometry``), its timestamp; for a live camera, the nanoseconds since its first frame was
+    recorded; else the frame's index over ``fps`` (a video's own rate; 10 for a folder of images).
+    ``odometry``: frame name -> 4x4 body-to-world pose and the camera's ``cam_to_body``
+    (:func:`layout_odometry`); without it the body stays at the identity."""
+
+    def __init__(
+        self,
+        recorder,
+        live: bool = False,
+        fps: float = 10.0,
+        odometry: tuple[dict[str, np.ndarray], np.ndarray] | None = None,
+    ):
+        self.recorder, self.live, self.fps = recorder, live, fps if fps and fps > 0 else 10.0
+        self.poses, cam_to_body = odometry if odometry is not None else ({}, np.eye(4))
+        self.recorder.rig({"camera": cam_to_body})
+        self.count, self.start = 0, None
+
+    def time_ns(self, name: str) -> int:
+        if name in self.poses:  # a rig layout's image: named by its timestamp
+            return int(name)
+        if self.live:
+            now = time.monotonic_ns()
+            self.start = now if self.start is None else self.start
+            return now - self.start
+        return round(self.count * 1e9 / self.fps)
+
+    def add(self, name: str, distance: np.ndarray, rgb: np.ndarray, camera: CameraModel) -> None:
+        """One frame: ``distance`` ``[H, W]`` metres (NaN without a ray), ``rgb`` ``[H, W, 3]`` uint8."""
+        from .rerun3d import CameraView
+
+        view = CameraView(camera, rgb, {"distance": distance})
+        self.recorder.instant(self.time_ns(name), self.count, {"camera": view}, self.poses.get(name))
+        self.count += 1
+
+
+def layout_odometry(folder: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.ndarray] | None:
+    """Body poses of the images of a rig layout's camera folder (``ROOT/<sequence>/images/<camera>``,
+    docs/data-format.md), by image name, and the camera's ``cam_to_body``; None for any other input (or a
+    layout that does not load: the recording then keeps the body at the identity, and says so)."""
+    folder = Path(folder)
+    root, sequence, camera = folder.parent.parent.parent, folder.parent.parent.name, folder.name
+    if folder.parent.name != "images" or not (root / "rig.yaml").is_file():
+        return None
+    from .data.layouts import RigLayout
+
+    try:
+        layout = RigLayout(root, cameras=[camera], expect_masks=False)
+        frames = layout.frames(sequence, camera)
+    except (OSError, ValueError) as err:
+        log.warning("%s: no odometry for the recording (%s); the body stays at the identity", folder, err)
+        return None
+    return {str(f.key): f.pose for f in frames}, layout.cameras[camera].cam_to_body

@@ -14,7 +14,8 @@ from omegaconf import DictConfig
 from rich.console import Console
 from rich.table import Table
 
-from ..evaluation import evaluate
+from ..evaluation import evaluate, scored_recording
+from ..option_checks import SWITCH
 from ..plan import Scoring, eval_plan
 from ..runtimes import as_runtime
 from ..utils import atomic_write_text, run_config
@@ -72,28 +73,32 @@ def run_evaluation(
     extra: dict[str, Any],
     split: str = "test",
     device=None,
+    rerun: bool = False,
 ) -> dict[str, Any]:
     """Evaluate ``split`` by ``scoring`` at the ground truth's native resolution, the network at the size
     it was trained at (its checkpoint's ``input_size``) or exported at; write ``results.json``. ``model``: a
     trained module (run on ``device``, default the module's), or a runtime (an ONNX file, bf16) of
-    :mod:`fisheyedepth.runtimes`."""
+    :mod:`fisheyedepth.runtimes`. ``rerun``: also ``recording.rrd`` (:mod:`fisheyedepth.evaluation`)."""
     runtime = as_runtime(model, device=device)
     if runtime.input_size is None and datamodule.size:  # a checkpoint that stored no input size
         runtime.input_size = tuple(datamodule.size)
     train_size = runtime.input_size
     offsets, rig = runtime.sources or ((), ())
     loader = datamodule.scoring_loader(split, offsets=offsets, rig_offsets=rig)
-    results = evaluate(
-        runtime,
-        loader,
-        train_size,
-        list(scoring.protocols),
-        list(scoring.scalings),
-        scoring.camera_height,
-        out_dir / "predictions",
-        scoring.pictures,
-        f"{scoring.data} ({split} split)",
-    )
+    recorded = free_path(out_dir / "recording.rrd") if rerun else None  # an earlier run's is kept
+    with scored_recording(recorded) as recording:
+        results = evaluate(
+            runtime,
+            loader,
+            train_size,
+            list(scoring.protocols),
+            list(scoring.scalings),
+            scoring.camera_height,
+            out_dir / "predictions",
+            scoring.pictures,
+            f"{scoring.data} ({split} split)",
+            recording,
+        )
     record = {
         "experiment": scoring.experiment,
         "checkpoint": ckpt,
@@ -106,6 +111,8 @@ def run_evaluation(
         "written": time.strftime("%Y-%m-%d %H:%M:%S"),
         **extra,
     }
+    if recorded is not None:
+        record["recording"] = str(recorded)
     path = free_path(out_dir / "results.json")  # a resumed run keeps the earlier run's results
     atomic_write_text(path, json.dumps(record, indent=2) + "\n")
     print_table(results, f"{record['experiment']}: {path}")
@@ -129,4 +136,14 @@ def eval_checkpoint(cfg: DictConfig) -> dict[str, Any]:
     else:
         experiment = plan.scoring.experiment or experiment_of(ckpt) or Path(ckpt).stem
     extra = {"experiment": experiment}
-    return run_evaluation(plan.scoring, model, datamodule, plan.output_dir, ckpt, extra, plan.split)
+    SWITCH.check("rerun", cfg.get("rerun", False))
+    return run_evaluation(
+        plan.scoring,
+        model,
+        datamodule,
+        plan.output_dir,
+        ckpt,
+        extra,
+        plan.split,
+        rerun=cfg.get("rerun", False),
+    )

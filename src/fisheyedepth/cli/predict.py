@@ -16,7 +16,8 @@ from tqdm import tqdm
 
 from ..cameras import load_camera
 from ..images import FrameSource
-from ..inference import FramePrediction, PredictionWriter
+from ..inference import FramePrediction, PredictionWriter, frame_recording
+from ..option_checks import SWITCH
 from ..options import CONF_DIR
 from ..plan import predict_plan
 from ..runtimes import OnnxRuntime
@@ -24,6 +25,7 @@ from ..utils import atomic_write_text
 from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
+RECORDING = "recording.rrd"  # rerun=true: the run's Rerun recording in the output folder
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
@@ -34,9 +36,33 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     )
     source = FrameSource(plan.input, plan.max_frames)  # lists the inputs without decoding any
     writer.check_free(source.names())
-    runtime = load_runtime(plan.runtime)
-    batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
-    run = FramePrediction(runtime, load_camera(plan.camera), plan.camera, writer, batch_size)
+    rerun = cfg.get("rerun", False)
+    SWITCH.check("rerun", rerun)
+    recorded = out / RECORDING if rerun else None
+    with frame_recording(recorded, source, plan.overwrite) as frames_recorded:  # refused here if it exists
+        runtime = load_runtime(plan.runtime)
+        batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
+        run = FramePrediction(
+            runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
+        )
+        summary = predict_frames(source, run, runtime, plan)
+    if recorded is not None:
+        summary["recording"] = str(recorded)
+    summary_path = out / "summary.json" if plan.overwrite else free_path(out / "summary.json")
+    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
+    unreadable, grey = summary["unreadable"], summary["grayscale"]
+    Console(width=130).print(
+        f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['fps']} fps), {len(unreadable)} "
+        f"unreadable skipped{': ' + ', '.join(unreadable[:5]) if unreadable else ''}"
+        f"{f', {len(grey)} grayscale' if grey else ''}; outputs in {out} ({summary_path.name}"
+        f"{', ' + RECORDING if recorded is not None else ''})"
+    )
+    return summary
+
+
+def predict_frames(source: FrameSource, run: FramePrediction, runtime, plan) -> dict[str, Any]:
+    """Every frame of ``source`` through ``run``; the summary of what was done."""
+    out = plan.output
     unreadable: list[str] = []
     grayscale: list[str] = []
     t0 = time.perf_counter()
@@ -76,13 +102,6 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     }
     if done == 0:
         raise ValueError(f"{source.source}: no frame could be read ({len(unreadable)} unreadable)")
-    summary_path = out / "summary.json" if plan.overwrite else free_path(out / "summary.json")
-    atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
-    Console(width=130).print(
-        f"{done} frames in {seconds:.1f} s ({summary['fps']} fps), {len(unreadable)} unreadable "
-        f"skipped{': ' + ', '.join(unreadable[:5]) if unreadable else ''}"
-        f"{f', {len(grayscale)} grayscale' if grayscale else ''}; outputs in {out} ({summary_path.name})"
-    )
     return summary
 
 

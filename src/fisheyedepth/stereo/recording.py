@@ -401,6 +401,7 @@ def run(
     progress: bool = True,
     max_images: int | None = None,
     refine: str | None = None,
+    rerun: bool = False,
 ) -> dict[str, Any]:
     """The command's work: every pairing of ``root`` matched (``matcher``: :class:`.pipeline.StereoSettings`
     for the rectified pipeline, a :class:`.sweep.SweepStereo` for the sweep), its outputs and
@@ -427,7 +428,13 @@ def run(
         raise ValueError(f"{root}: no image to match: {nothing_to_match(layout, sources, left_out)}")
     check_memory(layout, matcher)
     parts = [path for pairing in paired for path in outputs(pairing)]
-    parts += [Path("rig.yaml"), Path("summary.json")] if refine else [Path("summary.json")]
+    parts += [Path("rig.yaml")] if refine else []
+    parts += [Path(RECORDING)] if rerun else []
+    parts += [Path("summary.json")]
+    if rerun:
+        from ..rerun3d import import_rerun
+
+        import_rerun()  # the viz extra, before any work
     taken = next((out / part for part in parts if os.path.lexists(out / part)), None)
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
@@ -435,7 +442,7 @@ def run(
     with sole_writer(out):
         remove_stale_staging(out)
         with staged_folder(out, "multiview") as staging:
-            summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress)
+            summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress, rerun)
             summary["root"] = str(root)
             atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
             move_into_place(staging, out, parts, overwrite)
@@ -453,9 +460,68 @@ def remove_stale_staging(out: Path) -> None:
             shutil.rmtree(stale, ignore_errors=True)
 
 
-def _work(layout, out, matcher, sources, paired, left_out, refine, progress) -> dict[str, Any]:
-    """The matching itself: every output of ``paired`` written into ``out``; the summary, returned."""
+RECORDING = "recording.rrd"
+
+
+class InstantRecorder:
+    """The run's 3-D recording (:mod:`fisheyedepth.rerun3d`, ``--rerun``): the images of one instant (its
+    cameras' images within ``same_instant_ns`` of the first) logged together, each with its ``kept`` and
+    ``filled`` maps, its ground truth and abs_rel where the recording has them; the body's pose from the
+    odometry; the recorded rig, and the refined one beside it."""
+
+    def __init__(self, path: Path, layout: RigLayout, recorded: dict, refinement: dict | None,
+                 same_instant_ns: int = 1_000_000):  # fmt: skip
+        from ..rerun3d import RigRecorder
+
+        self.layout, self.same_instant_ns = layout, same_instant_ns
+        self.recorder = RigRecorder(path, "fisheyedepth-multiview")
+        self.recorder.rig(recorded, name="rig")
+        self.rig = {name: spec.cam_to_body for name, spec in layout.cameras.items()}
+        if refinement is not None:
+            self.recorder.rig(self.rig, name="refined")
+        self.views: dict = {}
+        self.at: tuple[str, Frame] | None = None
+        self.index = 0
+
+    def add(self, pairing: Pairing, image: np.ndarray, fused: Fused, truth, record: dict) -> None:
+        from ..rerun3d import CameraView
+
+        if self.at is not None and (
+            self.at[0] != pairing.sequence or pairing.frame.key - self.at[1].key > self.same_instant_ns
+        ):
+            self.flush()
+        if self.at is None:
+            self.at = (pairing.sequence, pairing.frame)
+        checked = (record.get("checked") or {}).get("abs_rel")
+        self.views[pairing.camera] = CameraView(
+            self.layout.cameras[pairing.camera].camera, image[..., ::-1],
+            {"kept": fused.distance, "filled": fused.dense}, truth,
+            {"abs_rel": checked} if isinstance(checked, float) else {},
+        )  # fmt: skip
+
+    def flush(self) -> None:
+        if self.at is not None:
+            frame = self.at[1]
+            self.recorder.instant(frame.key, self.index, self.views, frame.pose, self.rig)
+            self.index += 1
+        self.views, self.at = {}, None
+
+    def __enter__(self) -> InstantRecorder:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.flush()
+            self.recorder.close()
+        else:
+            self.recorder.discard()
+
+
+def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rerun=False) -> dict[str, Any]:
+    """The matching itself: every output of ``paired`` written into ``out`` (with ``rerun``, the 3-D
+    recording too: :class:`InstantRecorder`); the summary, returned."""
     begun = time.perf_counter()
+    recorded_rig = {name: spec.cam_to_body.copy() for name, spec in layout.cameras.items()}
     refinement = None
     if refine:
         refinement = refine_rig(layout, refine)
@@ -474,41 +540,13 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress) -> 
     timer = Timer()
     store = PairStore(layout, matcher, timer, paired) if isinstance(matcher, StereoSettings) else None
     images = []
-    bar = tqdm(paired, desc=f"stereo ({'sgbm' if store else 'sweep'})", unit="image", disable=not progress)
-    for pairing in bar:
-        start = time.perf_counter()
-        image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
-        own = (pairing.camera, pairing.frame)
-        if store is not None:
-            found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
-            used = [(p, m) for p, m in found if m is not None]
-            fuse_start = time.perf_counter()
-            fused = fuse([m for _, m in used]) if used else None
-            timer.add("fuse", fuse_start)
-        else:
-            used = [(p, None) for p in pairing.partners]
-            fused = _sweep(layout, pairing, matcher, image)
-        if fused is None:  # every partner left out: nothing to say about this image
-            fused = nothing(layout.cameras[pairing.camera].camera)
-        *maps, picture = outputs(pairing)
-        for path, array in zip(maps, (fused.distance, fused.dense, fused.confidence), strict=True):
-            atomic_write_npy(out / path, array)
-        truth = _truth(layout, pairing)
-        tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
-        atomic_write_bytes(out / picture, cv2.imencode(".png", tiles)[1].tobytes())
-        record: dict[str, Any] = {
-            "image": pairing.name,
-            "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
-            "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
-            "kept": round(float((fused.distance > 0).mean()), 4),
-            "seen": round(float((fused.dense > 0).mean()), 4),
-        }
-        if truth is not None:
-            seen = fused.dense > 0
-            record["checked"] = score(fused.distance, truth, seen)
-            record["dense"] = score(fused.dense, truth, seen)
-        record["seconds"] = round(time.perf_counter() - start, 4)
-        images.append(record)
+    recorder = InstantRecorder(out / RECORDING, layout, recorded_rig, refinement) if rerun else None
+    with recorder or contextlib.nullcontext():
+        bar = tqdm(
+            paired, desc=f"stereo ({'sgbm' if store else 'sweep'})", unit="image", disable=not progress
+        )
+        for pairing in bar:
+            images.append(_image(layout, pairing, matcher, store, timer, out, recorder))
     seconds = time.perf_counter() - begun
     if isinstance(matcher, StereoSettings):
         settings = {"matcher": "sgbm", **{k: getattr(matcher, k) for k in ("min_distance", "max_distance",
@@ -533,6 +571,45 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress) -> 
     }
 
 
+def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, Any]:
+    """One image's maps (against its partners) written into ``out``; its summary record, returned."""
+    start = time.perf_counter()
+    image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
+    own = (pairing.camera, pairing.frame)
+    if store is not None:
+        found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
+        used = [(p, m) for p, m in found if m is not None]
+        fuse_start = time.perf_counter()
+        fused = fuse([m for _, m in used]) if used else None
+        timer.add("fuse", fuse_start)
+    else:
+        used = [(p, None) for p in pairing.partners]
+        fused = _sweep(layout, pairing, matcher, image)
+    if fused is None:  # every partner left out: nothing to say about this image
+        fused = nothing(layout.cameras[pairing.camera].camera)
+    *maps, picture = outputs(pairing)
+    for path, array in zip(maps, (fused.distance, fused.dense, fused.confidence), strict=True):
+        atomic_write_npy(out / path, array)
+    truth = _truth(layout, pairing)
+    tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
+    atomic_write_bytes(out / picture, cv2.imencode(".png", tiles)[1].tobytes())
+    record: dict[str, Any] = {
+        "image": pairing.name,
+        "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
+        "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
+        "kept": round(float((fused.distance > 0).mean()), 4),
+        "seen": round(float((fused.dense > 0).mean()), 4),
+    }
+    if truth is not None:
+        seen = fused.dense > 0
+        record["checked"] = score(fused.distance, truth, seen)
+        record["dense"] = score(fused.dense, truth, seen)
+    record["seconds"] = round(time.perf_counter() - start, 4)
+    if recorder is not None:
+        recorder.add(pairing, image, fused, truth, record)
+    return record
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="fisheyedepth-multiview", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
@@ -551,6 +628,8 @@ def main(argv: list[str] | None = None) -> int:
     refine_help = "refine the rig's extrinsics from its images first (rotation, the default, or pose: also "
     refine_help += "the translation's direction); writes OUT/rig.yaml"
     parser.add_argument("--refine", nargs="?", const="rotation", choices=REFINE, help=refine_help)
+    parser.add_argument("--rerun", action="store_true",
+                        help=f"also write OUT/{RECORDING}, a 3-D recording for the Rerun viewer")  # fmt: skip
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
@@ -585,8 +664,9 @@ def main(argv: list[str] | None = None) -> int:
             not args.quiet,
             args.max_images,
             args.refine,
+            args.rerun,
         )
-    except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError) as err:
+    except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except OSError as err:  # the disk filled or the folder turned read-only during the run

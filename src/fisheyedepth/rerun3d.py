@@ -1,0 +1,306 @@
+"""3-D recordings of what the project computes, for the Rerun viewer (``rerun OUT/recording.rrd``): the rig's
+cameras in the body frame, the body's path from odometry, each camera's image beside its distance maps, and
+every camera's points in one world frame, on two timelines to scrub.
+
+The one module that imports ``rerun`` (the ``viz`` extra: ``pip install -e ".[viz]"``, or ``make install``);
+it is imported when a :class:`RigRecorder` is made, so the rest of the package runs without it.
+
+Entities of a recording (``<camera>`` and ``<map>`` as the caller names them):
+
+- ``world/body``: the body's pose in the world at each instant (identity where none is known);
+  ``world/body/<rig>/<camera>``: each camera's pose in the body frame (static, :meth:`RigRecorder.rig`;
+  ``<rig>`` is ``rig``, or ``refined`` for a refined calibration logged beside it), with its axes and name;
+- ``world/trajectory``: the body's positions so far, one line strip in the order of the instants' indices
+  (an instant may be logged in parts, camera by camera: its index then names one position);
+- ``world/points/<camera>/<map>``: the map's points, already in the world frame, coloured by the image;
+  ``world/points/<camera>/ground_truth``: the ground truth's, in one colour (:data:`TRUTH_COLOUR`);
+- ``images/<camera>/image``: the image as JPEG; ``images/<camera>/<map>/colour``: the map on a log
+  colour scale (:func:`fisheyedepth.viz.colourise`, near = warm; JPEG too), and
+  ``images/<camera>/<map>/metres`` the map itself as a depth image in metres (0 = no value);
+  ``images/<camera>/ground_truth/...`` likewise;
+- ``scores/<camera>/<name>``: each score, one scalar per instant.
+
+Timelines: ``time`` (a duration, the instant's timestamp in nanoseconds on the source's own clock) and
+``frame`` (the instant's index). No pinhole frustum is drawn: a fisheye is no pinhole, so a camera is
+shown by its pose, its image and its points.
+
+Points: a pixel is a point where its map holds a finite distance above 0 and the camera model gives it a
+ray; point = ray x distance, then camera -> body -> world. At most ``points_per_image`` points per map
+and image, drawn uniformly at random without replacement by a generator seeded once per recording
+(seed 0): the same inputs give the same recording.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import uuid
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+from .cameras import CameraModel, compute_rays
+from .outputs import place_new
+from .utils import temporary_beside
+from .viz import colourise
+
+TRUTH_COLOUR = (255, 0, 255)  # ground-truth points: magenta, apart from any image's colours
+JPEG_QUALITY = 90
+SEED = 0
+AXIS_LENGTH = 0.05  # metres: each camera's axes (x red, y green, z blue) at its pose in the body frame
+
+
+def import_rerun():
+    """The ``rerun`` module, or an ImportError that names the extra to install."""
+    try:
+        import rerun
+    except ImportError as err:
+        raise ImportError(
+            'Rerun recordings need the rerun-sdk package: pip install -e ".[viz]" (or make install)'
+        ) from err
+    return rerun
+
+
+@dataclass
+class CameraView:
+    """One camera at one instant: its model, its image (``H x W x 3`` uint8 RGB, or ``H x W`` grey), its
+    distance ``maps`` (name -> ``H x W`` metres along each pixel's ray, 0 = no value; NaN, infinite and
+    negative values count as none), optional ground truth (``H x W`` metres, 0 = none) and scores."""
+
+    camera: CameraModel
+    image: np.ndarray
+    maps: Mapping[str, np.ndarray]
+    ground_truth: np.ndarray | None = None
+    scores: Mapping[str, float] = field(default_factory=dict)
+
+
+class RigRecorder:
+    """Writes one ``.rrd`` recording (module docstring): :meth:`rig` once (or again with another
+    ``name``), :meth:`instant` per instant, :meth:`close` at the end, or use it in a ``with`` block.
+
+    The recording is written to a hidden temporary file beside ``path`` and put at ``path`` by
+    :meth:`close`; an exception in the ``with`` block (or :meth:`discard`) removes it, so ``path`` holds a
+    whole recording or nothing. An existing ``path`` is refused unless ``overwrite``.
+
+    ``colour_range``: the ``(near, far)`` metres of the colourised maps; None: the 2nd and 98th
+    percentiles of the first map recorded, kept for the whole recording (one colour, one distance)."""
+
+    def __init__(
+        self,
+        path: Path,
+        application: str = "fisheyedepth",
+        points_per_image: int = 100_000,
+        overwrite: bool = False,
+    ):
+        self.path = Path(path)
+        if int(points_per_image) < 1:
+            raise ValueError(f"points_per_image: {points_per_image}; at least 1")
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
+        self.rr = import_rerun()
+        self.points_per_image, self.overwrite = int(points_per_image), overwrite
+        self.colour_range: tuple[float, float] | None = None
+        self.rigs: dict[str, dict[str, np.ndarray]] = {}
+        self.latest_rig: dict[str, np.ndarray] | None = None
+        self.positions: dict[int, np.ndarray] = {}  # the body's position by instant index
+        self.rng = np.random.default_rng(SEED)
+        self._rays: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._temporary = contextlib.ExitStack()  # the package's one temporary-beside-the-target
+        self.tmp: Path | None = self._temporary.enter_context(temporary_beside(self.path))
+        self.stream = self.rr.RecordingStream(application, recording_id=str(uuid.uuid4()))
+        self.stream.set_log_time_enabled(False)  # the two timelines only: time and frame
+        self.stream.save(str(self.tmp))
+
+    # ------------------------------------------------------------------------------------ the rig
+    def rig(self, cam_to_body: Mapping[str, np.ndarray], name: str = "rig") -> None:
+        """Each camera's 4x4 pose in the body frame, static, under ``world/body/<name>/<camera>``; the
+        rig :meth:`instant` uses when it is given none is the last one logged."""
+        rr, poses = self.rr, {c: rigid(T, f"cam_to_body[{c!r}]") for c, T in cam_to_body.items()}
+        for camera, T in poses.items():
+            entity = f"world/body/{name}/{camera}"
+            self.stream.log(entity, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
+            self.stream.log(entity, rr.TransformAxes3D(AXIS_LENGTH), static=True)
+            self.stream.log(f"{entity}/centre", rr.Points3D([[0.0, 0.0, 0.0]], labels=[camera]), static=True)
+        self.rigs[name] = poses
+        self.latest_rig = poses
+
+    # ------------------------------------------------------------------------------- an instant
+    def instant(
+        self,
+        timestamp_ns: int,
+        index: int,
+        views: Mapping[str, CameraView],
+        body_to_world: np.ndarray | None = None,
+        cam_to_body: Mapping[str, np.ndarray] | None = None,
+    ) -> None:
+        """Every camera of ``views`` at one instant (module docstring). ``body_to_world``: the body's
+        4x4 pose (None: identity); ``cam_to_body``: the cameras' poses on the body (None: the last
+        :meth:`rig`, identity for a camera it does not name)."""
+        self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
+        self.stream.set_time("frame", sequence=int(index))
+        body = np.eye(4) if body_to_world is None else rigid(body_to_world, "body_to_world")
+        self._log_body(body, int(index))
+        rig = cam_to_body if cam_to_body is not None else (self.latest_rig or {})
+        for camera, view in views.items():
+            extrinsic = rigid(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
+            self._log_view(camera, view, body @ extrinsic)
+
+    def _log_body(self, body: np.ndarray, index: int) -> None:
+        rr = self.rr
+        self.stream.log("world/body", rr.Transform3D(translation=body[:3, 3], mat3x3=body[:3, :3]))
+        self.positions[index] = body[:3, 3].copy()  # an instant logged again moves, not adds, its point
+        path = np.array([self.positions[i] for i in sorted(self.positions)], np.float32)
+        self.stream.log("world/trajectory", rr.LineStrips3D([path]))
+
+    def _log_view(self, camera: str, view: CameraView, cam_to_world: np.ndarray) -> None:
+        rr, size = self.rr, (view.camera.height, view.camera.width)
+        rgb = image_rgb(view.image, size, camera)
+        self.stream.log(f"images/{camera}/image", self.encoded(rgb))
+        for name, values in view.maps.items():
+            distance = checked_map(values, size, f"{camera}: map {name!r}")
+            self._log_map(f"images/{camera}/{name}", distance)
+            points, keep = self.points(view.camera, distance, cam_to_world)
+            self.stream.log(f"world/points/{camera}/{name}", rr.Points3D(points, colors=rgb[keep]))
+        if view.ground_truth is not None:
+            truth = checked_map(view.ground_truth, size, f"{camera}: ground truth")
+            self._log_map(f"images/{camera}/ground_truth", truth)
+            points, _ = self.points(view.camera, truth, cam_to_world)
+            self.stream.log(f"world/points/{camera}/ground_truth", rr.Points3D(points, colors=TRUTH_COLOUR))
+        for name, value in view.scores.items():
+            if value is not None and np.isfinite(value):
+                self.stream.log(f"scores/{camera}/{name}", rr.Scalars(float(value)))
+
+    def encoded(self, rgb: np.ndarray):
+        """``rgb`` (``H x W x 3`` uint8) as a JPEG image of the recording."""
+        return self.rr.EncodedImage(contents=jpeg(rgb), media_type="image/jpeg")
+
+    def _log_map(self, entity: str, distance: np.ndarray) -> None:
+        """``distance`` (0 = no value) colourised and as a depth image in metres."""
+        if self.colour_range is None:
+            self.colour_range = colour_range(distance)
+        near, far = self.colour_range
+        colours = colourise(distance, near, far)
+        self.stream.log(
+            f"{entity}/colour", self.rr.EncodedImage(contents=jpeg(colours), media_type="image/jpeg")
+        )
+        self.stream.log(f"{entity}/metres", self.rr.DepthImage(distance, meter=1.0))
+
+    # ------------------------------------------------------------------------------------ points
+    def rays(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+        """``camera``'s unit rays ``[H, W, 3]`` (float64) and which pixels have one, computed once."""
+        if camera not in self._rays:
+            rays, valid = compute_rays(camera, torch.device("cpu"), torch.float64)
+            self._rays[camera] = rays.numpy(), valid.numpy()
+        return self._rays[camera]
+
+    def points(
+        self, camera: CameraModel, distance: np.ndarray, cam_to_world: np.ndarray
+    ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """World points ``[N, 3]`` float32 of ``distance``'s pixels with a value and a ray, at most
+        ``points_per_image`` of them (module docstring), and their pixels ``(rows, columns)``."""
+        rays, valid = self.rays(camera)
+        rows, cols = np.nonzero(valid & (distance > 0))
+        if len(rows) > self.points_per_image:
+            chosen = np.sort(self.rng.choice(len(rows), self.points_per_image, replace=False))
+            rows, cols = rows[chosen], cols[chosen]
+        local = rays[rows, cols] * distance[rows, cols, None].astype(np.float64)
+        world = local @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+        return world.astype(np.float32), (rows, cols)
+
+    # ------------------------------------------------------------------------------------ the file
+    def close(self) -> None:
+        """Finish the recording and put it at ``path`` (refused if a file took the name meanwhile and
+        ``overwrite`` is off: FileExistsError, the temporary file removed)."""
+        if self.tmp is None:
+            return
+        self._finish()
+        try:
+            if self.overwrite:
+                os.replace(self.tmp, self.path)
+            else:
+                place_new(str(self.tmp), self.path)
+        finally:
+            self._temporary.close()
+            self.tmp = None
+
+    def discard(self) -> None:
+        """Stop recording and remove the temporary file; nothing is written at ``path``."""
+        if self.tmp is None:
+            return
+        with contextlib.suppress(Exception):
+            self._finish()
+        self._temporary.close()
+        self.tmp = None
+
+    def _finish(self) -> None:
+        self.stream.flush()
+        self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
+        self.stream.disconnect()
+
+    def __enter__(self) -> RigRecorder:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.discard()
+
+    def __del__(self) -> None:  # never left behind by an object dropped unclosed
+        if getattr(self, "tmp", None) is not None:
+            with contextlib.suppress(Exception):
+                self.discard()
+
+
+# ---------------------------------------------------------------------------------------- helpers
+def rigid(T: Any, what: str) -> np.ndarray:
+    """``T`` as a finite 4x4 float64 array, else a ValueError naming ``what``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{what}: a finite 4x4 transform expected, got shape {T.shape}")
+    return T
+
+
+def checked_map(values: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray:
+    """``values`` (``H x W`` metres) as float32 with every non-finite or non-positive value 0."""
+    values = np.asarray(values)
+    if values.shape != size:
+        raise ValueError(f"{what}: shape {values.shape}, but the camera is {size[1]}x{size[0]} (W x H)")
+    values = values.astype(np.float32)
+    return np.where(np.isfinite(values) & (values > 0), values, np.float32(0.0))
+
+
+def image_rgb(image: np.ndarray, size: tuple[int, int], camera: str) -> np.ndarray:
+    """``image`` (``H x W x 3`` RGB or ``H x W`` / ``H x W x 1`` grey, uint8) as ``H x W x 3`` RGB."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.shape[:2] != size or image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3):
+        raise ValueError(
+            f"{camera}: image of shape {image.shape}, expected {size[0]} x {size[1]} (x 3 for RGB)"
+        )
+    if image.dtype != np.uint8:
+        raise ValueError(f"{camera}: image of type {image.dtype}, expected uint8")
+    return np.repeat(image[..., None], 3, axis=2) if image.ndim == 2 else image
+
+
+def jpeg(rgb: np.ndarray) -> bytes:
+    ok, encoded = cv2.imencode(".jpg", rgb[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise ValueError("the image could not be encoded as JPEG")
+    return encoded.tobytes()
+
+
+def colour_range(distance: np.ndarray) -> tuple[float, float]:
+    """The 2nd and 98th percentiles of ``distance``'s values (0.5 to 80 m for a map without any)."""
+    values = distance[distance > 0]
+    if values.size == 0:
+        return 0.5, 80.0
+    near, far = np.percentile(values, [2, 98])
+    return float(near), float(max(far, near * 1.01))
