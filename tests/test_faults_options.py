@@ -87,6 +87,75 @@ REFUSED = {
     "data.generate.frames=5": "data.generate.frames: 5 is not a whole number >= 9 (3 per split)",
     "data.generate.supersample=0": "data.generate.supersample: 0 is not a whole number >= 1",
     "data.generate.seed=-1": "data.generate.seed: -1 is not a whole number >= 0",
+    # the trainer: a traceback (max_steps), a run without end (max_epochs -1), and the scores of a network
+    # never trained (max_epochs 0, no training batch)
+    "trainer.max_steps=-5": (
+        "trainer.max_steps: -5 is not a whole number >= 1 or -1 (-1: no limit but max_epochs)"
+    ),
+    "trainer.max_steps=0": (
+        "trainer.max_steps: 0 is not a whole number >= 1 or -1 (-1: no limit but max_epochs)"
+    ),
+    "trainer.max_epochs=-1": (
+        "trainer.max_epochs: -1 is not a whole number >= 1 (-1 would train without end, 0 not at all)"
+    ),
+    "trainer.max_epochs=0": (
+        "trainer.max_epochs: 0 is not a whole number >= 1 (-1 would train without end, 0 not at all)"
+    ),
+    "trainer.max_epochs=2.5": "trainer.max_epochs: 2.5 is not a whole number",
+    "trainer.limit_train_batches=0": (
+        "trainer.limit_train_batches: 0 is not a fraction in (0, 1] or a whole number of batches >= 1"
+    ),
+    "trainer.limit_val_batches=1.5": (
+        "trainer.limit_val_batches: 1.5 is not a fraction in (0, 1] or a whole number of batches >= 0 "
+        "(0: no validation)"
+    ),
+    "+trainer.val_check_interval=0": (
+        "trainer.val_check_interval: 0 is not a fraction in (0, 1] or a whole number of batches >= 1"
+    ),
+    "+trainer.accumulate_grad_batches=0": "trainer.accumulate_grad_batches: 0 is not a whole number >= 1",
+    "trainer.gradient_clip_val=-1": (
+        "trainer.gradient_clip_val: -1 is not a finite number >= 0 (null or 0: no clipping)"
+    ),
+    "trainer.gradient_clip_val=nan": (
+        "trainer.gradient_clip_val: nan is not a finite number >= 0 (null or 0: no clipping)"
+    ),
+    "trainer.log_every_n_steps=0": "trainer.log_every_n_steps: 0 is not a whole number >= 1",
+    "trainer.check_val_every_n_epoch=0": "trainer.check_val_every_n_epoch: 0 is not a whole number >= 1",
+    "trainer.num_sanity_val_steps=-2": (
+        "trainer.num_sanity_val_steps: -2 is not a whole number >= -1 (-1: every validation batch)"
+    ),
+    "trainer.precision=17": (
+        "trainer.precision: 17 is not one of auto, 32-true, 32, bf16-mixed, bf16-true, bf16, 16-mixed, "
+        "16-true, 16, 64-true, 64, transformer-engine, transformer-engine-float16"
+    ),
+    "trainer.accelerator=tpu": "trainer.accelerator: 'tpu' is not one of auto, cpu, cuda, gpu, mps",
+    "trainer.devices=0": (
+        "trainer.devices: 0 is not a whole number >= 1, -1 (every device), auto or a list of device numbers"
+    ),
+    "trainer.fast_dev_run=-1": "trainer.fast_dev_run: -1 is not a boolean or a whole number of batches >= 1",
+    "trainer.deterministic=maybe": "trainer.deterministic: 'maybe' is not true, false or warn",
+    # options each of their kind that contradict each other: a traceback in the first validation (no
+    # scale), a network that predicted 173 m everywhere (min_distance above max_distance)
+    "model.net.scales=[]": (
+        "model.net.scales: [] does not hold 0; the distance the network gives is that of scale 0 (full "
+        "resolution): [0], or [0, 1, 2, 3] for the loss at four scales"
+    ),
+    "model.net.scales=[1,2]": (
+        "model.net.scales: [1, 2] does not hold 0; the distance the network gives is that of scale 0 (full "
+        "resolution): [0], or [0, 1, 2, 3] for the loss at four scales"
+    ),
+    "model.net.min_distance=200": (
+        "model.net.min_distance: 200 is not below model.net.max_distance (150.0); every distance the "
+        "network gives lies between them"
+    ),
+    "model.net.max_distance=0.5": (
+        "model.net.min_distance: 0.5 is not below model.net.max_distance (0.5); every distance the "
+        "network gives lies between them"
+    ),
+    "model.objective.source_offsets=[]": (
+        "model.objective.source_offsets: [] with no model.objective.rig_offsets names no source frame; the "
+        "photometric loss warps at least one: [-1, 1], or rig_offsets [0] on a rig"
+    ),
 }
 
 
@@ -96,6 +165,32 @@ def test_an_option_not_of_its_kind_is_named_before_anything_is_rendered_or_train
 ):
     assert one_line_error(train, train_cfg(tmp_path, override), capsys) == f"error: {REFUSED[override]}"
     assert list(tmp_path.iterdir()) == []  # no data rendered, no run folder
+
+
+def test_the_multiview_network_without_sources_is_refused(tmp_path, capsys):
+    """The cost volume matches the target against its sources: with none, a traceback in the first step."""
+    cfg = train_cfg(tmp_path, "model=fisheyedepth_mv", "model.objective.source_offsets=[]")
+    assert one_line_error(train, cfg, capsys) == (
+        "error: model.objective.source_offsets: [] with no model.objective.rig_offsets names no source "
+        "frame; the photometric loss warps at least one: [-1, 1], or rig_offsets [0] on a rig"
+    )
+    cfg = train_cfg(tmp_path, "model=fisheyedepth_mv", "model.net.cost_volume_min=100")
+    assert one_line_error(train, cfg, capsys) == (
+        "error: model.net.cost_volume_min: 100 is not below model.net.cost_volume_max (80.0); the cost "
+        "volume's hypotheses lie between them"
+    )
+    assert list(tmp_path.iterdir()) == []
+    cfg = train_cfg(tmp_path, "model.objective.source_offsets=[]", "model.objective.rig_offsets=[0]")
+    check_training_of(cfg)  # the rig's other cameras are sources enough
+
+
+def check_training_of(cfg) -> None:
+    """What train.py's plan checks beyond config.check_options: the trainer, options that contradict each
+    other, memory."""
+    from fisheyedepth.config import rig_offsets, source_offsets
+    from fisheyedepth.plan import check_training, data_plan, model_plan
+
+    check_training(cfg, model_plan(cfg), data_plan(cfg, source_offsets(cfg), rig_offsets(cfg)))
 
 
 def test_each_world_of_a_mixed_dataset_is_checked(tmp_path, capsys):
@@ -111,15 +206,19 @@ SHIPPED = [
     *([f"+experiment={e}"] for e in EXPERIMENTS),
     *([f"model={m.stem}"] for m in sorted((ROOT / "conf" / "model").glob("*.yaml"))),
     *([f"data={d.stem}"] for d in sorted((ROOT / "conf" / "data").glob("[!_]*.yaml"))),
+    *([f"trainer={t.stem}"] for t in sorted((ROOT / "conf" / "trainer").glob("*.yaml"))),
     ["model/scheduler=cosine"],
     ["+debug=tiny"],
 ]
 
 
 @pytest.mark.parametrize("overrides", SHIPPED, ids=lambda o: o[0])
-def test_every_shipped_config_passes_the_checks(overrides):
+def test_every_shipped_config_passes_the_checks(overrides, tmp_path):
+    paths = [f"paths.data_dir={tmp_path / 'data'}", f"paths.output_dir={tmp_path / 'run'}"]
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        check_config(compose("train", overrides))
+        cfg = compose("train", [*overrides, *paths])
+    check_config(cfg)
+    check_training_of(cfg)
 
 
 def test_the_classes_that_read_the_options_check_them_too(tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import builtins
 import json
+import logging
 import os
 import re
 import signal
@@ -82,16 +83,33 @@ def first_run(world, tmp_path_factory):
             writes.append(Path(file))
         return real_open(file, mode, *args, **kwargs)
 
+    logged: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda record: logged.append(record.getMessage())
+    logger = logging.getLogger("fisheyedepth")
+    level = logger.level
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(tempfile, "tempdir", str(elsewhere))
         patch.setenv("TMPDIR", str(elsewhere))
         patch.setattr(builtins, "open", recording_open)
-        train(train_cfg(base / "run", world))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        try:
+            train(train_cfg(base / "run", world))
+        finally:
+            logger.removeHandler(handler)
+            logger.setLevel(level)
     root = world / "synthetic_kitti360_64_seed0_f12"  # the world the run trained on
     return SimpleNamespace(
-        dir=base / "run", elsewhere=elsewhere, writes=writes, root=root,
+        dir=base / "run", elsewhere=elsewhere, writes=writes, root=root, logged=logged,
         last=base / "run" / "checkpoints" / "last.ckpt", calib=root / "calibration" / "image_02.yaml",
     )  # fmt: skip
+
+
+def test_a_run_states_its_accelerator(first_run):
+    """train.py's default trainer takes the machine's accelerator (CUDA where torch sees a GPU) and says
+    which; without a GPU, the CPU."""
+    assert "accelerator: cpu" in first_run.logged
 
 
 # ------------------------------------------------------------------ one run per folder
@@ -168,7 +186,7 @@ def test_a_run_into_a_folder_another_run_has_locked_is_refused(world, tmp_path, 
 def test_checkpoints_are_written_beside_their_target(first_run):
     folder = first_run.dir / "checkpoints"
     written = [p for p in first_run.writes if ".ckpt" in p.name or p.is_relative_to(first_run.elsewhere)]
-    names = {re.sub(r"\.\d+\.tmp$", ".PID.tmp", p.name) for p in written}
+    names = {re.sub(r"\.\w+\.\d+\.tmp$", ".PID.tmp", p.name) for p in written}  # .NAME.<random>.<pid>.tmp
     assert names == {".last.ckpt.PID.tmp", ".best-000.ckpt.PID.tmp"}, written
     assert all(p.parent == folder and p.name.endswith(f".{os.getpid()}.tmp") for p in written)
     assert list(first_run.elsewhere.iterdir()) == []
@@ -198,7 +216,7 @@ def test_a_kill_during_a_save_keeps_the_previous_checkpoint(tmp_path, caplog):
     _, status = os.waitpid(child, 0)
     assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL
     assert last.read_bytes() == before
-    stale = last.with_name(f".last.ckpt.{child}.tmp")
+    (stale,) = last.parent.glob(f".last.ckpt.*.{child}.tmp")  # .NAME.<random>.<pid>.tmp
     assert stale.stat().st_size == len(before) // 2
     live = last.with_name(f".best-001.ckpt.{os.getppid()}.tmp")  # a writer that still runs
     live.write_bytes(b"being written")

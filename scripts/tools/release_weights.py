@@ -38,14 +38,14 @@ def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False
     target = out / name
     if target.exists() and not overwrite:
         raise FileExistsError(f"{target} exists; pass --overwrite to replace it")
+    sums_path = out / CHECKSUMS
+    sums = read_checksums(sums_path) if sums_path.is_file() else {}  # refused before anything is written
     slim = release_checkpoint(read_checkpoint(ckpt))
     buffer = io.BytesIO()
     torch.save(slim, buffer)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(target, buffer.getvalue())
     FisheyeDepthModule.from_checkpoint(target)  # it loads as the commands will load it
-    sums_path = out / CHECKSUMS
-    sums = read_checksums(sums_path) if sums_path.is_file() else {}
     sums[name] = digest = sha256(target)
     atomic_write_text(sums_path, "".join(f"{d}  {file}\n" for file, d in sorted(sums.items())))
     return target, digest

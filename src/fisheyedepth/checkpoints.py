@@ -3,7 +3,10 @@
 Checkpoints are read with ``torch.load(weights_only=True)``: a malicious pickle executes nothing. A file
 that is empty, truncated, random bytes, another project's checkpoint, or a FisheyeDepth checkpoint of
 incompatible shape raises :class:`CheckpointError` with the path and what is wrong with it, instead of
-``PytorchStreamReader failed``, ``EOFError`` or a ``KeyError`` deep inside Lightning.
+``PytorchStreamReader failed``, ``EOFError`` or a ``KeyError`` deep inside Lightning. So does one whose
+weights are not all finite (a network that predicts no distance, scored as NaN), and one whose
+hyper-parameters lack the network's group or contradict each other (``net.min_distance`` not below
+``net.max_distance``: one distance everywhere), wherever it is read: predict, eval, export and resume.
 
 Checkpoints are written by :func:`write_checkpoint` (in training through
 :class:`~fisheyedepth.training.AtomicCheckpointIO`):
@@ -26,8 +29,11 @@ from typing import Any
 
 import torch
 
-from .migration import current_hparams, nested_hparams
-from .utils import pid_alive
+from .migration import FLAT_KEYS, current_hparams, nested_hparams
+from .models.depth_net import check_network_memory
+from .option_checks import MODEL_OPTIONS, check_options
+from .options import check_combinations, net_options
+from .utils import atomic_target, pid_alive
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
@@ -59,7 +65,25 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         ) from None
     if not isinstance(ckpt, dict):
         raise CheckpointError(path, f"holds a {type(ckpt).__name__}, not a checkpoint dictionary")
+    check_finite(path, ckpt.get("state_dict"))
     return ckpt
+
+
+def check_finite(path: str | os.PathLike, state: Any) -> None:
+    """A :class:`CheckpointError` naming ``path`` and the first tensor of the state dict ``state`` that
+    holds a NaN or an infinity (a run that diverged): such a network predicts no distance, and its
+    scores are NaN."""
+    if not isinstance(state, dict):
+        return
+    for key, value in state.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point():
+            bad = int(value.numel() - torch.isfinite(value).sum())
+            if bad:
+                raise CheckpointError(
+                    path,
+                    f"weight {key} holds {bad} NaN or infinite value(s) of {value.numel()}; a network with "
+                    "them predicts no distance (a diverged run: take an earlier checkpoint)",
+                )
 
 
 # The released weights (weights/README.md): a source checkout has them; predict.py, eval.py and export.py
@@ -80,15 +104,21 @@ def sha256(path: str | os.PathLike) -> str:
 
 
 def read_checksums(path: str | os.PathLike) -> dict[str, str]:
-    """``sha256sum``'s format: ``<64 hex digits>  <file name>`` per line."""
-    sums = {}
+    """``sha256sum``'s format: ``<64 hex digits>  <file name>`` per line.
+    A file named twice is refused: which of its checksums holds cannot be told."""
+    sums, lines = {}, {}
     for n, line in enumerate(Path(path).read_text().splitlines(), 1):
         if not line.strip():
             continue
         parts = line.split()
         if len(parts) != 2 or not re.fullmatch(r"[0-9a-f]{64}", parts[0]):
             raise CheckpointError(path, f"line {n}: not '<sha256>  <file>': {line!r}")
-        sums[parts[1].lstrip("*")] = parts[0]
+        name = parts[1].lstrip("*")
+        if name in sums:
+            raise CheckpointError(
+                path, f"line {n}: {name} is listed again (first on line {lines[name]}); one checksum per file"
+            )
+        sums[name], lines[name] = parts[0], n
     return sums
 
 
@@ -131,10 +161,44 @@ def module_arguments(path: str | os.PathLike, ckpt: dict[str, Any]) -> dict[str,
     missing = [k for k in ("state_dict", "hyper_parameters") if k not in ckpt]
     if missing:
         raise CheckpointError(path, f"not a FisheyeDepth checkpoint (no {' / '.join(missing)})")
+    check_hyper_parameters(path, ckpt["hyper_parameters"])
     hparams = current_hparams(ckpt["hyper_parameters"])
     # the ImageNet file of the training machine is not needed: weights follow
     hparams["net"] = {**hparams["net"], "weights": None}
     return hparams
+
+
+GROUPS = ("net", "objective", "optimizer", "scheduler")  # the module's option groups (fisheyedepth.options)
+NET_FLAT = tuple(k for k, name in FLAT_KEYS.items() if name.startswith("net."))
+
+
+def check_hyper_parameters(path: str | os.PathLike, stored: Any) -> None:
+    """A :class:`CheckpointError` naming ``path`` when its hyper-parameters ``stored`` cannot describe its
+    network: not a mapping, grouped options without the ``net`` group (the network's options, which
+    the module would otherwise fill with today's defaults), or a ``net`` that is no mapping; then each
+    option of its kind, the options that contradict each other
+    (:func:`~fisheyedepth.options.check_combinations`) and a network larger than this machine's memory
+    (:func:`~fisheyedepth.models.depth_net.check_network_memory`), before any weight is allocated."""
+    if not isinstance(stored, dict):
+        raise CheckpointError(path, f"its hyper_parameters are a {type(stored).__name__}, not a mapping")
+    grouped = any(isinstance(stored.get(g), dict) for g in GROUPS)
+    if "net" in stored and not isinstance(stored["net"], dict):
+        raise CheckpointError(
+            path, f"hyper_parameters.net is a {type(stored['net']).__name__}, not a mapping"
+        )
+    if "net" not in stored and (grouped or not any(k in stored for k in NET_FLAT)):
+        raise CheckpointError(
+            path,
+            "hyper_parameters has no net group (the network's options: encoder, n_bins, min_distance, "
+            "max_distance, scales, ...); its network cannot be built as it was trained",
+        )
+    try:
+        nested = nested_hparams(stored)
+        check_options(nested, MODEL_OPTIONS)
+        check_combinations(nested)
+        check_network_memory(net_options(**nested["net"]), "net.")
+    except ValueError as exc:
+        raise CheckpointError(path, f"hyper_parameters {exc}") from None
 
 
 def check_resumable(
@@ -149,6 +213,8 @@ def check_resumable(
         raise CheckpointError(
             path, f"cannot resume from it: no {', '.join(missing)} (not a Lightning training checkpoint)"
         )
+    if ckpt.get("hyper_parameters") is not None:
+        check_hyper_parameters(path, ckpt["hyper_parameters"])
     if callable(model):
         model = model()
     differing = network_differences(ckpt.get("hyper_parameters") or {}, model or {})
@@ -222,6 +288,10 @@ def model_from_checkpoint(
         raise CheckpointError(
             path, f"hyper_parameters do not fit FisheyeDepthModule ({exc}); another project's checkpoint?"
         ) from None
+    except CheckpointError:
+        raise
+    except ValueError as exc:  # an option of the wrong kind or range (check_numbers), named by the module
+        raise CheckpointError(path, f"hyper_parameters {exc}") from None
     state = ckpt["state_dict"]
     if skip and isinstance(state, dict):
         state = {k: v for k, v in state.items() if not k.startswith(skip)}
@@ -248,30 +318,18 @@ def load_weights(model: torch.nn.Module, path: str | os.PathLike, state: Any) ->
 
 
 # ------------------------------------------------------------------ writing
-STALE = re.compile(r"\.(?P<name>.+\.ckpt)\.(?P<pid>\d+)\.tmp")  # write_checkpoint's temporaries
-
-
-def temporary_path(path: Path) -> Path:
-    """Where :func:`write_checkpoint` writes ``path`` first: beside it, hidden, with this process's pid."""
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+# write_checkpoint's temporaries (utils.temporary_beside: .NAME.<random>.<pid>.tmp)
+STALE = re.compile(r"\.(?P<name>.+\.ckpt)\.(?:\w+\.)?(?P<pid>\d+)\.tmp")
 
 
 def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
-    """``torch.save`` into a temporary file beside ``path``, ``fsync``, then ``os.replace`` over it: the
-    previous file stays whole until the new one is. Never through the system temp folder, which may be
-    another filesystem (where a move becomes a copy that truncates the target first)."""
+    """``torch.save`` into a temporary file beside ``path``, ``fsync``, then ``os.replace`` over it
+    (:func:`~fisheyedepth.utils.atomic_target`): the previous file stays whole until the new one is.
+    Never through the system temp folder, which may be another filesystem (where a move becomes a copy
+    that truncates the target first)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = temporary_path(path)
-    try:
-        with open(tmp, "wb") as handle:
-            torch.save(checkpoint, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_target(path, sync=True) as tmp, open(tmp, "wb") as handle:
+        torch.save(checkpoint, handle)
     with contextlib.suppress(OSError):  # the rename itself, on filesystems that sync folders
         folder = os.open(path.parent, os.O_RDONLY)
         try:

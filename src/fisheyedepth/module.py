@@ -29,6 +29,7 @@ from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
 from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
 from .models.cost_volume import Sources
+from .models.depth_net import check_network_memory
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .options import check_numbers, model_options, unknown_options
 from .training import StepGuard, build_optimizer, build_scheduler
@@ -56,6 +57,7 @@ class FisheyeDepthModule(L.LightningModule):
         check_numbers(hp)
         self.save_hyperparameters(hp)
         net, objective = dict(hp["net"]), dict(hp["objective"])
+        check_network_memory(net, "net.")  # named in its group, before any weight is allocated
         self.depth_net = DepthNet(**net)
         translation = objective.pop("pose_translation_scale")
         if translation is None:  # Monodepth2's first parallax for this head's first distance

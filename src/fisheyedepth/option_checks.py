@@ -12,6 +12,12 @@ configured groups up front (:func:`fisheyedepth.config.check_options`) with the 
 config (``model.``, ``data.datamodule.``); the classes that read them check again with their own
 names (``objective.truth_weight``), for a caller without a config.
 
+The trainer's options (``trainer.*``, :data:`TRAINER_OPTIONS`) are checked by ``train.py``'s plan, with
+the options that contradict each other (:func:`fisheyedepth.options.check_combinations`) and those whose
+memory exceeds the machine's (:func:`check_memory`: each bound a formula of what the option allocates,
+beside its reader: :func:`fisheyedepth.synthetic.spec.check_render_memory`,
+:func:`fisheyedepth.models.depth_net.check_network_memory`).
+
 A table names the options whose kind it knows; the others (a file, a camera name, a string's choices
 with their own message) are left to their reader. The synthetic renderer's table,
 :data:`fisheyedepth.synthetic.GENERATE_OPTIONS`, lives beside the renderer (its effects and traffic
@@ -21,6 +27,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -65,6 +72,7 @@ class Number:
     optional: bool = False
     words: tuple[str, ...] = ()
     note: str = ""  # why the range, said after it
+    also: tuple[float, ...] = ()  # numbers taken outside the range (``max_steps: -1``, no limit)
 
     @property
     def noun(self) -> str:
@@ -76,13 +84,17 @@ class Number:
         low, high = math.isfinite(self.low), math.isfinite(self.high)
         if low and high:
             left, right = "(" if self.above else "[", ")" if self.below else "]"
-            return f"{self.noun} in {left}{_g(self.low)}, {_g(self.high)}{right}"
+            return " or ".join(
+                (f"{self.noun} in {left}{_g(self.low)}, {_g(self.high)}{right}", *map(_g, self.also))
+            )
         noun = self.noun if self.whole else "a finite number"
         if low:
-            return f"{noun} {'>' if self.above else '>='} {_g(self.low)}"
-        if high:
-            return f"{noun} {'<' if self.below else '<='} {_g(self.high)}"
-        return noun
+            text = f"{noun} {'>' if self.above else '>='} {_g(self.low)}"
+        elif high:
+            text = f"{noun} {'<' if self.below else '<='} {_g(self.high)}"
+        else:
+            text = noun
+        return " or ".join((text, *map(_g, self.also)))
 
     def check(self, name: str, value: Any) -> None:
         if (value is None and self.optional) or (isinstance(value, str) and value in self.words):
@@ -92,19 +104,24 @@ class Number:
             raise _refuse(name, value, " or ".join((self.noun, *self.words)))
         low = value > self.low if self.above else value >= self.low
         high = value < self.high if self.below else value <= self.high
-        if not (math.isfinite(value) and low and high):
+        if not (math.isfinite(value) and low and high) and value not in self.also:
             raise _refuse(name, value, self.range, self.note)
 
 
 @dataclass(frozen=True)
 class Choice:
-    """One of the names ``choices``."""
+    """One of the names ``choices`` (a whole number stands for its digits where one is a number,
+    ``precision: 32``); None where ``optional``."""
 
     choices: tuple[str, ...]
     note: str = ""
+    optional: bool = False
 
     def check(self, name: str, value: Any) -> None:
-        if not (isinstance(value, str) and value in self.choices):
+        if value is None and self.optional:
+            return
+        text = str(value) if isinstance(value, int) and not isinstance(value, bool) else value
+        if not (isinstance(text, str) and text in self.choices):
             raise _refuse(name, value, f"one of {', '.join(self.choices)}", self.note)
 
 
@@ -132,6 +149,25 @@ class ListOf:
 
 
 @dataclass(frozen=True)
+class Either:
+    """A value of one of ``kinds`` (``fast_dev_run``: a switch or a count of batches), else refused as not
+    ``what``."""
+
+    kinds: tuple[Kind, ...]
+    what: str
+    note: str = ""
+
+    def check(self, name: str, value: Any) -> None:
+        for kind in self.kinds:
+            try:
+                kind.check(name, value)
+            except ValueError:
+                continue
+            return
+        raise _refuse(name, value, self.what, self.note)
+
+
+@dataclass(frozen=True)
 class Group:
     """A mapping of options checked against ``table``, each named ``<name>.<option>``; None where
     ``optional`` (the group switched off)."""
@@ -153,6 +189,37 @@ def check_options(options: Mapping[str, Any], table: Mapping[str, Kind], prefix:
     for key, kind in table.items():
         if key in options:
             kind.check(f"{prefix}{key}", options[key])
+
+
+# ------------------------------------------------------------------------------------------ memory
+def machine_memory() -> int:
+    """This machine's physical memory in bytes (``psutil`` where installed, else ``sysconf``)."""
+    try:
+        import psutil
+
+        return int(psutil.virtual_memory().total)
+    except ImportError:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def in_bytes(n: float) -> str:
+    """``n`` bytes for a reader: ``512 MiB``, ``15.6 GiB``, ``8.4 TiB``."""
+    for unit, scale in (("PiB", 2**50), ("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n:.0f} bytes"
+
+
+def check_memory(name: str, value: Any, needed: float, what: str) -> None:
+    """A ValueError ``<name>: <value> needs <bytes> of memory (<what>); this machine has <bytes>`` when
+    ``needed`` bytes, what the option makes a command allocate, exceed this machine's physical memory
+    (:func:`machine_memory`): refused at once, not after hours of swapping or by the kernel's OOM killer."""
+    total = machine_memory()
+    if needed > total:
+        have = in_bytes(total)
+        raise ValueError(
+            f"{name}: {value!r} needs {in_bytes(needed)} of memory ({what}); this machine has {have}"
+        )
 
 
 # ------------------------------------------------------------------------------------------ the model
@@ -239,16 +306,62 @@ DATAMODULE_OPTIONS: dict[str, Kind] = {  # fisheyedepth.data.FisheyeDataModule
     "max_pose_gap": Number(low=0.0, above=True, optional=True),
 }
 
+# ------------------------------------------------------------------------------------------ the trainer
+# Lightning's precisions (trainer.precision; auto: fisheyedepth.config.resolve_precision)
+PRECISIONS = ("auto", "32-true", "32", "bf16-mixed", "bf16-true", "bf16", "16-mixed", "16-true", "16")
+PRECISIONS += ("64-true", "64", "transformer-engine", "transformer-engine-float16")
+ACCELERATORS = ("auto", "cpu", "cuda", "gpu", "mps")  # auto: CUDA where torch sees a GPU, else the CPU
+BATCHES = Either(  # Lightning's limit_*_batches and val_check_interval: a fraction, or a count
+    (Number(0.0, 1.0, above=True), Number(low=1, whole=True)),
+    "a fraction in (0, 1] or a whole number of batches >= 1",
+)
+TRAINER_OPTIONS: dict[str, Kind] = {  # lightning.Trainer, as conf/trainer sets it
+    "max_epochs": Number(low=1, whole=True, note="-1 would train without end, 0 not at all"),
+    "max_steps": Number(low=1, whole=True, also=(-1,), note="-1: no limit but max_epochs"),
+    "limit_train_batches": BATCHES,
+    "limit_val_batches": Either(
+        (BATCHES, Number(0, 0, whole=True)),
+        "a fraction in (0, 1] or a whole number of batches >= 0 (0: no validation)",
+    ),
+    "val_check_interval": Either(
+        (Number(0.0, 1.0, above=True, optional=True), Number(low=1, whole=True)), BATCHES.what
+    ),
+    "check_val_every_n_epoch": Number(low=1, whole=True, optional=True),
+    "num_sanity_val_steps": Number(low=-1, whole=True, note="-1: every validation batch"),
+    "accumulate_grad_batches": Number(low=1, whole=True),
+    "gradient_clip_val": Number(low=0.0, optional=True, note="null or 0: no clipping"),
+    "gradient_clip_algorithm": Choice(("norm", "value"), optional=True),
+    "log_every_n_steps": Number(low=1, whole=True),
+    "precision": Choice(PRECISIONS),
+    "accelerator": Choice(ACCELERATORS),
+    "devices": Either(
+        (Number(low=1, whole=True, also=(-1,), words=("auto",)), ListOf(Number(low=0, whole=True))),
+        "a whole number >= 1, -1 (every device), auto or a list of device numbers",
+    ),
+    "num_nodes": Number(low=1, whole=True),
+    "sync_batchnorm": SWITCH,
+    "deterministic": Either((SWITCH, Choice(("warn",))), "true, false or warn"),
+    "fast_dev_run": Either(
+        (SWITCH, Number(low=1, whole=True)), "a boolean or a whole number of batches >= 1"
+    ),
+    "enable_progress_bar": SWITCH,
+}
+
 __all__ = [
     "DATAMODULE_OPTIONS",
     "MODEL_OPTIONS",
     "OBJECTIVE_OPTIONS",
     "SWITCH",
+    "TRAINER_OPTIONS",
     "Choice",
+    "Either",
     "Group",
     "Kind",
     "ListOf",
     "Number",
     "Switch",
+    "check_memory",
     "check_options",
+    "in_bytes",
+    "machine_memory",
 ]

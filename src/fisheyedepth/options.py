@@ -119,12 +119,49 @@ def unknown_options(arguments: dict[str, Any]) -> list[str]:
 def check_numbers(options: dict[str, Any]) -> None:
     """A ValueError naming the first switch or number of the module's ``options`` (dotted: group and
     key, ``net.n_bins``) that is not of its kind and range (:data:`MODEL_OPTIONS`): a string is refused
-    by name (``model.optimizer.lr=abc``), not met deep in the optimiser or the loss."""
+    by name (``model.optimizer.lr=abc``), not met deep in the optimiser or the loss; then options that
+    cannot go together (:func:`check_combinations`)."""
     check_options(options, MODEL_OPTIONS)
+    check_combinations(options)
+
+
+def check_combinations(options: dict[str, Any], prefix: str = "") -> None:
+    """A ValueError naming (``prefix`` + group + key) the first option, each of its kind already, that
+    contradicts another: ``net.scales`` without 0 (the distance the network gives is scale 0's: an empty
+    list failed in the first validation, one without 0 at the first prediction), ``net.min_distance``
+    not below ``net.max_distance`` (the network predicted one distance everywhere), the cost volume's
+    nearest hypothesis not nearer than its farthest, and ``objective`` offsets that name no source frame
+    (the photometric loss, which validation computes too, warps at least one)."""
+    net, objective = options.get("net") or {}, options.get("objective") or {}
+    scales = net.get("scales")
+    if scales is not None and 0 not in scales:
+        raise ValueError(
+            f"{prefix}net.scales: {list(scales)} does not hold 0; the distance the network gives is that of "
+            "scale 0 (full resolution): [0], or [0, 1, 2, 3] for the loss at four scales"
+        )
+    for low, high, what in (
+        ("min_distance", "max_distance", "every distance the network gives lies between them"),
+        ("cost_volume_min", "cost_volume_max", "the cost volume's hypotheses lie between them"),
+    ):
+        if low == "cost_volume_min" and not net.get("cost_volume"):
+            continue
+        if low in net and high in net and net[low] >= net[high]:
+            raise ValueError(
+                f"{prefix}net.{low}: {net[low]!r} is not below {prefix}net.{high} ({net[high]!r}); {what}"
+            )
+    if "source_offsets" in objective and not [
+        *objective["source_offsets"],
+        *(objective.get("rig_offsets") or ()),
+    ]:
+        raise ValueError(
+            f"{prefix}objective.source_offsets: [] with no {prefix}objective.rig_offsets names no source "
+            "frame; the photometric loss warps at least one: [-1, 1], or rig_offsets [0] on a rig"
+        )
 
 
 __all__ = [
     "CONF_DIR",
+    "check_combinations",
     "check_numbers",
     "keywords",
     "model_defaults",

@@ -17,6 +17,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
 from .checkpoints import check_resumable, released_checkpoint
@@ -28,8 +29,12 @@ from .config import (
     rig_offsets,
     source_offsets,
 )
-from .models.depth_net import check_input_size
+from .models.depth_net import check_input_size, check_network_memory
+from .option_checks import TRAINER_OPTIONS
+from .option_checks import check_options as check_table
+from .options import check_combinations, net_options
 from .runtimes import POST_PROCESSING, PRECISIONS, one_of
+from .synthetic.spec import check_render_memory
 from .utils import check_writable
 
 log = logging.getLogger("fisheyedepth")
@@ -165,7 +170,8 @@ def scoring(cfg: DictConfig, data: DataPlan) -> Scoring:
 class TrainPlan:
     """What ``train.py`` will do: train into ``output_dir`` (resuming ``resume``: ``resumed`` is that
     checkpoint as read and checked against the model), on ``data``, the ``model``, with the ``trainer``,
-    ``logger`` and ``callbacks`` configs, at ``precision`` (resolved), seeded with ``seed``; then, with
+    ``logger`` and ``callbacks`` configs, at ``precision`` (resolved) on ``accelerator`` (``auto`` chosen
+    by what the machine has: :func:`choose_accelerator`), seeded with ``seed``; then, with
     ``test``, score the ``select``-ed checkpoint (last or best) on the test split by ``scoring``."""
 
     output_dir: Path
@@ -193,18 +199,55 @@ def check_select(select: str) -> str:
     return select
 
 
+def choose_accelerator(accelerator: Any) -> Any:
+    """``trainer.accelerator``, with ``auto`` (train.py's default, ``conf/trainer/auto.yaml``) chosen by
+    what the machine has: ``cuda`` where torch sees a CUDA GPU, else ``cpu``. A named one is kept."""
+    if accelerator != "auto":
+        return accelerator
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def describe_accelerator(accelerator: Any) -> str:
+    """``accelerator`` as the run's log states it: ``cuda (NVIDIA H200)``, ``cpu``."""
+    if accelerator in ("cuda", "gpu") and torch.cuda.is_available():
+        return f"{accelerator} ({torch.cuda.get_device_name(0)})"
+    return str(accelerator)
+
+
+def check_training(cfg: DictConfig, model: ModelPlan, data: DataPlan) -> None:
+    """What :func:`~fisheyedepth.config.check_options` leaves to the training plan: the trainer's options
+    by kind and range (:data:`~fisheyedepth.option_checks.TRAINER_OPTIONS`), the model's options that
+    contradict each other (:func:`~fisheyedepth.options.check_combinations`), and the memory the
+    rendering (:func:`~fisheyedepth.synthetic.spec.check_render_memory`) and the network's training step
+    (:func:`~fisheyedepth.models.depth_net.check_network_memory`) need, against this machine's."""
+    trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
+    check_table({k: v for k, v in trainer.items() if k in TRAINER_OPTIONS}, TRAINER_OPTIONS, "trainer.")
+    options = thawed(model.options)
+    check_combinations(options, "model.")
+    if data.generate is not None:
+        check_render_memory(thawed(data.generate), "data.generate.")
+    datamodule = cfg.data.datamodule
+    sources = len(data.offsets or ()) + len(data.rig_offsets or ())
+    net = net_options(**(options.get("net") or {}))  # the module's defaults where the config is silent
+    batch, size = int(datamodule.batch_size), tuple(datamodule.size)
+    check_network_memory(net, "model.net.", batch, size, sources, training=True)
+
+
 def train_plan(cfg: DictConfig) -> TrainPlan:
     """``train.py``'s plan. Refused here, before any folder, render or fit: sizes, switches and numbers
-    of their kind and range, source offsets the data module contradicts, a ``select`` that is not one of
-    :data:`SELECT`, and a checkpoint that cannot be resumed with this model (read here; the model's class,
-    and Lightning with it, is imported only for one that can be)."""
+    of their kind and range (the trainer's too), options that contradict each other or need more memory
+    than the machine has (:func:`check_training`), source offsets the data module contradicts, a
+    ``select`` that is not one of :data:`SELECT`, and a checkpoint that cannot be resumed with this model
+    (read here; the model's class, and Lightning with it, is imported only for one that can be)."""
     output_dir = Path(cfg.paths.output_dir)
     check_options(cfg)
     data = data_plan(cfg, source_offsets(cfg), rig_offsets(cfg))
     select = check_select(cfg.get("select", "last"))
-    trainer = cfg.trainer
-    precision = resolve_precision(trainer.get("precision"), trainer.get("accelerator"))
     model = model_plan(cfg)
+    check_training(cfg, model, data)
+    trainer = cfg.trainer
+    accelerator = choose_accelerator(trainer.get("accelerator"))
+    precision = resolve_precision(trainer.get("precision"), accelerator)
     resume = str(cfg.ckpt_path) if cfg.get("ckpt_path") else None
     resumed = check_resumable(resume, model.configured) if resume else None
     return TrainPlan(
@@ -216,7 +259,7 @@ def train_plan(cfg: DictConfig) -> TrainPlan:
         logger=cfg.get("logger") or None,
         callbacks=tuple(c for c in (cfg.get("callbacks") or {}).values() if c is not None),
         precision=precision,
-        accelerator=trainer.get("accelerator"),
+        accelerator=accelerator,
         devices=trainer.get("devices"),
         select=select,
         seed=cfg.seed,

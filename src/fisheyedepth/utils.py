@@ -127,12 +127,13 @@ def current_umask() -> int:
 
 @contextlib.contextmanager
 def temporary_beside(path: str | os.PathLike) -> Iterator[Path]:
-    """A hidden temporary file beside ``path`` (``.NAME.*.tmp``, in the same folder, so that a rename puts
-    it in place atomically) with the permissions a plain ``open`` would give (0666 less the umask), not
-    ``mkstemp``'s private 0600. It is removed when the block ends unless the block moved it away: a
-    failed write leaves nothing."""
+    """A hidden temporary file beside ``path`` (``.NAME.<random>.<pid>.tmp``, in the same folder, so that
+    a rename puts it in place atomically; the writer's pid tells a killed writer's leftovers from a live
+    one's) with the permissions a plain ``open`` would give (0666 less the umask), not ``mkstemp``'s
+    private 0600. It is removed when the block ends unless the block moved it away: a failed write
+    leaves nothing."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=f".{os.getpid()}.tmp")
     try:
         os.fchmod(fd, 0o666 & ~current_umask())
         os.close(fd)
@@ -285,27 +286,3 @@ def keep_freed_memory(top_pad: int = 1 << 29, trim_threshold: int = 1 << 30) -> 
         return False
     settings = ((_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, trim_threshold), (_M_TOP_PAD, top_pad))
     return all(libc.mallopt(param, value) == 1 for param, value in settings)
-
-
-def available_memory() -> int:
-    """Bytes of memory a new allocation can have now: the kernel's ``MemAvailable`` (free memory and the
-    page cache it can drop), else the machine's physical memory."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def check_memory_for(need: float, what: str) -> None:
-    """Refuse work that would need ``need`` bytes when the machine has fewer available, naming ``what``
-    (the option or the input that asks for it) and both numbers, before it starts: not a swap storm
-    or an out-of-memory kill halfway through."""
-    have = available_memory()
-    if need > have:
-        raise ValueError(
-            f"{what}: needs about {need / 2**30:.1f} GiB of memory, and this machine has "
-            f"{have / 2**30:.1f} GiB available"
-        )

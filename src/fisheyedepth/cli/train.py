@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 
 from ..checkpoints import CheckpointError, weights_mismatch
 from ..config import named_option, resolve_base_focal
-from ..plan import ModelPlan, TrainPlan, check_select, train_plan
+from ..plan import ModelPlan, TrainPlan, check_select, describe_accelerator, train_plan
 from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
 from .run_folder import run_folder
 
@@ -85,8 +85,10 @@ def fit_and_test(plan: TrainPlan) -> dict[str, Any] | None:
     callbacks = [instantiate(c) for c in plan.callbacks]
     checkpointers = [c for c in callbacks if isinstance(c, ModelCheckpoint)]
     selected_checkpoint(checkpointers, plan.select)  # best without a monitor fails now, not after training
+    log.info("accelerator: %s", describe_accelerator(plan.accelerator))
     trainer: L.Trainer = instantiate(
         plan.trainer,
+        accelerator=plan.accelerator,  # auto: chosen by what the machine has (plan.choose_accelerator)
         logger=logger,
         callbacks=callbacks,
         default_root_dir=str(plan.output_dir),

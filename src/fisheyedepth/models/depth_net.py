@@ -10,8 +10,9 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from ..option_checks import check_memory
 from .cost_volume import CostVolume, Sources
-from .encoders import make_encoder
+from .encoders import encoder_channels, make_encoder
 from .heads import (
     MultiChannelHead,
     SigmoidHead,
@@ -157,6 +158,18 @@ class DepthNet(nn.Module):
         if cost_volume_stride not in VOLUME_STRIDES:
             raise ValueError(f"cost_volume_stride: {cost_volume_stride!r} is not one of {VOLUME_STRIDES}")
         self.volume_level = VOLUME_STRIDES.index(cost_volume_stride)  # the encoder map it joins
+        check_network_memory(  # its weights, before they are allocated
+            {
+                "encoder": encoder,
+                "resnet": resnet,
+                "multi_channel": multi_channel,
+                "n_bins": n_bins,
+                "scales": self.scales,
+                "decoder_width": decoder_width,
+                "cost_volume": cost_volume,
+                "cost_volume_stride": cost_volume_stride,
+            }  # fmt: skip
+        )
         if cost_volume:  # the multi-view network: matches joined to the encoder's features
             self.cost_volume = CostVolume(int(cost_volume), cost_volume_min, cost_volume_max)
             if cost_volume_fusion not in FUSIONS:
@@ -350,6 +363,75 @@ VOLUME_STRIDES = (2, 4)  # the encoder maps a cost volume can join (levels 0 and
 # how the volume joins the encoder's map: "residual" adds a correction that starts at zero (the
 # pretrained deeper stages keep their input); "replace" passes the fused map on instead (ManyDepth's)
 FUSIONS = ("residual", "replace")
+
+
+# What a network holds per unit of its size options, in bytes: the bounds of :func:`check_network_memory`.
+# A parameter: 4 to run it (float32), 16 to train it (its gradient and Adam's two moments too). A training
+# step, measured with one Adam step on float32 64x64 batches of 4 (n_bins 1024 -> 4096: +1.0 GiB;
+# cost_volume 1024 -> 4096 with ResNet-18's 64 channels and two sources: +5.5 GiB): per bin and output
+# pixel of each scale, BIN_BYTES (the logits, their clamp and exp, and the gradients); per source,
+# hypothesis and pixel of the cost volume, VOLUME_BYTES per matched channel and 16 more (the warped
+# features, the sampling grid, the costs and their gradients).
+RUN_PARAMETER_BYTES, TRAIN_PARAMETER_BYTES = 4, 16
+BIN_BYTES = 16
+VOLUME_BYTES = 12
+
+
+def bins_memory(
+    n_bins: int, widths, scales, batch: int = 0, size=(0, 0), parameter_bytes: int = RUN_PARAMETER_BYTES
+) -> int:
+    """Bytes that ``n_bins`` make the binned head hold: ``parameter_bytes * n_bins * sum_s (widths[s] * 9
+    + 1)`` (each scale's 3x3 convolution to the logits), and in a training step of ``batch`` images of
+    ``size`` (W, H) ``BIN_BYTES * batch * n_bins * sum_s W * H / 4^s`` (the logits at each scale)."""
+    weights = parameter_bytes * n_bins * sum(widths[s] * 9 + 1 for s in scales)
+    pixels = sum(size[0] * size[1] // 4**s for s in scales)
+    return weights + BIN_BYTES * batch * n_bins * pixels
+
+
+def volume_memory(
+    hypotheses: int,
+    channels: int,
+    batch: int = 0,
+    size=(0, 0),
+    stride: int = 4,
+    sources: int = 0,
+    parameter_bytes: int = RUN_PARAMETER_BYTES,
+) -> int:
+    """Bytes that a cost volume of ``hypotheses`` distances makes the network hold: ``parameter_bytes *
+    channels * (channels + hypotheses + 1) * 9`` (the 3x3 convolution that fuses the volume with the
+    encoder's map of ``channels``) and 4 per hypothesis (its inverse distance); in a training step of
+    ``batch`` images of ``size`` (W, H) with ``sources`` each, ``VOLUME_BYTES * (channels + 16) * batch *
+    sources * hypotheses * (W / stride) * (H / stride)`` (each source warped at every hypothesis)."""
+    weights = parameter_bytes * channels * (channels + hypotheses + 1) * 9 + 4 * hypotheses
+    pixels = (size[0] // stride) * (size[1] // stride)
+    return weights + VOLUME_BYTES * (channels + 16) * batch * sources * hypotheses * pixels
+
+
+def check_network_memory(
+    net, prefix: str = "", batch: int = 0, size=(0, 0), sources: int = 0, training: bool = False
+) -> None:
+    """A ValueError naming ``prefix`` + ``n_bins`` or ``cost_volume`` when the network of the options
+    ``net`` (those of :class:`DepthNet`) needs more memory than this machine has
+    (:func:`~fisheyedepth.option_checks.check_memory`): its weights (:func:`bins_memory`,
+    :func:`volume_memory`), and with ``training`` their gradients and Adam's moments and a step's
+    activations on ``batch`` images of ``size`` with ``sources`` source images each."""
+    parameter_bytes = TRAIN_PARAMETER_BYTES if training else RUN_PARAMETER_BYTES
+    step = f"; a training step of {batch} images of {size[0]}x{size[1]}" if training and batch else ""
+    scales = tuple(net["scales"])
+    if net["multi_channel"]:
+        widths = decoder_channels(net["decoder_width"])
+        need = bins_memory(net["n_bins"], widths, scales, batch, size, parameter_bytes)
+        what = f"the binned head's logits at {len(scales)} scales{step}"
+        check_memory(f"{prefix}n_bins", net["n_bins"], need, what)
+    if net["cost_volume"]:
+        stride = net["cost_volume_stride"]
+        level = VOLUME_STRIDES.index(stride) if stride in VOLUME_STRIDES else 0
+        channels = encoder_channels(net["encoder"], net["resnet"])[level]
+        need = volume_memory(net["cost_volume"], channels, batch, size, stride, sources, parameter_bytes)
+        what = f"distance hypotheses matched on {channels} channels{step}" + (
+            f", {sources} sources each" if training and batch else ""
+        )
+        check_memory(f"{prefix}cost_volume", net["cost_volume"], need, what)
 
 
 def scale_focal(camera):

@@ -6,10 +6,19 @@ import os
 
 from torch import nn
 
-from .efficientnet import EfficientNetLiteEncoder
-from .resnet import ResNetEncoder
+from .efficientnet import TAPS, EfficientNetLiteEncoder, block_settings
+from .resnet import LAYERS, ResNetEncoder
 
 ENCODERS = ("resnet", "efficientnet_lite0")
+
+
+def encoder_channels(encoder: str, resnet: int = 18) -> tuple[int, ...]:
+    """The channels of the 5 feature maps of :func:`make_encoder`'s ``encoder``, without building it (a
+    ResNet depth it does not know counts as ResNet-18's)."""
+    if encoder == "efficientnet_lite0":
+        return tuple(block_settings()[i][1] for i in TAPS)
+    expansion = 4 if LAYERS.get(resnet, ("basic",))[0] == "bottleneck" else 1
+    return (64, *(c * expansion for c in (64, 128, 256, 512)))
 
 
 def make_encoder(

@@ -52,12 +52,12 @@ from tqdm import tqdm
 
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
+from ..option_checks import check_memory
 from ..utils import (
     WRITE_ERRORS,
     atomic_write_bytes,
     atomic_write_npy,
     atomic_write_text,
-    check_memory_for,
     check_writable,
     move_into_place,
     staged_folder,
@@ -315,26 +315,23 @@ MEMORY_PER_PIXEL = 640
 SWEEP_MEMORY_PER_VOXEL = 20  # the sweep's cost sums, counts and volume (float32) and a chunk's warps
 
 
-def check_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -> None:
+def check_run_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -> None:
     """Refuse, before any work, a run whose largest image would need more memory than the machine has
-    available, naming the camera (or the option) and both numbers."""
+    (:func:`~fisheyedepth.option_checks.check_memory`), naming the camera (or the option) and both numbers."""
     name, spec = max(layout.cameras.items(), key=lambda kv: kv[1].camera.width * kv[1].camera.height)
-    pixels = spec.camera.width * spec.camera.height
+    pixels, size = spec.camera.width * spec.camera.height, f"{spec.camera.width}x{spec.camera.height}"
     if isinstance(matcher, StereoSettings):
         scale = 1.0
         if matcher.resolution is not None:  # a finer grid than the camera's own
             scale = max(1.0, (pair_step(spec.camera, spec.camera, None) / matcher.resolution) ** 2)
-        need, what = (
-            MEMORY_PER_PIXEL * pixels * scale,
-            f"camera {name!r} ({spec.camera.width}x{spec.camera.height})",
-        )
+        what = f"{MEMORY_PER_PIXEL} bytes a pixel of a pair"
         if scale > 1:
-            what += f" at --resolution {math.degrees(matcher.resolution):g} degrees"
+            what += f", x {scale:.3g} at --resolution {math.degrees(matcher.resolution):g} degrees"
+        check_memory(f"camera {name!r}", size, MEMORY_PER_PIXEL * pixels * scale, what)
     else:
         need = SWEEP_MEMORY_PER_VOXEL * matcher.hypotheses * pixels
-        size = f"{spec.camera.width}x{spec.camera.height}"
-        what = f"--hypotheses {matcher.hypotheses} over camera {name!r} ({size})"
-    check_memory_for(need, what)
+        what = f"{SWEEP_MEMORY_PER_VOXEL} bytes x hypotheses x camera {name!r}'s {size} pixels"
+        check_memory("--hypotheses", matcher.hypotheses, need, what)
 
 
 def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True) -> None:
@@ -426,7 +423,7 @@ def run(
     left_out = images_left_out(layout, planned)
     if not paired:
         raise ValueError(f"{root}: no image to match: {nothing_to_match(layout, sources, left_out)}")
-    check_memory(layout, matcher)
+    check_run_memory(layout, matcher)
     parts = [path for pairing in paired for path in outputs(pairing)]
     parts += [Path("rig.yaml")] if refine else []
     parts += [Path(RECORDING)] if rerun else []

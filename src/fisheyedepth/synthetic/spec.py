@@ -13,8 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from ..option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_options
-from .rig import RIGS
+from .. import option_checks
+from ..option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_memory, check_options
+from .rig import RIGS, make_rig
 from .scene import LANES
 from .sensor import EFFECTS, check_effects
 from .traffic import DENSITY
@@ -37,6 +38,12 @@ _WORLD_OPTIONS: dict[str, Kind] = {
 }
 GENERATE_OPTIONS: dict[str, Kind] = _WORLD_OPTIONS | {"worlds": ListOf(Group(_WORLD_OPTIONS), optional=True)}
 RENDERING = ("workers", "lidar", "progress")  # generation options that are not the dataset's spec
+# Resident bytes while a dataset is rendered, the bounds of check_render_memory: per camera ray while a
+# renderer is built and renders a frame (the rays, their hits on the ego body, a cast's hits and shading),
+# measured with 512 to 1024 supersampled pixels a side: 190 to 270; per trajectory frame (its pose and its
+# render job), measured with 20,000 and 100,000 frames: 2.4 to 2.9 kB.
+RAY_BYTES = 190
+FRAME_BYTES = 2400
 # parameters a street dataset with fixed cameras does not write into synthetic.json (its files stay those
 # of the versions before them): a finished dataset without the key was rendered with this value
 UNWRITTEN = {"scene": "street", "random_cameras": False, "traffic": 0, "effects": []}
@@ -128,3 +135,44 @@ class WorldSpec:
 
 
 SPEC_FIELDS = tuple(field.name for field in dataclasses.fields(WorldSpec))  # the parameters, in order
+
+
+def render_memory(size: int, supersample: int, cameras: int, renderers: int = 1) -> int:
+    """Bytes that rendering holds: ``renderers * cameras * ((supersample * size)^2 + size^2) *``
+    :data:`RAY_BYTES`. Every renderer (the rendering process's, and with 2 workers or more one in each
+    worker process) holds each camera's supersampled rays and its pixel-centre rays (the ground truth)."""
+    return renderers * cameras * ((supersample * size) ** 2 + size**2) * RAY_BYTES
+
+
+def check_render_memory(options: Mapping[str, Any], prefix: str = "") -> None:
+    """A ValueError naming (``prefix`` + option) ``frames``, ``size``, ``supersample`` or ``workers`` of
+    the generation ``options`` (each of its kind already; a mixed dataset's ``worlds`` each over the
+    shared ones) when rendering would need more memory than this machine has: ``frames *``
+    :data:`FRAME_BYTES` for the trajectory, :func:`render_memory` for the rays. The rays' need is named
+    by ``size`` when it is too large even without supersampling, by ``supersample`` when it is too large
+    in one process, else by ``workers``."""
+    shared = {k: v for k, v in options.items() if k != "worlds"}
+    worlds = options.get("worlds") or [{}]
+    defaults = {field.name: field.default for field in dataclasses.fields(WorldSpec)} | {"workers": 0}
+    for i, world in enumerate(worlds):
+        params = defaults | shared | dict(world)
+        name = {k: f"{prefix}worlds[{i}].{k}" if k in world else f"{prefix}{k}" for k in params}
+        frames = params["frames"]
+        what = f"its trajectory and a render job a frame, {FRAME_BYTES} bytes each"
+        check_memory(name["frames"], frames, frames * FRAME_BYTES, what)
+        if params["rig"] not in RIGS:
+            continue  # WorldSpec names it
+        size, supersample, workers = params["size"], params["supersample"], params["workers"]
+        cameras = len(make_rig(params["rig"], 16).cameras)
+        renderers = 1 + workers if workers > 1 else 1
+        need = render_memory(size, supersample, cameras, renderers)
+        key, have = "workers", option_checks.machine_memory()
+        if render_memory(size, 1, cameras) > have:
+            key = "size"
+        elif render_memory(size, supersample, cameras) > have:
+            key = "supersample"
+        what = (
+            f"{renderers} renderer(s) x {cameras} cameras x ({supersample * size}^2 supersampled + "
+            f"{size}^2 centre) rays x {RAY_BYTES} bytes"
+        )
+        check_memory(name[key], params[key], need, what)

@@ -29,14 +29,16 @@ from .frames import FrameRenderer
 from .layout import metadata, write_layout
 from .pool import render_jobs, sigterm_raises
 from .scene import make_scene_motion, make_scene_world, split_frames, split_jobs
-from .spec import GENERATE_OPTIONS, RENDERING, WorldSpec
+from .spec import GENERATE_OPTIONS, RENDERING, WorldSpec, check_render_memory
 
 
 def _check_rendering(spec: WorldSpec, workers: int, lidar: bool, progress: bool) -> None:
-    """``spec`` a :class:`WorldSpec` and the rendering options of their kinds, named as arguments."""
+    """``spec`` a :class:`WorldSpec` and the rendering options of their kinds, named as arguments, and
+    the memory they need within this machine's (:func:`~.spec.check_render_memory`)."""
     if not isinstance(spec, WorldSpec):
         raise TypeError(f"spec: {spec!r} is not a WorldSpec")
     check_options({"workers": workers, "lidar": lidar, "progress": progress}, GENERATE_OPTIONS)
+    check_render_memory(spec.params() | {"workers": workers})
 
 
 def generate(
@@ -108,6 +110,7 @@ def ensure_datasets(root, generate: dict, log=None) -> list[Path]:
     renders. Returns the folders. A parameter of the wrong kind or range is named as configured
     (``data.generate.traffic``), and every folder's spec is made, before anything is rendered."""
     check_options(generate, GENERATE_OPTIONS, "data.generate.")
+    check_render_memory(generate, "data.generate.")
     shared = {k: v for k, v in dict(generate).items() if k != "worlds"}
     worlds = generate.get("worlds")
     if isinstance(root, str | os.PathLike):
