@@ -20,7 +20,7 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.inference import DistancePredictor, colour_bar
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_bytes
+from fisheyedepth.utils import atomic_write_png
 from fisheyedepth.viz import colourise
 
 
@@ -58,10 +58,7 @@ def main(argv=None) -> int:
     if args.scale != 1.0:
         size = (round(picture.shape[1] * args.scale), round(picture.shape[0] * args.scale))
         picture = cv2.resize(picture, size, interpolation=cv2.INTER_AREA)
-    ok, png = cv2.imencode(".png", np.ascontiguousarray(picture))
-    if not ok:
-        raise SystemExit(f"error: {args.out}: PNG encoding failed")
-    atomic_write_bytes(args.out, png.tobytes())
+    atomic_write_png(args.out, picture)
     print(f"written {args.out}")
     return 0
 

@@ -21,7 +21,7 @@ import torch
 
 from fisheyedepth.cameras import compute_rays
 from fisheyedepth.stereo import RigStereo, StereoSettings
-from fisheyedepth.utils import atomic_write_bytes
+from fisheyedepth.utils import atomic_write_png
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from live_rig import body_masks, instants, replay, rig_layout  # noqa: E402
@@ -102,11 +102,9 @@ def main(argv=None) -> int:
     every = np.concatenate(points)
     drawn = every[np.random.default_rng(0).permutation(len(every))[: args.points]]
     picture = draw(drawn, np.array(path), last, args.size, args.span)
-    ok, png = cv2.imencode(".png", picture, [cv2.IMWRITE_PNG_COMPRESSION, 9])
-    if not ok:
-        raise OSError(f"{args.out}: could not encode the PNG")
-    atomic_write_bytes(args.out, png.tobytes())
-    print(f"{len(drawn)} of {len(every)} points of {len(path)} instants: {args.out} ({len(png) // 1024} KB)")
+    atomic_write_png(args.out, picture, compression=9)
+    kb = args.out.stat().st_size // 1024
+    print(f"{len(drawn)} of {len(every)} points of {len(path)} instants: {args.out} ({kb} KB)")
     return 0
 
 

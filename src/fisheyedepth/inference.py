@@ -21,7 +21,7 @@ from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
 from .runtimes import TorchRuntime, as_runtime
-from .utils import atomic_write_bytes, atomic_write_npy
+from .utils import atomic_write_bytes, atomic_write_npy, atomic_write_png
 from .viz import colourise
 
 PNG_SCALES = {"mm": 1000.0, "256": 256.0}  # uint16 PNG value per metre
@@ -189,21 +189,14 @@ class PredictionWriter:
         self.out.mkdir(parents=True, exist_ok=True)
         d = distance.detach().float().cpu().numpy()
         atomic_write_npy(self.out / f"{name}_distance.npy", d)
-        _write_png(self.out / f"{name}_distance.png", distance_png(d, self.png_scale))
+        atomic_write_png(self.out / f"{name}_distance.png", distance_png(d, self.png_scale))
         vis = colour_bar(colourise(d, self.vmin, self.vmax), self.vmin, self.vmax)
-        _write_png(self.out / f"{name}_colour.png", vis[..., ::-1])
+        atomic_write_png(self.out / f"{name}_colour.png", vis[..., ::-1])
         if self.z_depth:
             rays, _ = self.rays.get(camera, dtype=torch.float64)
             atomic_write_npy(self.out / f"{name}_z.npy", (d * rays[..., 2].numpy()).astype(np.float32))
         if self.point_cloud:
             write_ply(self.out / f"{name}.ply", *point_cloud(distance.cpu(), camera, rgb, self.rays))
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    ok, encoded = cv2.imencode(".png", image)
-    if not ok:
-        raise OSError(f"{path}: could not encode the PNG")
-    atomic_write_bytes(path, encoded.tobytes())
 
 
 def check_aspect(frame_path: Path, size: tuple[int, int], camera: CameraModel, calibration) -> None:

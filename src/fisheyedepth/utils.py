@@ -165,6 +165,18 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return Path(path)
 
 
+def atomic_write_png(path: str | os.PathLike, image: np.ndarray, compression: int | None = None) -> Path:
+    """``image`` (8 or 16 bits, 1, 3 or 4 channels, OpenCV's BGR order) as a PNG file, written atomically
+    (:func:`atomic_write_bytes`); ``compression``: zlib's level 0-9 (OpenCV's default 1 without)."""
+    import cv2
+
+    flags = [] if compression is None else [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
+    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image), flags)
+    if not ok:
+        raise OSError(f"{path}: could not encode a {image.shape} {image.dtype} image as PNG")
+    return atomic_write_bytes(path, encoded.tobytes())
+
+
 def atomic_write_npy(path: str | os.PathLike, array) -> Path:
     """``array`` as a float32 ``.npy`` file, written atomically (:func:`atomic_write_bytes`)."""
     buffer = io.BytesIO()

@@ -164,9 +164,8 @@ def multiview_scores(
     passes them) scored on the same overlap pixels, and panels ``multiview_<frame>.png`` (image | checked
     | filled | ground truth) into ``pictures``. Returns the record: per frame, the scores, the settings and
     the refinement."""
-    import cv2
 
-    from ..utils import atomic_write_bytes
+    from ..utils import atomic_write_png
 
     predictions = predictions or {}
     pairs = real_pairs(root, matcher, middlebury, echo)
@@ -195,9 +194,7 @@ def multiview_scores(
         if pictures is not None:
             image = pair.image[0].permute(1, 2, 0).numpy()
             tiles = panel(image, checked, dense, truth.numpy())
-            atomic_write_bytes(
-                Path(pictures) / f"multiview_{pair.name}.png", cv2.imencode(".png", tiles)[1].tobytes()
-            )
+            atomic_write_png(Path(pictures) / f"multiview_{pair.name}.png", tiles)
     refinement = next((r for _, r, _ in pairs if r), None)
     if refinement is not None:
         r = refinement

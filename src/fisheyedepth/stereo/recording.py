@@ -55,8 +55,8 @@ from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
 from ..utils import (
     WRITE_ERRORS,
-    atomic_write_bytes,
     atomic_write_npy,
+    atomic_write_png,
     atomic_write_text,
     check_writable,
     move_into_place,
@@ -589,7 +589,7 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
         atomic_write_npy(out / path, array)
     truth = _truth(layout, pairing)
     tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
-    atomic_write_bytes(out / picture, cv2.imencode(".png", tiles)[1].tobytes())
+    atomic_write_png(out / picture, tiles)
     record: dict[str, Any] = {
         "image": pairing.name,
         "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
