@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import statistics
 import subprocess
 import sys
@@ -163,7 +164,9 @@ def rig_section(threads: int, quick: bool) -> list[str]:
     return [
         RIG_HEADING,
         "",
-        f"{time.strftime('%Y-%m-%d')}; `scripts/tools/live_rig.py`'s loop on the Aria Gen2 rig: "
+        f"Command: `python scripts/bench/bench_streaming.py --threads {threads}` (without `--ckpt`: this "
+        f"table only); {time.strftime('%Y-%m-%d')}, {platform.machine()} CPU, {os.cpu_count()} cores. "
+        "`scripts/tools/live_rig.py`'s loop on the Aria Gen2 rig: "
         f"{len(names)} cameras of {camera.width}x{camera.height}, {len(found)} instants, each camera against "
         "the rig's overlapping cameras and its own image of the latest instant 5 cm or more away, "
         f"{threads} threads; the Rerun recording holds every image (JPEG), the kept and the filled map of "
