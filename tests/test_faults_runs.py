@@ -109,7 +109,9 @@ def first_run(world, tmp_path_factory):
 def test_a_run_states_its_accelerator(first_run):
     """train.py's default trainer takes the machine's accelerator (CUDA where torch sees a GPU) and says
     which; without a GPU, the CPU."""
-    assert "accelerator: cpu" in first_run.logged
+    from fisheyedepth.plan import choose_accelerator, describe_accelerator
+
+    assert f"accelerator: {describe_accelerator(choose_accelerator('auto'))}" in first_run.logged
 
 
 # ------------------------------------------------------------------ one run per folder

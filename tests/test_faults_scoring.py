@@ -150,7 +150,10 @@ def test_a_native_size_map_is_resized_with_the_camera(rig):
     "write,what",
     [
         (lambda p: p.write_bytes(pickle.dumps(np.ones((64, 64)))), "holds Python objects (a pickled array)"),
-        (lambda p: p.write_text("5.0 5.0\n5.0 5.0\n"), "not a NumPy .npy array: "),
+        (
+            lambda p: p.write_text("5.0 5.0\n5.0 5.0\n"),
+            "not a NumPy .npy array (no .npy header; it begins b'5.0 5.')",
+        ),
         (lambda p: np.save(p, np.array([None, 1.0], dtype=object)), "holds Python objects (a pickled array)"),
         (lambda p: np.savez(p.with_suffix(""), d=np.ones((64, 64))), "not a NumPy .npy array: a NpzFile"),
         (lambda p: p.write_bytes(b""), "not a NumPy .npy array (empty)"),

@@ -303,11 +303,21 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
     err = capsys.readouterr().err
     assert err.startswith("error: --out: ") and "cannot be written (No space left on device)" in err
     assert err.count("\n") == 1 and not out.exists() and not list(tmp_path.glob(".out*"))
+    image = rec / "seq" / "images" / "left" / "1000000000.png"
+
+    def unreadable(layout, sequence, camera, frame):
+        raise PermissionError(errno.EACCES, "Permission denied", str(image))
+
+    monkeypatch.setattr(recording, "layout_image", unreadable)  # an input, not --out: named as read
+    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 2
+    assert capsys.readouterr().err == f"error: {image}: cannot be read (Permission denied)\n"
     stale = tmp_path / ".out.multiview-killed"  # what a SIGKILLed run leaves (no clean-up runs)
+    other = tmp_path / ".outs.multiview-running"  # another --out's, with a name this one begins
     (stale / "seq").mkdir(parents=True)
+    other.mkdir()
     monkeypatch.undo()
     assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 0
-    assert not stale.exists() and (out / "summary.json").is_file()
+    assert not stale.exists() and other.is_dir() and (out / "summary.json").is_file()
 
 
 def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
@@ -345,6 +355,8 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
         images = r / "seq" / "images" / "left"
         (images / f"{T1}.png").rename(images / f"000{T1}.png")  # the timestamp would name another file
         (images / "frame_x.png").write_bytes((images / f"{T0}.png").read_bytes())
+        (images / "notes.txt").write_text("not an image")  # neither an image nor left out
+        (images / "thumbs").mkdir()
         for path in (r / "seq" / "images").rglob("*.png"):  # 12-bit data: 0-4095 in a 16-bit PNG
             cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.uint16) * 16)
 
@@ -353,7 +365,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     summary = json.loads((tmp_path / "o3" / "summary.json").read_text())
     not_understood = "name not understood (<timestamp_ns>.png)"
     assert summary["images_left_out"] == {
-        f"seq/images/left/000{T1}.png": not_understood, "seq/images/left/frame_x.png": not_understood,
+        f"seq/left/000{T1}.png": not_understood, "seq/left/frame_x.png": not_understood,
         f"seq/lonely/{T0 + 50_000_000}": recording.NO_PARTNER}  # fmt: skip
     right = next(r for r in summary["images"] if r["image"] == f"seq/right/{T0}")
     assert right["kept"] > 0.3 and right["checked"]["abs_rel"] < 0.2 and right["flat"] < 0.01, right
@@ -366,8 +378,8 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     assert recording.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err == (
-        "error: camera 'left': '96x96' needs 5.62 MiB of memory (640 bytes a pixel of a pair); this machine "
-        "has 1 MiB\n"
+        f"error: {rec / 'rig.yaml'}: camera 'left': '96x96' needs 5.62 MiB of memory (640 bytes a pixel of a "
+        "pair); this machine has 1 MiB\n"
     )
     monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**30)
     args = [
@@ -502,6 +514,8 @@ def test_refine_writes_the_rig_its_images_say(tmp_path, degrees):
     assert change["rotation_deg"] == pytest.approx(degrees, abs=0.05)
     assert change["epipolar_px_after"] < 0.2 and change["epipolar_px_before"] > (0.8 if degrees else 0.0)
     assert summary["refinement"]["unrefined"] == ["lonely"]
+    beyond = [name for name, why in summary["images_left_out"].items() if why == "beyond --max-images 1"]
+    assert len(beyond) == 5  # the rig's other five images, named
     (record,) = summary["images"]
     assert record["checked"]["abs_rel"] < 0.1, record
 

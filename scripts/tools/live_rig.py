@@ -152,8 +152,12 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     try:
+        for option in ("points", "max_instants", "threads"):
+            value = getattr(args, option)
+            if value is not None and value < 1:
+                raise ValueError(f"--{option.replace('_', '-')}: {value}; at least 1")
         summary = run(args)
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print(

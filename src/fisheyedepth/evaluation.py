@@ -19,7 +19,6 @@ import math
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -31,6 +30,7 @@ from .data.kitti360 import OCCLUSION, occlusion_filter
 from .metrics import NAMES, DepthMetrics
 from .models.cost_volume import Sources
 from .runtimes import as_runtime
+from .utils import atomic_write_png
 from .viz import panel, to_uint8
 
 log = logging.getLogger(__name__)
@@ -310,7 +310,7 @@ def evaluate(
                 pictures.mkdir(parents=True, exist_ok=True)
                 scored = batch.distance[i] * (batch.mask[i] > 0.5)  # no error shown on the ego body
                 pic = panel(batch.image[i], pred[i].cpu(), scored, 0.5, 80.0)
-                cv2.imwrite(str(pictures / f"panel_{written:03d}.png"), pic[..., ::-1])
+                atomic_write_png(pictures / f"panel_{written:03d}.png", pic[..., ::-1])
                 written += 1
     if skipped:
         log.warning(

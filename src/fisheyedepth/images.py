@@ -96,10 +96,13 @@ def missing(path: Path) -> FileNotFoundError:
 
 
 def data_bits(raw: np.ndarray) -> int:
-    """The bits of data in a 16-bit image, by its range: the highest set bit of its largest value (at
-    least 8). A 12-bit camera's PNG holds 0-4095 in 16 bits; read as 16 bits it would be near-black
-    (4095 / 65535 = 6 %, 0-15 of 255), and nothing could be matched or learnt on it."""
-    return max(8, int(raw.max()).bit_length())
+    """The bits of data in a 16-bit image, by its range: the highest set bit of its largest value rounded
+    up to a sensor's depth (8, 10, 12, 14 or 16 bits). A 12-bit camera's PNG holds 0-4095 in 16 bits; read
+    as 16 bits it would be near-black (4095 / 65535 = 6 %, 0-15 of 255), and nothing could be matched or
+    learnt on it. Decided per image: the rounding keeps a camera's frames on one scale unless one's
+    brightest pixel is under a quarter of its range (a 12-bit frame whose maximum is under 1024)."""
+    bits = max(8, int(raw.max()).bit_length())
+    return bits + bits % 2
 
 
 def read_image(path: str | os.PathLike, max_pixels: int | None = None, bit_depth: int | None = None) -> Image:

@@ -17,7 +17,6 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-import cv2
 import lightning as L
 import torch
 from torch import Tensor
@@ -33,6 +32,7 @@ from .models.depth_net import check_network_memory
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .options import check_numbers, model_options, unknown_options
 from .training import StepGuard, build_optimizer, build_scheduler
+from .utils import atomic_write_png
 from .viz import panel
 
 
@@ -239,7 +239,7 @@ class FisheyeDepthModule(L.LightningModule):
             )
             folder = folder / "images"
             folder.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(folder / f"{stage}_step{self.global_step:07d}.png"), picture[..., ::-1])
+            atomic_write_png(folder / f"{stage}_step{self.global_step:07d}.png", picture[..., ::-1])
 
 
 def count_parameters(module: torch.nn.Module | None) -> int:

@@ -129,11 +129,13 @@ def read_distance(path: Path, native) -> np.ndarray:
                 f"{path}: holds Python objects (a pickled array), which are never loaded: a data file "
                 "must not run code; save the distance as a float array (np.save(path, d.astype(np.float32)))"
             ) from None
+        if head != b"\x93NUMPY":  # text, a pickle of an older protocol, another format
+            raise ValueError(f"{path}: not a NumPy .npy array (no .npy header; it begins {head!r})") from None
         raise ValueError(f"{path}: not a NumPy .npy array: {exc}") from None
-    except (OSError, EOFError) as exc:
-        raise ValueError(
-            f"{path}: not a NumPy .npy array ({'empty' if not path.stat().st_size else exc})"
-        ) from None
+    except EOFError:
+        raise ValueError(f"{path}: not a NumPy .npy array (empty)") from None
+    except OSError as exc:
+        raise ValueError(f"{path}: not a NumPy .npy array ({exc.strerror or exc})") from None
     if not isinstance(d, np.ndarray):  # an .npz archive
         raise ValueError(f"{path}: not a NumPy .npy array: a {type(d).__name__}")
     want = (native.height, native.width)

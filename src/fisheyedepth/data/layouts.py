@@ -273,17 +273,23 @@ class RigLayout:
 STAMP = re.compile(r"(0|[1-9]\d*)\.png")  # a timestamp in ns, written as an integer is written
 
 
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+
+
 def image_stamps(folder: Path) -> tuple[list[int], list[str]]:
-    """The timestamps of ``folder``'s images (``<timestamp_ns>.png``, sorted) and the names of the files
-    that are not named so (``frame_x.png``, ``1.PNG``, ``0012.png``: a leading zero would name another
-    file than the one the timestamp writes), which are reported, never read."""
+    """The timestamps of ``folder``'s images (``<timestamp_ns>.png``, sorted) and the names of the other
+    image files (``frame_x.png``, ``1.PNG``, ``0012.png``: a leading zero would name another file than the
+    one the timestamp writes; ``1.jpg``), which are reported, never read. Folders, hidden files and files
+    that are no image (``notes.txt``) are not the layout's."""
     if not folder.is_dir():
         return [], []
     stamps, other = [], []
     for path in sorted(folder.iterdir()):
-        if STAMP.fullmatch(path.name) and not path.is_dir():
+        if path.is_dir() or path.name.startswith("."):
+            continue
+        if STAMP.fullmatch(path.name):
             stamps.append(int(path.stem))
-        elif not path.name.startswith("."):
+        elif path.suffix.lower() in IMAGE_SUFFIXES:  # an image the layout cannot place in time
             other.append(path.name)
     return sorted(stamps), other
 

@@ -53,6 +53,7 @@ from tqdm import tqdm
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
+from ..outputs import same_file
 from ..utils import (
     WRITE_ERRORS,
     atomic_write_npy,
@@ -290,9 +291,7 @@ def images_left_out(layout: RigLayout, planned: list[Pairing]) -> dict[str, str]
     for (sequence, camera), stamps in layout.in_gaps.items():
         out.update({f"{sequence}/{camera}/{t}": "in a gap of the poses (max_pose_gap)" for t in stamps})
     for (sequence, camera), names in layout.not_understood.items():
-        out.update(
-            {f"{sequence}/images/{camera}/{n}": "name not understood (<timestamp_ns>.png)" for n in names}
-        )
+        out.update({f"{sequence}/{camera}/{n}": "name not understood (<timestamp_ns>.png)" for n in names})
     return out
 
 
@@ -327,7 +326,8 @@ def check_run_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -
         what = f"{MEMORY_PER_PIXEL} bytes a pixel of a pair"
         if scale > 1:
             what += f", x {scale:.3g} at --resolution {math.degrees(matcher.resolution):g} degrees"
-        check_memory(f"camera {name!r}", size, MEMORY_PER_PIXEL * pixels * scale, what)
+        where = f"{layout.root / 'rig.yaml'}: camera {name!r}"
+        check_memory(where, size, MEMORY_PER_PIXEL * pixels * scale, what)
     else:
         need = SWEEP_MEMORY_PER_VOXEL * matcher.hypotheses * pixels
         what = f"{SWEEP_MEMORY_PER_VOXEL} bytes x hypotheses x camera {name!r}'s {size} pixels"
@@ -377,6 +377,8 @@ def sole_writer(out: Path):
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            if not same_file(fd, lock):  # its holder removed it meanwhile: a new run may hold a new one
+                raise BlockingIOError
         except BlockingIOError:
             raise FileExistsError(
                 f"--out: {out}: another fisheyedepth-multiview writes into it ({lock})"
@@ -419,8 +421,12 @@ def run(
     )
     planned = pairings(layout, sources, min_baseline=min_baseline)
     planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
-    paired = [p for p in planned if p.partners][:max_images]
+    paired = [p for p in planned if p.partners]
     left_out = images_left_out(layout, planned)
+    left_out.update(
+        {p.name: f"beyond --max-images {max_images}" for p in paired[max_images or len(paired) :]}
+    )
+    paired = paired[:max_images]
     if not paired:
         raise ValueError(f"{root}: no image to match: {nothing_to_match(layout, sources, left_out)}")
     check_run_memory(layout, matcher)
@@ -431,7 +437,10 @@ def run(
     if rerun:
         from ..rerun3d import import_rerun
 
-        import_rerun()  # the viz extra, before any work
+        try:
+            import_rerun()  # the viz extra, before any work
+        except ImportError as err:
+            raise ValueError(f"--rerun: {err}") from None
     taken = next((out / part for part in parts if os.path.lexists(out / part)), None)
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
@@ -451,8 +460,9 @@ def remove_stale_staging(out: Path) -> None:
     run holds ``out``'s lock no other run is writing them, so they are removed, and said so."""
     import shutil
 
-    for stale in out.parent.glob(f".{out.name}.multiview-*"):
-        if stale.is_dir():
+    prefix = f".{out.name}.multiview-"  # compared as text: a name with [ or * is no pattern here
+    for stale in out.parent.iterdir():
+        if stale.name.startswith(prefix) and stale.is_dir():
             log.warning("removing %s, left by an interrupted run", stale)
             shutil.rmtree(stale, ignore_errors=True)
 
@@ -484,7 +494,9 @@ class InstantRecorder:
         from ..rerun3d import CameraView
 
         if self.at is not None and (
-            self.at[0] != pairing.sequence or pairing.frame.key - self.at[1].key > self.same_instant_ns
+            self.at[0] != pairing.sequence
+            or pairing.frame.key - self.at[1].key > self.same_instant_ns
+            or pairing.camera in self.views  # a camera's second image within the window: its own instant
         ):
             self.flush()
         if self.at is None:
@@ -558,7 +570,7 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
         "images": images,
         "images_left_out": left_out,
         "pairs_left_out": store.unmatched if store is not None else {},
-        "kept_nothing": [r["image"] for r in images if not r["kept"]],
+        "kept_nothing": [r["image"] for r in images if not r["kept_pixels"]],
         "seconds": {
             "total": round(seconds, 3),
             "refine": round(refine_seconds, 3),
@@ -595,6 +607,7 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
         "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
         "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
         "kept": round(float((fused.distance > 0).mean()), 4),
+        "kept_pixels": int((fused.distance > 0).sum()),
         "seen": round(float((fused.dense > 0).mean()), 4),
     }
     if truth is not None:
@@ -666,18 +679,26 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    except OSError as err:  # the disk filled or the folder turned read-only during the run
+    except OSError as err:  # the disk filled, a folder turned read-only, or an input cannot be read
         if err.errno not in WRITE_ERRORS:
             raise
-        where = err.filename or args.out
-        print(f"error: --out: {where}: cannot be written ({err.strerror})", file=sys.stderr)
+        where = os.path.abspath(err.filename or args.out)
+        written = where.startswith(os.path.abspath(args.out)) or where.startswith(
+            os.path.abspath(args.out.parent / f".{args.out.name}.")
+        )  # --out, or its staging folder or lock beside it
+        what = f"--out: {where}: cannot be written" if written else f"{where}: cannot be read"
+        print(f"error: {what} ({err.strerror})", file=sys.stderr)
         return 2
     seconds = summary["seconds"]["per_image"]
     left = len(summary["images_left_out"])
     print(f"{len(summary['images'])} images matched ({seconds:.2f} s each), {left} left out "
           f"(summary.json says why); {args.out}")  # fmt: skip
     if len(summary["kept_nothing"]) == len(summary["images"]):  # nothing done: no exit 0 for it
-        why = "; ".join(sorted(set(summary["pairs_left_out"].values()))) or "no pixel passed the checks"
+        why = sorted(set(summary["pairs_left_out"].values()))
+        flat = [r["image"] for r in summary["images"] if r["flat"] > 0.5]
+        if flat:
+            why.append(f"{len(flat)} of the images are flat (no contrast to match) over half their pixels")
+        why = "; ".join(why) or "no pixel passed the checks"
         print(f"error: {args.out}: no image kept a pixel ({why})", file=sys.stderr)
         return 1
     return 0
