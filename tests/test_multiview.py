@@ -378,8 +378,8 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     assert recording.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err == (
-        f"error: {rec / 'rig.yaml'}: camera 'left': '96x96' needs 5.62 MiB of memory (640 bytes a pixel of a "
-        "pair); this machine has 1 MiB\n"
+        f"error: {rec / 'rig.yaml'}: camera 'left': '96x96' needs 68.5 MiB of memory (64 MiB + 512 bytes a "
+        "pixel of a pair); this machine has 1 MiB\n"
     )
     monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**30)
     args = [
@@ -405,7 +405,7 @@ def test_the_memory_bound_holds_for_a_pair(tmp_path):
     import subprocess
     import sys
 
-    from fisheyedepth.stereo.recording import MEMORY_PER_PIXEL
+    from fisheyedepth.stereo.recording import pair_memory
 
     tests = str(Path(__file__).parent)
     code = f"""
@@ -430,7 +430,7 @@ print(next(int(x.split()[1]) * 1024 for x in open("/proc/self/status") if x.star
         return int(run.stdout)
 
     grown = peak("match") - peak("setup")
-    assert 0.3 * MEMORY_PER_PIXEL * 512 * 512 < grown < MEMORY_PER_PIXEL * 512 * 512, grown / 512**2
+    assert 0.5 * pair_memory(512 * 512) < grown < pair_memory(512 * 512), grown / 512**2
 
 
 def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_path):

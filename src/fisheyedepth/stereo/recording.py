@@ -306,12 +306,19 @@ def nothing_to_match(layout: RigLayout, sources: tuple[str, ...], left_out: dict
     return said
 
 
-# Peak memory of matching one pair, per pixel of its larger image at the cameras' own resolution: the
-# rays, the rectification's tables, both rectified images, SGBM's buffers and the maps back. Measured
-# 618, 509 and 476 bytes for two 512, 1024 and 2048 px fisheyes (tests/test_multiview.py checks a pair
-# against it); this bound leaves a margin over the largest.
-MEMORY_PER_PIXEL = 640
+# Peak memory of matching one pair: a fixed part and a part per pixel of its larger image at the cameras'
+# own resolution (the rays, the rectification's tables, both rectified images, SGBM's buffers and the
+# maps back). Measured 44 MiB at 256 px, 148-172 MiB at 512, 509-518 at 1024 and about 1.9 GiB at 2048
+# (scripts/bench/bench_stereo_memory.py; tests/test_multiview.py checks a 512 px pair against it): each
+# 0.9 of this bound or less.
+MEMORY_BASE = 64 * 2**20
+MEMORY_PER_PIXEL = 512
 SWEEP_MEMORY_PER_VOXEL = 20  # the sweep's cost sums, counts and volume (float32) and a chunk's warps
+
+
+def pair_memory(pixels: float) -> float:
+    """Bytes one pair of images of ``pixels`` pixels needs at its peak (:data:`MEMORY_PER_PIXEL`)."""
+    return MEMORY_BASE + MEMORY_PER_PIXEL * pixels
 
 
 def check_run_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -> None:
@@ -323,11 +330,11 @@ def check_run_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -
         scale = 1.0
         if matcher.resolution is not None:  # a finer grid than the camera's own
             scale = max(1.0, (pair_step(spec.camera, spec.camera, None) / matcher.resolution) ** 2)
-        what = f"{MEMORY_PER_PIXEL} bytes a pixel of a pair"
+        what = f"{MEMORY_BASE // 2**20} MiB + {MEMORY_PER_PIXEL} bytes a pixel of a pair"
         if scale > 1:
             what += f", x {scale:.3g} at --resolution {math.degrees(matcher.resolution):g} degrees"
         where = f"{layout.root / 'rig.yaml'}: camera {name!r}"
-        check_memory(where, size, MEMORY_PER_PIXEL * pixels * scale, what)
+        check_memory(where, size, pair_memory(pixels * scale), what)
     else:
         need = SWEEP_MEMORY_PER_VOXEL * matcher.hypotheses * pixels
         what = f"{SWEEP_MEMORY_PER_VOXEL} bytes x hypotheses x camera {name!r}'s {size} pixels"
