@@ -138,6 +138,11 @@ def test_a_moving_rig_lands_its_points_on_the_walls_in_the_world_frame(tmp_path)
         assert [len(again.points(f"/world/points/{camera}/distance", i)) for i in range(1)] == [count]
     depth = again.rows["/images/left/distance/metres"][0]
     assert depth["DepthImage:meter"].as_py() == [1.0]
+    stored = np.frombuffer(bytes(depth["DepthImage:buffer"].as_py()[0]), np.float16).reshape(48, 48)
+    views, _ = room_views(0)
+    truth = views["left"].maps["distance"]
+    good = np.isfinite(truth) & (truth > 0)
+    assert np.allclose(stored[good], truth[good], rtol=1e-3)  # metres, to 0.05 %
 
 
 def test_an_exception_in_the_block_leaves_no_file_and_no_temporary(tmp_path):

@@ -189,7 +189,9 @@ class RigRecorder:
         self.stream.log(
             f"{entity}/colour", self.rr.EncodedImage(contents=jpeg(colours), media_type="image/jpeg")
         )
-        self.stream.log(f"{entity}/metres", self.rr.DepthImage(distance, meter=1.0))
+        # float16: half the bytes of float32 (a recording's largest part with the points), 0.05 % of the
+        # distance (4 cm at 80 m) for the viewer's hover and its 3-D projection
+        self.stream.log(f"{entity}/metres", self.rr.DepthImage(distance.astype(np.float16), meter=1.0))
 
     # ------------------------------------------------------------------------------------ points
     def rays(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
