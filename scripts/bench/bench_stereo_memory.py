@@ -2,7 +2,7 @@
 """Peak memory of one stereo pair through the rectified pipeline (``RigStereo``, as
 ``fisheyedepth-multiview`` matches each pair), per pixel of its images, at growing sizes: the figure
 behind the bound the command refuses a recording by (``stereo.recording.pair_memory``) before any
-work (BENCHMARKS.md "Memory of a stereo pair").
+work (BENCHMARKS.md, "Memory of a stereo pair", after the stereo section).
 
 Usage: python scripts/bench/bench_stereo_memory.py [--sizes 512 1024 2048] [--quick] [--no-write]
 
@@ -50,28 +50,25 @@ def main(argv=None) -> int:
         return 0
     from fisheyedepth.stereo.recording import MEMORY_BASE, MEMORY_PER_PIXEL, pair_memory
 
-    rows = []
+    measured = []
     for size in args.sizes:
         start = time.perf_counter()
         grown = run_child(__file__, [size, "match"]) - run_child(__file__, [size, "setup"])
-        per_pixel = grown / size**2
-        share = grown / pair_memory(size**2)
-        rows.append(f"| {size}x{size} | {grown / 2**20:.0f} | {per_pixel:.0f} | {share:.2f} |")
-        print(rows[-1], f"({time.perf_counter() - start:.0f} s)", flush=True)
+        measured.append((size, grown))
+        print(f"{size} px: {grown / 2**20:.0f} MiB ({time.perf_counter() - start:.0f} s)", flush=True)
+
+    mib = " / ".join(f"{grown / 2**20:.0f}" for _, grown in measured)
+    sizes = " / ".join(str(size) for size, _ in measured)
+    per_pixel = " / ".join(f"{grown / size**2:.0f}" for size, grown in measured)
+    share = " / ".join(f"{grown / pair_memory(size**2):.2f}" for size, grown in measured)
+    command = f"python scripts/bench/bench_stereo_memory.py --sizes {' '.join(map(str, args.sizes))}"
+    bound = f"{MEMORY_BASE // 2**20} MiB + {MEMORY_PER_PIXEL} bytes a pixel"
     section = "\n".join([
         START,
-        "## Memory of a stereo pair (`scripts/bench/bench_stereo_memory.py`)",
-        "",
-        f"Command: `python scripts/bench/bench_stereo_memory.py --sizes {' '.join(map(str, args.sizes))}`; "
-        f"{time.strftime('%Y-%m-%d')}, {platform.machine()} CPU. One pair of two KITTI-360 fisheyes 0.3 m "
-        "apart (random images: every window textured), a fresh process with and without the match; the "
-        "difference of their peaks. `fisheyedepth-multiview` refuses a recording whose largest image would "
-        f"need more than the machine's memory: {MEMORY_BASE // 2**20} MiB + {MEMORY_PER_PIXEL} bytes a "
-        "pixel.",
-        "",
-        "| images | peak of the pair (MiB) | bytes a pixel | share of the bound |",
-        "|---|---|---|---|",
-        *rows,
+        f"**Memory of a stereo pair** (`{command}`, {time.strftime('%Y-%m-%d')}, {platform.machine()}; two "
+        "KITTI-360 fisheyes 0.3 m apart, random images, a fresh process with and without the match): "
+        f"**{mib} MiB** at {sizes} px, {per_pixel} bytes a pixel, {share} of the bound "
+        f"`fisheyedepth-multiview` refuses by ({bound}).",
         END,
     ])  # fmt: skip
     publish(section, args.output, START, END, not args.no_write)

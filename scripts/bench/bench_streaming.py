@@ -122,7 +122,7 @@ def published_predict(path: Path) -> list[str]:
     return section.split(RIG_HEADING, 1)[0].rstrip("\n").splitlines()
 
 
-RIG_HEADING = "### The live rig"
+RIG_HEADING = "**The live rig**"
 
 
 def rig_section(threads: int, quick: bool) -> list[str]:
@@ -156,26 +156,17 @@ def rig_section(threads: int, quick: bool) -> list[str]:
             measured[recorded] = (len(seconds) / total, statistics.median(seconds), size)
             print(f"recorded={recorded}: {measured[recorded]}", flush=True)
     camera = next(iter(cameras.values()))
-    rows = [
-        f"| {'with' if recorded else 'without'} | {fps:.2f} | {median:.2f} | "
-        f"{f'{size:.0f} MB' if recorded else '-'} |"
-        for recorded, (fps, median, size) in measured.items()
-    ]
+    (fps, median, _), (fps_recorded, median_recorded, size) = measured[False], measured[True]
+    when = f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores"
+    rig = f"{len(names)} cameras of {camera.width}x{camera.height}, {len(found)} instants"
     return [
-        RIG_HEADING,
-        "",
-        f"Command: `python scripts/bench/bench_streaming.py --threads {threads}` (without `--ckpt`: this "
-        f"table only); {time.strftime('%Y-%m-%d')}, {platform.machine()} CPU, {os.cpu_count()} cores. "
-        "`scripts/tools/live_rig.py`'s loop on the Aria Gen2 rig: "
-        f"{len(names)} cameras of {camera.width}x{camera.height}, {len(found)} instants, each camera against "
-        "the rig's overlapping cameras and its own image of the latest instant 5 cm or more away, "
-        f"{threads} threads; the Rerun recording holds every image (JPEG), the kept and the filled map of "
-        "each (colourised and in metres) and "
-        "up to 100,000 world points per map.",
-        "",
-        "| Rerun recording | instants per second | median seconds an instant | recording size |",
-        "|---|---|---|---|",
-        *rows,
+        f"{RIG_HEADING} (`python scripts/bench/bench_streaming.py --threads {threads}`, without `--ckpt`; "
+        f"{when}): `scripts/tools/live_rig.py`'s loop on the Aria Gen2 rig, {rig}, each camera against the "
+        "rig's overlapping cameras and its own image of the latest instant 5 cm or more away, "
+        f"{threads} threads: **{fps:.2f} instants per second** (median {median:.2f} s); with the Rerun "
+        "recording (every image as JPEG, the kept and the filled maps colourised and in metres, up to "
+        f"100,000 world points per map) **{fps_recorded:.2f}** (median {median_recorded:.2f} s), "
+        f"{size:.0f} MB.",
     ]
 
 

@@ -28,12 +28,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
+from fisheyedepth.stereo.recording import masks
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 
@@ -80,12 +80,9 @@ def instants(layout: RigLayout, sequence: str) -> tuple[list[Instant], list[str]
 
 
 def body_masks(layout: RigLayout, cameras: list[str]) -> dict[str, np.ndarray]:
-    masks = {}
-    for name in cameras:
-        path = layout.cameras[name].mask
-        if path is not None:
-            masks[name] = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-    return masks
+    """The named cameras' body masks (True: the scene), read and checked as ``fisheyedepth-multiview``
+    reads them; a camera without one is not named."""
+    return {name: mask for name, mask in masks(layout).items() if name in cameras and mask is not None}
 
 
 def earlier_partner(history: deque, pose: np.ndarray, min_baseline: float):

@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 import torch
 
-from fisheyedepth.cameras import compute_rays
+from fisheyedepth.cameras import RayCache
+from fisheyedepth.inference import point_cloud
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.utils import atomic_write_png
 
@@ -29,12 +30,13 @@ from live_rig import body_masks, instants, replay, rig_layout  # noqa: E402
 CAMERA_COLOURS = [(0, 160, 255), (60, 220, 60), (255, 120, 60), (220, 60, 220)]  # BGR
 
 
+RAYS = RayCache()  # each camera's rays, unprojected once for every instant
+
+
 def world_points(result, camera, cam_to_world: np.ndarray) -> np.ndarray:
-    rays, valid = compute_rays(camera, torch.device("cpu"), torch.float64)
-    distance = result.fused.distance.astype(np.float64)
-    keep = valid.numpy() & (distance > 0)
-    local = rays.numpy()[keep] * distance[keep, None]
-    return local @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
+    """The kept distance's points (:func:`~fisheyedepth.inference.point_cloud`) in the world frame."""
+    local, _ = point_cloud(torch.from_numpy(result.fused.distance), camera, rays=RAYS)
+    return local.astype(np.float64) @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
 
 
 def draw(

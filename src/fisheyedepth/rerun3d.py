@@ -38,13 +38,13 @@ import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
-from .cameras import CameraModel, compute_rays
+from .cameras import CameraModel, RayCache
+from .geometry import finite_transform
 from .outputs import place_new
 from .utils import temporary_beside
 from .viz import colourise
@@ -109,7 +109,7 @@ class RigRecorder:
         self.latest_rig: dict[str, np.ndarray] | None = None
         self.positions: dict[int, np.ndarray] = {}  # the body's position by instant index
         self.rng = np.random.default_rng(SEED)
-        self._rays: dict[CameraModel, tuple[np.ndarray, np.ndarray]] = {}
+        self._rays = RayCache()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._temporary = contextlib.ExitStack()  # the package's one temporary-beside-the-target
         self.tmp: Path | None = self._temporary.enter_context(temporary_beside(self.path))
@@ -121,7 +121,7 @@ class RigRecorder:
     def rig(self, cam_to_body: Mapping[str, np.ndarray], name: str = "rig") -> None:
         """Each camera's 4x4 pose in the body frame, static, under ``world/body/<name>/<camera>``; the
         rig :meth:`instant` uses when it is given none is the last one logged."""
-        rr, poses = self.rr, {c: rigid(T, f"cam_to_body[{c!r}]") for c, T in cam_to_body.items()}
+        rr, poses = self.rr, {c: finite_transform(T, f"cam_to_body[{c!r}]") for c, T in cam_to_body.items()}
         for camera, T in poses.items():
             entity = f"world/body/{name}/{camera}"
             self.stream.log(entity, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
@@ -144,11 +144,13 @@ class RigRecorder:
         :meth:`rig`, identity for a camera it does not name)."""
         self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
         self.stream.set_time("frame", sequence=int(index))
-        body = np.eye(4) if body_to_world is None else rigid(body_to_world, "body_to_world")
+        body = np.eye(4) if body_to_world is None else finite_transform(body_to_world, "body_to_world")
         self._log_body(body, int(index))
         rig = cam_to_body if cam_to_body is not None else (self.latest_rig or {})
         for camera, view in views.items():
-            extrinsic = rigid(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
+            extrinsic = (
+                finite_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
+            )
             self._log_view(camera, view, body @ extrinsic)
 
     def _log_body(self, body: np.ndarray, index: int) -> None:
@@ -194,19 +196,12 @@ class RigRecorder:
         self.stream.log(f"{entity}/metres", self.rr.DepthImage(distance.astype(np.float16), meter=1.0))
 
     # ------------------------------------------------------------------------------------ points
-    def rays(self, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
-        """``camera``'s unit rays ``[H, W, 3]`` (float64) and which pixels have one, computed once."""
-        if camera not in self._rays:
-            rays, valid = compute_rays(camera, torch.device("cpu"), torch.float64)
-            self._rays[camera] = rays.numpy(), valid.numpy()
-        return self._rays[camera]
-
     def points(
         self, camera: CameraModel, distance: np.ndarray, cam_to_world: np.ndarray
     ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
         """World points ``[N, 3]`` float32 of ``distance``'s pixels with a value and a ray, at most
         ``points_per_image`` of them (module docstring), and their pixels ``(rows, columns)``."""
-        rays, valid = self.rays(camera)
+        rays, valid = (x.numpy() for x in self._rays.get(camera, dtype=torch.float64))
         rows, cols = np.nonzero(valid & (distance > 0))
         if len(rows) > self.points_per_image:
             chosen = np.sort(self.rng.choice(len(rows), self.points_per_image, replace=False))
@@ -261,14 +256,6 @@ class RigRecorder:
 
 
 # ---------------------------------------------------------------------------------------- helpers
-def rigid(T: Any, what: str) -> np.ndarray:
-    """``T`` as a finite 4x4 float64 array, else a ValueError naming ``what``."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"{what}: a finite 4x4 transform expected, got shape {T.shape}")
-    return T
-
-
 def checked_map(values: np.ndarray, size: tuple[int, int], what: str) -> np.ndarray:
     """``values`` (``H x W`` metres) as float32 with every non-finite or non-positive value 0."""
     values = np.asarray(values)

@@ -2,6 +2,7 @@
 
 from .se3 import (
     axis_angle_to_matrix,
+    finite_transform,
     invert_pose,
     make_pose,
     mirror_pose_x,
@@ -28,6 +29,7 @@ __all__ = [
     "Warp",
     "axis_angle_to_matrix",
     "distance_to_depth",
+    "finite_transform",
     "grid_to_pixels",
     "invert_pose",
     "make_pose",

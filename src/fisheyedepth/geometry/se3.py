@@ -6,8 +6,17 @@ extrinsic ``E`` (camera to body) are both such maps.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
+
+
+def finite_transform(T, what: str) -> np.ndarray:
+    """``T`` as a finite 4x4 float64 array, else a ValueError naming ``what``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{what}: a finite 4x4 transform expected, got shape {T.shape}")
+    return T
 
 
 def make_pose(R, t) -> Tensor:

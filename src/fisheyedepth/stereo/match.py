@@ -97,6 +97,17 @@ class Disparity(NamedTuple):
     checked: np.ndarray  # float32: the matched ones outside speckles
 
 
+def local_spread(image: np.ndarray, seen: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mean and the standard deviation of float32 ``image`` over the ``window`` around each pixel,
+    among the ``seen`` pixels only."""
+    weight = seen.astype(np.float32)
+    size = (window, window)
+    count = np.maximum(cv2.boxFilter(weight, -1, size, normalize=False), 1)
+    mean = cv2.boxFilter(image * weight, -1, size, normalize=False) / count
+    square = cv2.boxFilter(image * image * weight, -1, size, normalize=False) / count
+    return mean, np.sqrt(np.maximum(square - mean * mean, 0))
+
+
 def normalise(image: np.ndarray, seen: np.ndarray, window: int) -> np.ndarray:
     """``uint8``: ``128 + 32 (I - mean) / std`` over the ``window`` around each pixel, among the pixels the
     camera sees (0 outside them); ``window=0``: the image scaled to 8 bits."""
@@ -106,12 +117,7 @@ def normalise(image: np.ndarray, seen: np.ndarray, window: int) -> np.ndarray:
     if not window:
         top = float(image[seen].max()) if seen.any() else 1.0
         return np.where(seen, np.clip(image * (255.0 / max(top, 1e-6)), 0, 255), 0).astype(np.uint8)
-    weight = seen.astype(np.float32)
-    size = (window, window)
-    count = np.maximum(cv2.boxFilter(weight, -1, size, normalize=False), 1)
-    mean = cv2.boxFilter(image * weight, -1, size, normalize=False) / count
-    square = cv2.boxFilter(image * image * weight, -1, size, normalize=False) / count
-    spread = np.sqrt(np.maximum(square - mean * mean, 0))
+    mean, spread = local_spread(image, seen, window)
     floor = 1e-3 * max(float(spread.max()), 1e-6)  # a thousandth of the strongest contrast: flat stays flat
     z = (image - mean) / np.maximum(spread, floor)
     return np.where(seen, np.clip(128 + 32 * z, 1, 255), 0).astype(np.uint8)
@@ -127,19 +133,19 @@ def textured(image: np.ndarray, seen: np.ndarray, window: int) -> np.ndarray:
     textured pixel. The seen pixels on the rim of the view are left out of the windows (the rectified
     image blends them with the black beyond it: contrast that is not the scene's)."""
     image = image.astype(np.float32)
-    seen = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
+    seen = off_the_rim(seen)
     values = image[seen]
     if values.size == 0:
         return np.zeros(image.shape, bool)
     low, high = np.percentile(values, (1, 99))
     if not high > low:
         return np.zeros(image.shape, bool)
-    weight = seen.astype(np.float32)
-    size = (window, window)
-    count = np.maximum(cv2.boxFilter(weight, -1, size, normalize=False), 1)
-    mean = cv2.boxFilter(image * weight, -1, size, normalize=False) / count
-    square = cv2.boxFilter(image * image * weight, -1, size, normalize=False) / count
-    return seen & (np.sqrt(np.maximum(square - mean * mean, 0)) > FLAT * (high - low))
+    return seen & (local_spread(image, seen, window)[1] > FLAT * (high - low))
+
+
+def off_the_rim(seen: np.ndarray) -> np.ndarray:
+    """``seen`` less its rim of one pixel: what :func:`textured` can judge."""
+    return cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
 
 
 @functools.lru_cache(maxsize=8)

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from ..cameras.base import CameraModel
+from ..geometry import finite_transform
 from .fill import fill, matchable
 from .fuse import Fused, fuse
 from .mapback import PixelMaps, to_pixels
@@ -293,9 +294,7 @@ class RigStereo:
             jobs.append(((a, b), (b, a), images[a], images[b], rect, (a, b)))
         if previous is not None:
             self._check("previous", previous, every=False)
-            motion = np.asarray(motion, dtype=np.float64)
-            if motion.shape != (4, 4) or not np.isfinite(motion).all():
-                raise ValueError(f"motion: a finite 4x4 transform expected, got shape {motion.shape}")
+            motion = finite_transform(motion, "motion")
             for name in self.cameras:
                 E = self.cam_to_body[name]
                 T_now_to_then = _relative(E, E, motion)

@@ -65,9 +65,9 @@ from ..utils import (
 )
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
-from .match import MatcherSettings, textured
+from .match import MatcherSettings, off_the_rim, textured
 from .pipeline import StereoSettings, Timer, grey, match_pair, nothing, pair_step, partner_pair
-from .rectify import Rectification, RectificationCache
+from .rectify import RAYS, Rectification, RectificationCache
 from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
 from .scores import panel, score
 from .sweep import SweepStereo, View
@@ -362,16 +362,12 @@ def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True
 def flat_fraction(image: np.ndarray, camera) -> float:
     """The share of the image's pixels whose matching window has no contrast (:func:`.match.textured`):
     nothing there can be matched, and the summary says so."""
-    from ..cameras.rays import compute_rays
-
-    _, valid = compute_rays(camera)
-    seen = valid.numpy()
-    inner = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0  # as textured()
-    if not inner.any():
+    valid = RAYS.get(camera).valid.numpy()  # the rays its rectification took
+    judged = off_the_rim(valid)
+    if not judged.any():
         return 1.0
-    seen = inner
-    flat = seen & ~textured(grey(image), valid.numpy(), MatcherSettings.block)
-    return round(float(flat.sum() / seen.sum()), 4)
+    flat = judged & ~textured(grey(image), valid, MatcherSettings.block)
+    return round(float(flat.sum() / judged.sum()), 4)
 
 
 @contextlib.contextmanager
