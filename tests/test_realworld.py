@@ -23,7 +23,10 @@ from conftest import bare_module, load_script, realdata_dir
 
 cv2 = pytest.importorskip("cv2")
 ROOT = Path(__file__).resolve().parents[1]
-FRAME_NAMES = ["kitti360", "scannetpp", "adt_left_0", "adt_left_1", "adt_right_0", "adt_right_1"]
+FRAME_NAMES = [
+    "kitti360", "scannetpp", "adt_left_0", "adt_left_1", "adt_right_0", "adt_right_1",
+    "ddad_CAMERA_01", "ddad_CAMERA_05", "ddad_CAMERA_06",
+]  # fmt: skip
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -120,9 +123,10 @@ def test_adt_z_depth_becomes_distance_whose_point_projects_back_to_its_pixel(fra
         assert float((uv - pixel).abs().max()) < 1e-3
 
 
-def kitti360_scored_by_numpy(frame: rf.RealFrame) -> np.ndarray:
-    """The full protocol's pixels of the KITTI-360 frame: body mask, a ray, a return below 80 m and not
-    10 % behind the nearest return within 3 pixels (a 7x7 minimum filter by OpenCV's erosion)."""
+def lidar_scored_by_numpy(frame: rf.RealFrame) -> np.ndarray:
+    """The full protocol's pixels of a LiDAR frame (KITTI-360, DDAD): body mask, a ray, a return below
+    80 m and not 10 % behind the nearest return within 3 pixels (a 7x7 minimum filter by OpenCV's
+    erosion)."""
     d = frame.distance.numpy()
     near = cv2.erode(np.where(d > 0, d, np.inf).astype(np.float32), np.ones((7, 7), np.uint8))
     with np.errstate(over="ignore"):  # inf (no return nearby) times 1.1
@@ -137,8 +141,8 @@ def test_the_constant_map_scores_what_numpy_computes(frames):
     them on the pixels each frame scores (found here without the library for every frame)."""
     for name, frame in frames.items():
         d = frame.distance.double().numpy()
-        if name == "kitti360":
-            scored = kitti360_scored_by_numpy(frame)
+        if frame.source == "lidar":
+            scored = lidar_scored_by_numpy(frame)
         else:
             valid = rf.RAYS.get(frame.camera)[1].numpy()
             assert rs.protocols(frame)[0].cap[1] == np.floor(d[valid].max()) + 1

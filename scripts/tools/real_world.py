@@ -3,9 +3,10 @@
 truth under the real data folder (``--root``, else ``FISHEYEDEPTH_REALDATA``; ``make realscore``
 defaults to ``../shared/realdata``): the KITTI-360 frame against its LiDAR (80 m, inside the body
 mask), the ScanNet++ frame and four Aria Digital Twin SLAM frames against their rendered depth (capped
-at the frame's range). Real cameras, never trained on.
+at the frame's range), and each camera of the DDAD scene's first sample against its LiDAR sweep (80 m,
+every pixel: DDAD ships no body mask). Real cameras, never trained on.
 
-    python scripts/tools/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt]
+    python scripts/tools/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt ddad]
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
                                  [--no-multiview]
     python scripts/tools/real_world.py --from-records docs/records/real_photographs   # kept scores

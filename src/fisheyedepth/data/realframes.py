@@ -6,6 +6,10 @@ the caller names:
 - ``scannetpp``: a ScanNet++ DSLR fisheye (Kannala-Brandt) with depth rendered from the laser scan.
 - ``adt_{left,right}_{0,1}``: the two grey SLAM cameras of Aria Digital Twin (native Fisheye624) with
   the digital twin's rendered depth, frames 0 and 1; the grey image becomes three equal channels.
+- ``ddad_<camera>``: each camera (pinhole) of a DDAD scene's first sample with the sample's LiDAR sweep
+  projected into it (:mod:`.ddad`, the projection its importer writes). The car of ``ddad_scene01``
+  stands still, so its later samples are the same view again. DDAD ships no body mask: the side
+  cameras' pixels on the car's hood carry the ground the roof LiDAR saw beyond it.
 
 The dense frames store z-depth in millimetres; :func:`z_to_distance` turns it into distance along each
 pixel's ray with the frame's own calibration, and the frame's range is its ground truth's rounded up to
@@ -39,9 +43,15 @@ from ..cameras import (
 from ..cameras.fisheye624 import ARIA_PARAMS
 from ..cameras.io import field
 from ..images import read_image
+from .ddad import read_scene
 
-FRAME_SETS = ("kitti360", "scannetpp", "adt")  # what a caller chooses from; adt holds four frames
-FOLDERS = {"kitti360": "kitti360_frame", "scannetpp": "scannetpp_frame", "adt": "adt_slam"}
+FRAME_SETS = ("kitti360", "scannetpp", "adt", "ddad")  # what a caller chooses from; adt holds four frames
+FOLDERS = {
+    "kitti360": "kitti360_frame",
+    "scannetpp": "scannetpp_frame",
+    "adt": "adt_slam",
+    "ddad": "ddad_scene01",
+}
 ADT_FRAMES = (
     ("camera-slam-left", 0),
     ("camera-slam-left", 1),
@@ -270,6 +280,37 @@ def load_adt(folder: Path) -> list[RealFrame | Missing]:
     return frames
 
 
+def load_ddad(folder: Path) -> list[RealFrame | Missing]:
+    """Every camera of the DDAD scene's first sample (:func:`.ddad.read_scene`) with the sample's sweep
+    projected into it as the ground truth (nearest point per pixel, the occlusion filter applied), every
+    pixel usable; ``[Missing("ddad", folder)]`` without the folder, a frame whose image or sweep is absent
+    :class:`Missing`."""
+    if not folder.is_dir():
+        return [Missing("ddad", folder)]
+    scene = read_scene(folder)
+    sample = scene.samples[0]
+    sweep = sample.datums.get(scene.lidar) if scene.lidar is not None else None
+    if sweep is None:
+        raise ValueError(f"{scene.scene_file}: samples[0] has no point cloud: no ground truth to score")
+    points = scene.points(sweep) if sweep.path.is_file() else None
+    frames: list[RealFrame | Missing] = []
+    for camera in scene.cameras:
+        name = f"ddad_{camera}"
+        datum = sample.datums.get(camera)
+        if datum is None:
+            raise ValueError(f"{scene.scene_file}: samples[0] has no image of {camera}")
+        if (gone := _need(datum.path, name) or _need(sweep.path, name)) is not None:
+            frames.append(gone)
+            continue
+        image = read_rgb(datum.path)
+        _check_size(datum.path, image, scene.cameras[camera], scene.scene_file)
+        distance = torch.from_numpy(scene.ground_truth(sample, camera, points))
+        mask = torch.ones_like(distance, dtype=torch.bool)
+        files = (scene.scene_file, scene.calibration_file, datum.path, sweep.path)
+        frames.append(RealFrame(name, image, scene.cameras[camera], distance, mask, files, source="lidar"))
+    return frames
+
+
 def load_frames(root: Path, sets: Sequence[str] = FRAME_SETS) -> list[RealFrame | Missing]:
     """Every frame of ``sets`` (see :data:`FRAME_SETS`) under ``root`` (a folder per set,
     :data:`FOLDERS`), in that order; a frame whose files are absent as :class:`Missing`."""
@@ -283,6 +324,8 @@ def load_frames(root: Path, sets: Sequence[str] = FRAME_SETS) -> list[RealFrame 
             out.append(load_kitti360(folder))
         elif name == "scannetpp":
             out.append(load_scannetpp(folder))
+        elif name == "ddad":
+            out.extend(load_ddad(folder))
         else:
             out.extend(load_adt(folder))
     return out
