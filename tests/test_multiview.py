@@ -79,13 +79,17 @@ def write_room_rig(
     size: int = 96,
     stamps=(1_000_000_000, 1_100_000_000, 1_200_000_000),
     calibrated: dict | None = None,
+    half_baseline: float = 0.1,
 ) -> dict:
-    """A rig layout in the textured room: cameras ``left`` and ``right`` 0.2 m apart, turned 20 degrees
-    apart, moving 0.15 m forward per frame, with exact distance maps; and ``lonely``, whose one image is
-    taken between the others' instants. ``calibrated``: cam_to_body written to rig.yaml in place of the
-    true one, by camera."""
+    """A rig layout in the textured room: cameras ``left`` and ``right`` ``2 half_baseline`` apart, turned
+    20 degrees apart, moving 0.15 m forward per frame, with exact distance maps; and ``lonely``, whose one
+    image is taken between the others' instants. ``calibrated``: cam_to_body written to rig.yaml in place
+    of the true one, by camera."""
     camera = kitti02().resize(size, size)
-    extrinsics = {"left": pose(-10.0, (-0.1, 0.0, 0.0)), "right": pose(10.0, (0.1, 0.0, 0.0))}
+    extrinsics = {
+        "left": pose(-10.0, (-half_baseline, 0.0, 0.0)),
+        "right": pose(10.0, (half_baseline, 0.0, 0.0)),
+    }
     written = {**extrinsics, **(calibrated or {})}
     entries = [{"name": n, "model": camera.to_dict(), "cam_to_body": E.tolist()} for n, E in written.items()]
     entries.append({"name": "lonely", "model": camera.to_dict(), "cam_to_body": np.eye(4).tolist()})
@@ -128,12 +132,14 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     records = {r["image"]: r for r in summary["images"]}
     assert records[f"seq/left/{t0}"]["partners"] == [f"right/{t0}", f"left/{t1}"]  # the rig, then later
     assert records[f"seq/left/{t1}"]["partners"] == [f"right/{t1}", f"left/{t0}", f"left/{t2}"]  # both sides
-    for record in summary["images"]:
-        assert record["checked"]["abs_rel"] < 0.08 and record["checked"]["coverage"] > 0.8, record
+    for record in summary["images"]:  # the pixels it can resolve at 192 px (an estimate no other partner
+        # corroborates needs 8 pixels of parallax), at 3 % of their distance
+        assert record["checked"]["abs_rel"] < 0.05 and record["checked"]["coverage"] > 0.45, record
         assert record["checked"]["abs_rel"] < 0.2 * record["checked"]["constant_abs_rel"], record
         assert record["dense"]["abs_rel"] < 0.15 and 0 < record["seconds"] < 30, record
     seconds = summary["seconds"]
-    assert set(seconds) == {"total", "refine", "rectify", "match", "fill", "map_back", "fuse", "per_image"}
+    stages = {"motion", "rectify", "match", "fill", "map_back", "fuse"}
+    assert set(seconds) == {"total", "refine", "per_image", *stages}
     assert seconds["match"] > 0 and seconds["per_image"] > 0 and summary["settings"]["matcher"] == "sgbm"
     distance = np.load(out / "seq" / "distance" / "left" / f"{t0}.npy")
     dense = np.load(out / "seq" / "dense" / "left" / f"{t0}.npy")
@@ -167,7 +173,7 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     from fisheyedepth.stereo import recording
 
     rec = tmp_path / "rec"
-    rig = write_room_rig(rec, size=96, stamps=(1_000_000_000, 1_100_000_000))
+    rig = write_room_rig(rec, size=128, stamps=(1_000_000_000, 1_100_000_000), half_baseline=0.3)
     t0 = rig["stamps"][0]
     common = ["--min-distance", "0.3", "--max-distance", "20", "--quiet"]
     for out, what in ((rec, "is the recording"), (rec / "seq" / "out", "lies inside the recording"),
@@ -205,13 +211,15 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))  # no output, no staging, no lock left
     monkeypatch.undo()
     assert recording.main([str(rec), "--out", str(out), "--overwrite", *common]) == 0
-    assert np.load(mine).shape == (96, 96) and (out / "summary.json").is_file()
+    assert np.load(mine).shape == (128, 128) and (out / "summary.json").is_file()
 
 
 @functools.cache
 def small_rig(root: Path) -> Path:
-    """A 96 px room rig of two instants, written once per test session (each case copies it)."""
-    write_room_rig(root, size=96, stamps=(1_000_000_000, 1_100_000_000))
+    """A 128 px room rig of two instants, its cameras 0.6 m apart (a fisheye's pixel is 1.5 degrees at
+    this size: a shorter baseline resolves nothing in the room, and its time pairs give too few feature
+    matches to check their motion), written once per test session (each case copies it)."""
+    write_room_rig(root, size=128, stamps=(1_000_000_000, 1_100_000_000), half_baseline=0.3)
     return root
 
 
@@ -244,9 +252,9 @@ REFUSED = {  # each: what is spoilt, the options, and the one line that names it
         f"seq/distance/right/{T1}.npy: not a NumPy .npy array (empty)",
     ),
     "ground truth of 1e30 m": (
-        lambda r: np.save(r / f"seq/distance/left/{T1}.npy", np.full((96, 96), 1e30, np.float32)),
+        lambda r: np.save(r / f"seq/distance/left/{T1}.npy", np.full((128, 128), 1e30, np.float32)),
         [],
-        f"seq/distance/left/{T1}.npy: 9216 value(s) beyond 10000 m",
+        f"seq/distance/left/{T1}.npy: 16384 value(s) beyond 10000 m",
     ),
     "a camera named twice": (
         lambda r: rewrite_rig(r, lambda cams: cams[2].update(name="left")),
@@ -330,7 +338,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
 
     def grey(r):
         for path in (r / "seq" / "images").rglob("*.png"):
-            cv2.imwrite(str(path), np.full((96, 96), 128, np.uint8))
+            cv2.imwrite(str(path), np.full((128, 128), 128, np.uint8))
 
     rec = spoilt(tmp_path / "grey", grey)
     assert recording.main([str(rec), "--out", str(tmp_path / "o1"), "--quiet"]) == 1
@@ -368,7 +376,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
         f"seq/left/000{T1}.png": not_understood, "seq/left/frame_x.png": not_understood,
         f"seq/lonely/{T0 + 50_000_000}": recording.NO_PARTNER}  # fmt: skip
     right = next(r for r in summary["images"] if r["image"] == f"seq/right/{T0}")
-    assert right["kept"] > 0.3 and right["checked"]["abs_rel"] < 0.2 and right["flat"] < 0.01, right
+    assert right["kept"] > 0.2 and right["checked"]["abs_rel"] < 0.1 and right["flat"] < 0.01, right
     twelve_bit = cv2.imread(str(rec / f"seq/images/right/{T0}.png"), cv2.IMREAD_UNCHANGED)
     eight_bit = read_image(rec / f"seq/images/right/{T0}.png").bgr[..., 0]
     assert twelve_bit.dtype == np.uint16 and twelve_bit.max() <= 4095 and eight_bit.max() >= 200  # not 0-15
@@ -378,7 +386,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     assert recording.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err == (
-        f"error: {rec / 'rig.yaml'}: camera 'left': '96x96' needs 68.5 MiB of memory (64 MiB + 512 bytes a "
+        f"error: {rec / 'rig.yaml'}: camera 'left': '128x128' needs 72 MiB of memory (64 MiB + 512 bytes a "
         "pixel of a pair); this machine has 1 MiB\n"
     )
     monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**30)
@@ -394,8 +402,8 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     ]
     assert recording.main(args) == 2
     assert capsys.readouterr().err == (
-        "error: --hypotheses: 100000 needs 17.2 GiB of memory (20 bytes x hypotheses x camera 'left''s 96x96 "
-        "pixels); this machine has 1 GiB\n"
+        "error: --hypotheses: 100000 needs 30.5 GiB of memory (20 bytes x hypotheses x camera 'left''s "
+        "128x128 pixels); this machine has 1 GiB\n"
     )
 
 
@@ -552,8 +560,9 @@ def test_middlebury_motorcycle_a_real_pair_swept():
 @pytest.mark.realdata
 def test_real_pairs_through_the_rectified_pipeline():
     """``make realscore``'s pairs through the rectified pipeline (the ranges by the scene's kind): the ADT
-    SLAM pair, rotation refined, each camera of frames 0 and 1 the reference, checked within 0.11 on 55 %
-    or more of the overlap and filled within 0.32 on 70 % or more; Middlebury Motorcycle checked within
+    SLAM pair, rotation refined, each camera of frames 0 and 1 the reference, checked within 0.075 on 48 %
+    or more of the overlap (the round trip's price: 0.068-0.084 on 56 % without it) and filled within
+    0.15; Middlebury Motorcycle checked within
     0.02 on 85 % or more of its overlap and filled within 0.05; every one far better than the constant
     map."""
     pytest.importorskip("skimage")
@@ -573,7 +582,7 @@ def test_real_pairs_through_the_rectified_pipeline():
         scored = overlap(pair)
         record, (checked, dense) = score_pair(pair, scored, "sgbm", settings)
         c, d = record["checked"], record["dense"]
-        bound = (0.02, 0.85, 0.05) if pair.name.startswith("middlebury") else (0.11, 0.55, 0.35)
+        bound = (0.02, 0.85, 0.05) if pair.name.startswith("middlebury") else (0.075, 0.48, 0.15)
         assert c["abs_rel"] <= bound[0] and c["coverage"] >= bound[1] and d["abs_rel"] <= bound[2], (
             pair.name,
             record,

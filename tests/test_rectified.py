@@ -233,22 +233,50 @@ def test_map_back_interpolates_a_surface_and_not_an_edge():
     assert set(np.unique(values[values != INVALID])) <= {5.0, 20.0}  # the nearest across the edge
 
 
-def test_fusion_averages_agreeing_partners_and_trusts_the_larger_parallax():
-    def maps(distance, parallax, step=0.01):
-        d = np.full((1, 3), distance, np.float32)
-        angle = np.full((1, 3), parallax, np.float32)
-        return PixelMaps(d, d, angle, angle, step)
+def fused_maps(distance, parallax, step=0.01, roundtrip=0.0, residual=0.0, shape=(1, 3)):
+    d = np.full(shape, distance, np.float32)
+    angle = np.full(shape, parallax, np.float32)
+    return PixelMaps(d, d, angle, angle, step, np.full(shape, roundtrip, np.float32), residual)
 
-    agreeing = fuse([maps(10.0, 0.1), maps(10.4, 0.1)])  # sigma 0.1 each: within 0.2 of each other
+
+def test_fusion_by_evidence():
+    """Partners that agree within their expected error are averaged by precision; a disagreement is
+    settled by a majority or by an estimate three times more precise, never by the larger parallax alone
+    (a longer baseline with a worse pose counts for less); otherwise the pixel is dropped; an estimate no
+    partner corroborates needs to resolve its distance to an eighth."""
+    maps = fused_maps
+    agreeing = fuse([maps(10.0, 0.1), maps(10.4, 0.1)])  # sigma 0.1 each: log ratio 0.039 within 0.28
     assert np.allclose(agreeing.distance, 10.2) and (agreeing.agreeing == 2).all()
-    alone = fuse([maps(10.0, 0.1)])
+    alone = fuse([maps(10.0, 0.1)])  # sigma 0.1 <= 1/8: kept, half as sure as two that agree
     assert (agreeing.confidence > alone.confidence).all()
-    assert np.allclose(alone.confidence, 1 / 1.1)
-    torn = fuse([maps(10.0, 0.1), maps(20.0, 0.4)])  # they disagree: the larger parallax wins
-    assert np.allclose(torn.distance, 20.0) and (torn.agreeing == 1).all()
-    assert np.allclose(torn.confidence, 0.5 / (1 + 0.025))  # half of the partners agree
+    assert np.allclose(alone.confidence, 0.5 / (1 + 0.1 / 0.05))
+    assert not fuse([maps(10.0, 0.07)]).distance.any()  # sigma 0.14: a lone estimate it cannot resolve
+    assert not fuse([maps(10.0, 0.1, roundtrip=0.5)]).distance.any()  # the round trip's miss counts too
+    torn = fuse([maps(10.0, 0.1), maps(20.0, 0.2)])  # one against one, sigma 0.1 and 0.05: dropped
+    assert not torn.distance.any() and not torn.dense.any()
+    clear = fuse([maps(10.0, 0.1), maps(20.0, 0.4)])  # sigma 0.025 is four times 0.1's precision: it wins
+    assert np.allclose(clear.distance, 20.0) and (clear.agreeing == 1).all()
+    # the larger parallax with a pose its images leave 3 px unexplained: sigma 4 x 0.025 = 0.1, a tie
+    posed = fuse([maps(10.0, 0.1), maps(20.0, 0.4, residual=3.0)])
+    assert not posed.distance.any()
+    majority = fuse([maps(10.0, 0.1), maps(20.0, 0.2), maps(20.4, 0.2)])
+    assert np.allclose(majority.distance, 20.2) and (majority.agreeing == 2).all()
+    assert np.allclose(majority.confidence, 0.75 * (2 / 3) / (1 + 0.05 / np.sqrt(2) / 0.05), atol=1e-6)
     with pytest.raises(ValueError, match="maps: nothing to fuse"):
         fuse([])
+
+
+def test_partners_that_disagree_as_wholes_are_named_and_left_out():
+    """Odometry ten times too long against a correct rig pair: neither can be told right from the pair
+    alone, so both are left out and named; a third partner that agrees with the rig settles it."""
+    shape = (40, 40)
+    rig, moved = fused_maps(10.0, 0.2, shape=shape), fused_maps(100.0, 0.2, shape=shape)
+    other_rig = fused_maps(10.2, 0.2, shape=shape)
+    two = fuse([rig, moved])
+    assert set(two.left_out) == {0, 1} and "x10" in two.left_out[1] and not two.distance.any()
+    three = fuse([rig, moved, other_rig])
+    assert set(three.left_out) == {1} and "partner 0: x10" in three.left_out[1]
+    assert np.allclose(three.distance, 10.1, rtol=1e-3) and (three.agreeing == 2).all()
 
 
 # ------------------------------------------------------------------ metric distance, end to end
@@ -308,7 +336,8 @@ def test_a_pinhole_pair_gives_stereo_sgbms_own_answer():
 def test_a_live_rig_gets_distance_for_every_camera():
     """RigStereo, one call per instant: two fisheyes that overlap and a pinhole looking back (no rig
     partner), then the next instant 0.3 m on with the odometry: each camera with its rig partner and its
-    own previous image, fused."""
+    own previous image, fused; each partner's evidence (its motion checked against its images, the round
+    trip, the row check) in the result."""
     fisheye = kitti02().resize(192, 192)
     back = PinholeCamera(width=160, height=120, fx=140.0, fy=140.0, cx=79.5, cy=59.5)
     cameras = {"left": fisheye, "right": fisheye, "back": back}
@@ -320,7 +349,8 @@ def test_a_live_rig_gets_distance_for_every_camera():
     rig = RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()},
                     StereoSettings(min_distance=0.5, max_distance=20.0), threads=2)  # fmt: skip
     assert set(rig.pairs) == {("left", "right")} and len(rig.unpaired) == 2
-    body = [pose(0, (0, 0, 0.3 * i)) for i in range(2)]
+    body = [pose(0, (0.3 * i, 0, 0.3 * i)) for i in range(2)]  # forward and aside: the back camera's
+    # own motion is not along its axis alone (there it would resolve little of the room)
 
     def shoot(P):
         return {n: render(cameras[n], P @ E, texture_volume(0)) for n, E in cam_to_body.items()}
@@ -342,6 +372,10 @@ def test_a_live_rig_gets_distance_for_every_camera():
             kept.mean() > 0.3 and np.median(np.abs(result.fused.distance[kept] / truth[kept] - 1)) < 0.03
         ), name
     assert (out["left"].fused.agreeing.max()) == 2  # both partners agree somewhere
+    checks = out["left"].checks
+    assert checks["left@previous"]["epipolar_px_after"] < 0.2 and checks["left@previous"]["left_out"] is None
+    assert checks["right"]["round_trip_closed"] > 0.7 and checks["right"]["row_offset_px"] < 0.3
+    assert out["left"].left_out == {} and rig.timer.seconds["motion"] > 0
     assert rig.timer.seconds["match"] > 0
     with pytest.raises(ValueError, match="images: no image of camera back"):
         rig({"left": images[0]["left"], "right": images[0]["right"]})

@@ -244,7 +244,7 @@ def test_eval_with_rerun_records_the_scored_frames_with_their_ground_truth(kitti
 def test_the_live_rig_replays_a_recording_into_rerun(tmp_path, capsys):
     from test_multiview import write_room_rig
 
-    write_room_rig(tmp_path / "rec", size=128)
+    write_room_rig(tmp_path / "rec", size=128, half_baseline=0.3)
     live_rig = load_script("tools/live_rig")
     out = tmp_path / "live.rrd"
     args = [str(tmp_path / "rec"), "--out", str(out), "--min-distance", "0.5", "--max-distance", "20",
@@ -272,7 +272,7 @@ def test_the_multiview_command_records_its_instants_with_the_refined_rig(tmp_pat
     from fisheyedepth.stereo import recording as command
     from test_multiview import write_room_rig
 
-    write_room_rig(tmp_path / "rec", size=128)
+    write_room_rig(tmp_path / "rec", size=128, half_baseline=0.3)  # at 128 px 0.2 m resolves little
     out = tmp_path / "out"
     args = [str(tmp_path / "rec"), "--out", str(out), "--min-distance", "0.5", "--max-distance", "20",
             "--threads", "1", "--refine", "--rerun", "--quiet"]  # fmt: skip

@@ -21,6 +21,30 @@ from .rectify import Rectification, Side
 EDGE = 1.0  # grid pixels: four neighbours further apart than this straddle a depth edge
 
 
+class Evidence(NamedTuple):
+    """What a pair's images say of its calibration and motion: ``answered`` pixels SGBM answered (inside
+    the range and both views), ``returned`` those whose round trip closed; ``rows``: the row check
+    (:func:`.match.row_offsets`: ``sampled``, ``median_px``, ``off_share``); ``contradicted``: why the
+    images contradict the pair's geometry (its pixels are then dropped), None where they do not."""
+
+    answered: int
+    returned: int
+    rows_sampled: int
+    rows_median_px: float
+    rows_off_share: float
+    contradicted: str | None
+
+    def record(self) -> dict:
+        """The evidence as the summary writes it."""
+        share = self.returned / self.answered if self.answered else None
+        return {
+            "round_trip_closed": None if share is None else round(share, 4),
+            "row_offset_px": None if self.rows_sampled == 0 else round(self.rows_median_px, 3),
+            "off_row_share": None if self.rows_sampled == 0 else round(self.rows_off_share, 4),
+            "contradicted": self.contradicted,
+        }
+
+
 class PixelMaps(NamedTuple):
     """One camera's image against one partner, at the image's own pixels (0 where nothing)."""
 
@@ -29,6 +53,11 @@ class PixelMaps(NamedTuple):
     parallax: np.ndarray  # [H, W] float32 radians of the kept distance (0 where none)
     dense_parallax: np.ndarray  # [H, W] float32 radians of the filled map
     step: float  # radians of one grid pixel: a pixel of disparity error is step / parallax of distance
+    roundtrip: np.ndarray | None = None  # [H, W] float32 grid pixels the kept match misses the way back by
+    residual: float = (
+        0.0  # grid pixels of the pair's pose left unexplained by its images (its epipolar error)
+    )
+    evidence: Evidence | None = None  # the pair's self-checks (:class:`Evidence`)
 
 
 def sample(grid: np.ndarray, side: Side) -> np.ndarray:
@@ -53,9 +82,15 @@ def sample(grid: np.ndarray, side: Side) -> np.ndarray:
     return np.where(side.inside & (smooth | (nearest != INVALID)), out, INVALID).astype(np.float32)
 
 
-def to_pixels(checked: np.ndarray, filled: np.ndarray, rect: Rectification, side: str) -> PixelMaps:
+def to_pixels(
+    checked: np.ndarray,
+    filled: np.ndarray,
+    rect: Rectification,
+    side: str,
+    roundtrip: np.ndarray | None = None,
+) -> PixelMaps:
     """The checked and the filled grid disparity of camera ``side`` ("a" or "b") as distances at its
-    pixels (:class:`PixelMaps`)."""
+    pixels (:class:`PixelMaps`); ``roundtrip``: each grid pixel's round-trip miss, taken at the nearest."""
     own = rect.a if side == "a" else rect.b
     step = rect.grid.step
     out = []
@@ -70,4 +105,9 @@ def to_pixels(checked: np.ndarray, filled: np.ndarray, rect: Rectification, side
         radians[has] = np.where(good, alpha, 0)
         out.append((metres, radians))
     (distance, parallax), (dense, dense_parallax) = out
-    return PixelMaps(distance, dense, parallax, dense_parallax, step)
+    miss = None
+    if roundtrip is not None:
+        miss = cv2.remap(roundtrip, own.grid_col, own.grid_row, cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)  # fmt: skip
+        miss = np.where(distance > 0, miss, 0).astype(np.float32)
+    return PixelMaps(distance, dense, parallax, dense_parallax, step, miss)

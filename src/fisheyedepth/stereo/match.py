@@ -49,7 +49,8 @@ class MatcherSettings:
     left-right disagreement allowed (``disp12MaxDiff``); ``speckle_deg2``: the largest region (square
     degrees) of disparities within ``speckle_range`` grid pixels of their neighbours that the checked
     output drops as noise; ``normalise_window``: the local contrast normalisation's window (odd, grid
-    pixels; 0: off); ``end_margin``: grid pixels at each end of the range where a winner is rejected."""
+    pixels; 0: off); ``end_margin``: grid pixels at each end of the range where a winner is rejected;
+    ``round_trip``: grid pixels by which the partner's answer may miss the way back (:func:`round_trip`)."""
 
     block: int = 5
     p1: int = 8
@@ -61,6 +62,7 @@ class MatcherSettings:
     speckle_range: float = 2.0
     normalise_window: int = 15
     end_margin: float = 2.0
+    round_trip: float = 1.0
 
     def __post_init__(self) -> None:
         if self.block < 1 or self.block % 2 == 0 or self.block > 31:
@@ -71,6 +73,8 @@ class MatcherSettings:
             raise ValueError(f"p1, p2: {self.p1}, {self.p2}; need 0 <= p1 < p2")
         if self.normalise_window and (self.normalise_window < 3 or self.normalise_window % 2 == 0):
             raise ValueError(f"normalise_window: {self.normalise_window} is not 0 or an odd number >= 3")
+        if not self.round_trip > 0:
+            raise ValueError(f"round_trip: {self.round_trip} grid pixels; must be > 0")
         if self.speckle_deg2 < 0 or self.speckle_range <= 0 or self.end_margin < 0:
             raise ValueError(
                 f"speckle_deg2, speckle_range, end_margin: {self.speckle_deg2}, {self.speckle_range}, "
@@ -177,6 +181,12 @@ def match(
     """The :class:`Disparity` of every pixel of ``left`` (``right``'s match at ``column - disparity``),
     searched over ``disparities`` grid pixels from ``first`` on. Images: the rectified pair (any dtype),
     ``*_seen`` where each camera sees; ``step``: radians per grid pixel."""
+    matched = _matched(left, right, left_seen, right_seen, disparities, settings, first)
+    return Disparity(matched, despeckle(matched, settings.speckle_pixels(step), settings.speckle_range))
+
+
+def _matched(left, right, left_seen, right_seen, disparities: int, settings: MatcherSettings, first: int):
+    """SGBM's disparity of ``left``'s pixels, :data:`INVALID` where a check of the module rejects it."""
     a = normalise(left, left_seen, settings.normalise_window)
     b = normalise(right, right_seen, settings.normalise_window)
     raw = settings.sgbm(disparities, first).compute(a, b).astype(np.float32) / 16.0
@@ -187,8 +197,33 @@ def match(
     at = np.arange(cols, dtype=np.float32)[None] - np.where(ok, raw, np.float32(0))
     ok &= cv2.remap(right_seen.astype(np.uint8), at, _rows(rows, cols), cv2.INTER_NEAREST,
                     borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0  # fmt: skip
-    matched = np.where(ok, raw, INVALID).astype(np.float32)
-    return Disparity(matched, despeckle(matched, settings.speckle_pixels(step), settings.speckle_range))
+    return np.where(ok, raw, INVALID).astype(np.float32)
+
+
+def round_trip(own: np.ndarray, partner: np.ndarray, own_is_left: bool) -> np.ndarray:
+    """Grid pixels by which each pixel's disparity misses the way back: the partner's disparity at the
+    pixel ``own`` names (``column - d`` in the right image for the left one, ``column + d`` the other
+    way), the nearer of the two columns around it; ``inf`` where neither has one (or ``own`` has none)."""
+    rows, cols = own.shape
+    has = own != INVALID
+    at = np.arange(cols, dtype=np.float32)[None] + np.where(has, -own if own_is_left else own, 0)
+    best = np.full(own.shape, np.inf, np.float32)
+    for column in (np.floor(at), np.floor(at) + 1):
+        back = cv2.remap(partner, column.astype(np.float32), _rows(rows, cols), cv2.INTER_NEAREST,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=INVALID)  # fmt: skip
+        best = np.minimum(best, np.where(back != INVALID, np.abs(back - own), np.inf))
+    return np.where(has, best, np.inf).astype(np.float32)
+
+
+class Both(NamedTuple):
+    """Both cameras' disparities of a pair after the round trip, and what the round trip found."""
+
+    a: Disparity | None
+    b: Disparity | None
+    roundtrip_a: np.ndarray | None  # float32 grid pixels each kept pixel of a misses the way back by
+    roundtrip_b: np.ndarray | None
+    answered: int  # pixels of the asked cameras that SGBM answered inside the range and the views
+    returned: int  # of those, the ones whose partner's answer leads back within ``round_trip``
 
 
 def match_both(
@@ -201,14 +236,99 @@ def match_both(
     settings: MatcherSettings,
     directions: tuple[bool, bool] = (True, True),
     first: int = 0,
-) -> tuple[Disparity | None, Disparity | None]:
-    """The :class:`Disparity` of a's pixels (``a`` the left image) and of b's (both images mirrored: b
-    becomes the left image), each only where ``directions`` asks for it."""
-    for_a = match(a, b, a_seen, b_seen, disparities, step, settings, first) if directions[0] else None
-    for_b = None
-    if directions[1]:
-        mirrored = match(
-            b[:, ::-1], a[:, ::-1], b_seen[:, ::-1], a_seen[:, ::-1], disparities, step, settings, first
-        )
-        for_b = Disparity(*(np.ascontiguousarray(x[:, ::-1]) for x in mirrored))
-    return for_a, for_b
+) -> Both:
+    """Both directions matched (``a`` the left image; for b's pixels both images are mirrored, so that b
+    becomes the left image), each answer kept only where the partner's answer at the pixel it names leads
+    back to it within ``settings.round_trip`` grid pixels (:func:`round_trip`): an answer where the
+    partner cannot see the point (outside its view, occluded) finds no way back. Then each camera asked
+    for in ``directions`` is despeckled."""
+    for_a = _matched(a, b, a_seen, b_seen, disparities, settings, first)
+    mirrored = _matched(b[:, ::-1], a[:, ::-1], b_seen[:, ::-1], a_seen[:, ::-1], disparities, settings,
+                        first)  # fmt: skip
+    for_b = np.ascontiguousarray(mirrored[:, ::-1])
+    out: list = [None, None, None, None]
+    answered = returned = 0
+    for i, (own, partner, left) in enumerate(((for_a, for_b, True), (for_b, for_a, False))):
+        if not directions[i]:
+            continue
+        miss = round_trip(own, partner, left)
+        back = miss <= settings.round_trip
+        answered += int((own != INVALID).sum())
+        returned += int(back.sum())
+        kept = np.where(back, own, INVALID).astype(np.float32)
+        out[i] = Disparity(kept, despeckle(kept, settings.speckle_pixels(step), settings.speckle_range))
+        out[2 + i] = np.where(back, miss, 0).astype(np.float32)
+    return Both(*out, answered, returned)
+
+
+class RowCheck(NamedTuple):
+    """How far off its epipolar row a pair's matches lie (:func:`row_offsets`)."""
+
+    sampled: int  # matches sampled
+    median_px: float  # median |row offset| of the best-correlating window, grid pixels
+    off_share: float  # share of matches whose best window lies more than a pixel off their row
+
+
+def row_offsets(
+    left: np.ndarray,
+    right: np.ndarray,
+    left_seen: np.ndarray,
+    right_seen: np.ndarray,
+    disparity: np.ndarray,
+    window: int,
+    row_scale: np.ndarray | None = None,
+    reach: int = 4,
+    samples: int = 1500,
+    seed: int = 0,
+) -> RowCheck:
+    """Whether the matches lie on their epipolar rows: at up to ``samples`` matched pixels of ``left``
+    (``disparity``: its checked disparity), where in ``[-reach, reach]`` grid pixels of rows and of
+    columns around the partner's pixel (``column - disparity``) the partner's window correlates best with
+    the pixel's own (zero-mean normalised cross-correlation of ``window`` x ``window`` contrast-normalised
+    pixels), and how far off the row that lies, sub-pixel by a parabola. The columns are searched too, so
+    that the matcher's own choice of the disparity (the best along the row) does not favour the row: a
+    pair whose calibration and motion are right has its best window within a fraction of a pixel of its
+    row; images that contradict them (another scene, noise, a wrong pose or focal length) put it anywhere
+    in the square: a median of about half the reach. ``row_scale``: per column, the length of a row step
+    in column steps (on the sphere, ``sin theta`` of the column's angle from the baseline); only columns
+    where it is a half or more are sampled: nearer an epipole the rows crowd together, neighbouring rows
+    hold nearly the same pixels and the best one is a matter of noise."""
+    rows, cols = disparity.shape
+    half = window // 2
+    where = np.flatnonzero((disparity != INVALID).ravel())
+    r, c = np.unravel_index(where, disparity.shape)
+    inner = (r >= half + reach) & (r < rows - half - reach) & (c >= half) & (c < cols - half)
+    if row_scale is not None:
+        inner &= np.abs(row_scale[c]) >= 0.5
+    r, c = r[inner], c[inner]
+    if len(r) > samples:
+        pick = np.random.default_rng(seed).choice(len(r), samples, replace=False)
+        r, c = r[pick], c[pick]
+    if len(r) == 0:
+        return RowCheck(0, float("nan"), float("nan"))
+    a = normalise(left, left_seen, 15).astype(np.float32)
+    b = normalise(right, right_seen, 15).astype(np.float32)
+    offsets = np.arange(-half, half + 1)
+    dy, dx = np.meshgrid(offsets, offsets, indexing="ij")
+    own = a[r[:, None, None] + dy, c[:, None, None] + dx].reshape(len(r), -1)
+    own = own - own.mean(1, keepdims=True)
+    own_norm = np.linalg.norm(own, axis=1) + 1e-6
+    x0 = (c - disparity[r, c])[:, None, None] + dx
+    y0 = r[:, None, None] + dy
+    scores = np.full((len(r), 2 * reach + 1), -np.inf, np.float32)  # the best over the columns, per row
+    for row_shift in range(-reach, reach + 1):
+        y = np.ascontiguousarray((y0 + row_shift).reshape(len(r), -1), np.float32)
+        for column_shift in range(-reach, reach + 1):
+            x = np.ascontiguousarray((x0 + column_shift).reshape(len(r), -1), np.float32)
+            theirs = cv2.remap(b, x, y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            theirs = theirs - theirs.mean(1, keepdims=True)
+            ncc = (own * theirs).sum(1) / (own_norm * (np.linalg.norm(theirs, axis=1) + 1e-6))
+            scores[:, row_shift + reach] = np.maximum(scores[:, row_shift + reach], ncc)
+    best = scores.argmax(1)
+    inside = (best > 0) & (best < 2 * reach)
+    lo, mid, hi = (scores[np.arange(len(r)), np.clip(best + k, 0, 2 * reach)] for k in (-1, 0, 1))
+    curve = lo - 2 * mid + hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sub = np.where(inside & (curve < 0), 0.5 * (lo - hi) / curve, 0.0)
+    offset = np.abs(best - reach + np.clip(sub, -0.5, 0.5))
+    return RowCheck(len(r), float(np.median(offset)), float((offset > 1.0).mean()))

@@ -26,8 +26,8 @@ from ..cameras.base import CameraModel
 from ..geometry import finite_transform
 from .fill import fill, matchable
 from .fuse import Fused, fuse
-from .mapback import PixelMaps, to_pixels
-from .match import MatcherSettings, match_both
+from .mapback import Evidence, PixelMaps, to_pixels
+from .match import MatcherSettings, match_both, row_offsets
 from .rectify import (
     RECTIFICATIONS,
     Rectification,
@@ -36,8 +36,10 @@ from .rectify import (
     pair_step,
     remap,
 )
+from .refine import MOTION_FEATURES, Features, MotionCheck, check_motion, features
+from .static import StaticFinder
 
-STAGES = ("rectify", "match", "fill", "map_back", "fuse")
+STAGES = ("motion", "rectify", "match", "fill", "map_back", "fuse")  # "motion": a time pair's check
 # A rig pair whose parallax at the nearest distance is under this many grid pixels is left out: one pixel
 # of disparity error is already 6 % of the nearest distance there, and 25 % at four times it.
 MIN_PARALLAX = 16
@@ -49,7 +51,8 @@ class StereoSettings:
     range; beyond the farthest nothing is kept, and the dense map stops there); ``resolution``: radians
     per rectified pixel (None: the coarser camera of each pair); ``min_baseline``: metres a camera must
     have moved for its previous image to be a partner; ``matcher``: :class:`~.match.MatcherSettings`;
-    ``smooth``: the median window over filled pixels (:func:`~.fill.fill`)."""
+    ``smooth``: the median window over filled pixels (:func:`~.fill.fill`); ``max_disparities``: the
+    most grid pixels of parallax one pair searches (a longer range coarsens its step: :func:`pair_range`)."""
 
     min_distance: float = 0.3
     max_distance: float = 80.0
@@ -57,6 +60,7 @@ class StereoSettings:
     min_baseline: float = 0.05
     matcher: MatcherSettings = field(default_factory=MatcherSettings)
     smooth: int = 5
+    max_disparities: int = 256
 
     def __post_init__(self) -> None:
         if not 0 < self.min_distance < self.max_distance < math.inf:
@@ -68,6 +72,8 @@ class StereoSettings:
             raise ValueError(f"--resolution: {math.degrees(self.resolution):g} degrees; need 0 < it < 10")
         if not self.min_baseline > 0:
             raise ValueError(f"min_baseline: {self.min_baseline} metres; must be > 0")
+        if not 16 <= self.max_disparities <= 1024:
+            raise ValueError(f"max_disparities: {self.max_disparities}; 16 to 1024")
         if self.smooth not in (0, 3, 5):
             raise ValueError(f"smooth: {self.smooth}; 0, 3 or 5")
 
@@ -106,13 +112,23 @@ def match_pair(
     directions: tuple[bool, bool] = (True, True),
     timer: Timer | None = None,
     masks: tuple[np.ndarray | None, np.ndarray | None] = (None, None),
+    residual: float = 0.0,
 ) -> tuple[PixelMaps | None, PixelMaps | None]:
     """The pair's distance maps at each camera's own pixels (:class:`~.mapback.PixelMaps`), for camera a
     and camera b as ``directions`` asks (None for the other). Images: whatever :func:`grey` takes.
-    ``masks``: each camera's usable pixels
-    (``H x W``, nonzero: the scene; zero: its own body), None where all are."""
-    if any(want and not can for want, can in zip(directions, rect.directions, strict=True)):
-        raise ValueError(f"directions: {directions} asked of a rectification built for {rect.directions}")
+    ``masks``: each camera's usable pixels (``H x W``, nonzero: the scene; zero: its own body, or what
+    does not move with the scene), None where all are. ``residual``: radians of the pair's pose its
+    images leave unexplained (its epipolar error; 0: a calibrated rig pair), carried into the maps for
+    fusion in grid pixels. Both
+    directions are matched whatever is asked (the round trip needs both); the maps carry the pair's
+    :class:`~.mapback.Evidence`, and where the images contradict the pair's geometry they keep no pixel."""
+    if not any(directions):
+        raise ValueError("directions: neither camera asked for")
+    if not all(rect.directions):
+        raise ValueError(
+            f"rect: built for {rect.directions}; the round trip matches both ways, so its grid answers both "
+            "cameras (directions (True, True))"
+        )
     timer = timer or Timer()
     start = time.perf_counter()
     a, b = remap(grey(image_a), rect.a), remap(grey(image_b), rect.b)
@@ -125,33 +141,101 @@ def match_pair(
     start = timer.add("rectify", start)
     d = rect.disparities
     first = rect.first_disparity
-    found = match_both(a, b, seen[0], seen[1], d, rect.grid.step, settings.matcher, directions, first)
+    m = settings.matcher
+    found = match_both(a, b, seen[0], seen[1], d, rect.grid.step, m, directions, first)
+    grid = rect.grid
+    row_scale = np.sin(math.pi - (grid.psi0 + grid.step * np.arange(grid.cols)))  # a row step, in columns
+    if directions[0]:
+        rows = row_offsets(a, b, seen[0], seen[1], found.a.checked, ROW_WINDOW, row_scale)
+    else:  # b's matches, mirrored: b the left image
+        flip = (x[:, ::-1] for x in (b, a, seen[1], seen[0], found.b.checked, row_scale[None]))
+        *flipped, scale = flip
+        rows = row_offsets(*flipped, ROW_WINDOW, scale[0])
+    evidence = judge(found.answered, found.returned, rows)
     start = timer.add("match", start)
     out: list[PixelMaps | None] = []
-    for side, disparity, own, partner, left in (
-        ("a", found[0], seen[0], seen[1], True),
-        ("b", found[1], seen[1], seen[0], False),
+    for side, disparity, miss, own, partner, left in (
+        ("a", found.a, found.roundtrip_a, seen[0], seen[1], True),
+        ("b", found.b, found.roundtrip_b, seen[1], seen[0], False),
     ):
         if disparity is None:
             out.append(None)
             continue
         where = matchable(own, partner, d, partner_left=left, first=first)
-        block = settings.matcher.block
+        block = m.block
         filled = fill(disparity.checked, where, settings.smooth, block // 2, 4 * block)
         start = timer.add("fill", start)
-        maps = to_pixels(disparity.checked, filled, rect, side)
-        far = settings.max_distance
-        kept, filled = maps.distance <= far, maps.dense <= far
+        maps = to_pixels(disparity.checked, filled, rect, side, miss)
+        near, far = settings.min_distance, settings.max_distance  # outside the range searched: no match
+        kept = (maps.distance >= near) & (maps.distance <= far)
+        filled = (maps.dense >= near) & (maps.dense <= far)
+        if evidence.contradicted:
+            kept = filled = np.zeros_like(kept)
         maps = PixelMaps(
             np.where(kept, maps.distance, 0).astype(np.float32),
             np.where(filled, maps.dense, 0).astype(np.float32),
             np.where(kept, maps.parallax, 0).astype(np.float32),
             np.where(filled, maps.dense_parallax, 0).astype(np.float32),
             maps.step,
+            np.where(kept, maps.roundtrip, 0).astype(np.float32),
+            float(residual) / rect.grid.step,
+            evidence,
         )
         out.append(maps)
         start = timer.add("map_back", start)
     return out[0], out[1]
+
+
+# A pair's images contradict its geometry when its matches' best rows lie over a pixel off on the median
+# (SGBM needs its epipolar rows to about a pixel; matches of a right pair lie within a fraction of one,
+# and images that have nothing to do with the pair put them anywhere in the row check's reach of 4: a
+# median of about 2), or when fewer than a third of its answers close the round trip (two independent
+# searches that agree by chance: measured in BENCHMARKS.md "Metric distance from geometry").
+MAX_ROW_OFFSET = 1.0
+MIN_ROUND_TRIP = 1 / 3
+MIN_ROW_SAMPLES = 50
+ROW_WINDOW = 11  # grid pixels: the row check's window, twice SGBM's so that its choice weighs little
+
+
+def judge(answered: int, returned: int, rows) -> Evidence:
+    """The pair's :class:`~.mapback.Evidence` from its round trip and its row check, and its verdict."""
+    why = None
+    if answered and returned / answered < MIN_ROUND_TRIP:
+        why = (
+            f"{returned / answered:.0%} of its matches close the round trip between its two images "
+            f"(a pair whose images show one scene from the calibrated poses closes most)"
+        )
+    elif rows.sampled >= MIN_ROW_SAMPLES and rows.median_px > MAX_ROW_OFFSET:
+        why = (
+            f"its matches lie {rows.median_px:.2f} px off their epipolar rows on the median "
+            f"({rows.off_share:.0%} over a pixel): the images contradict the calibration or the motion"
+        )
+    return Evidence(answered, returned, rows.sampled, rows.median_px, rows.off_share, why)
+
+
+# A window matcher compares one surface seen from two directions: beyond a triangulation angle of 30
+# degrees its windows differ by a foreshortening of 15 % or more at head-on incidence, and by 70 % at 30
+# degrees of incidence: no pair searches a parallax larger than this, whatever its nearest distance.
+MAX_TRIANGULATION_DEG = 30.0
+
+
+def pair_range(
+    camera_a: CameraModel, camera_b: CameraModel, baseline: float, settings: StereoSettings
+) -> tuple[float, float]:
+    """A pair's nearest distance and grid step from its geometry: the nearest is where its largest
+    parallax reaches :data:`MAX_TRIANGULATION_DEG` (or ``settings.min_distance`` where that is farther),
+    and the step the coarser camera's angular resolution (or ``settings.resolution``), coarsened where
+    that range would need more than ``settings.max_disparities`` grid pixels (a long baseline: a car's
+    1.3 m motion pair searches 30 degrees at 4.4 times its camera's step, and still resolves a point at
+    40 m with 8 pixels of parallax)."""
+    step = pair_step(camera_a, camera_b, settings.resolution)
+    widest = math.radians(MAX_TRIANGULATION_DEG)
+    nearest = settings.min_distance
+    if baseline > 0:
+        nearest = max(nearest, baseline / math.sin(widest))
+        largest = math.asin(min(1.0, baseline / nearest))
+        step = max(step, largest / settings.max_disparities)
+    return nearest, step
 
 
 def rectify_pair(
@@ -162,10 +246,14 @@ def rectify_pair(
     directions: tuple[bool, bool] = (True, True),
     cache: RectificationCache = RECTIFICATIONS,
 ) -> Rectification:
-    """The pair's :class:`~.rectify.Rectification` for ``settings`` (its range, resolution and the
-    matcher's end margin), through ``cache``: built once per pair, calibration and motion."""
+    """The pair's :class:`~.rectify.Rectification` for ``settings`` (its range and step from its geometry,
+    :func:`pair_range`, and the matcher's end margin), through ``cache``: built once per pair, calibration
+    and motion. Its grid answers both cameras whatever ``directions`` asks: the round trip matches both
+    ways."""
     s = settings
-    return cache.get(camera_a, camera_b, T_a_to_b, s.min_distance, s.resolution, directions, s.max_distance,
+    baseline = float(np.linalg.norm(np.asarray(T_a_to_b, dtype=np.float64)[:3, 3]))
+    nearest, step = pair_range(camera_a, camera_b, baseline, s)
+    return cache.get(camera_a, camera_b, T_a_to_b, nearest, step, (True, True), s.max_distance,
                      s.matcher.end_margin)  # fmt: skip
 
 
@@ -181,12 +269,16 @@ def partner_pair(
     baseline shows under :data:`MIN_PARALLAX` grid pixels of parallax at the nearest distance, or its
     views do not overlap within the range."""
     baseline = float(np.linalg.norm(np.asarray(T_a_to_b)[:3, 3]))
-    step = pair_step(camera_a, camera_b, settings.resolution)
-    if baseline > 0 and nearest_parallax(baseline, settings.min_distance, step) < MIN_PARALLAX:
+    if baseline < 1e-6:  # a micrometre: what composing two equal extrinsics leaves in float64
+        return "T_a_to_b: the two camera centres coincide; a pair without a baseline has no parallax"
+    nearest, step = pair_range(camera_a, camera_b, baseline, settings)
+    if nearest_parallax(baseline, nearest, step) < MIN_PARALLAX:
         return (
             f"a baseline of {baseline:.3g} m shows under {MIN_PARALLAX} pixels of parallax at the nearest "
-            f"distance ({settings.min_distance:g} m)"
+            f"distance ({nearest:.3g} m)"
         )
+    if nearest >= settings.max_distance:
+        return f"a baseline of {baseline:.3g} m triangulates nothing nearer than {nearest:.3g} m"
     try:
         return rectify_pair(camera_a, camera_b, T_a_to_b, settings, directions, cache)
     except ValueError as err:
@@ -210,7 +302,9 @@ def nothing(camera: CameraModel) -> Fused:
 
 class CameraResult(NamedTuple):
     fused: Fused
-    partners: tuple[str, ...]  # "<camera>" for a rig partner, "<camera>@previous" for its own motion
+    partners: tuple[str, ...]  # "<camera>" for a rig partner, "<camera>@previous" for its own motion: fused
+    left_out: dict[str, str] = {}  # partner -> why its maps were not fused (contradicted, disagreeing)
+    checks: dict[str, dict] = {}  # partner -> its evidence (round trip, row check; a motion's residuals)
 
 
 class RigStereo:
@@ -220,7 +314,12 @@ class RigStereo:
     (camera to body, metres); ``masks``: name -> ``H x W`` usable pixels (nonzero; zero where the camera
     sees the robot itself), optional. Rig pairs are every two cameras whose views overlap within the
     disparity range (the others are listed in ``unpaired``); their rectification is built once, here.
-    ``threads``: pairs matched at once."""
+    ``threads``: pairs matched at once. Each camera's own motion since the previous instant is checked
+    against its images first (:func:`~.refine.check_motion`: refined, or left out where its images
+    leave over a pixel of epipolar error); every pair's images are checked against its geometry
+    (:class:`~.mapback.Evidence`); a partner left out is named in its camera's result with why. As the
+    rig moves, each camera's pixels that do not move with the scene (a border, an overlay, the robot's
+    body: :class:`~.static.StaticFinder`, ``static[name].mask``) are found and left out of its matches."""
 
     def __init__(
         self,
@@ -244,6 +343,9 @@ class RigStereo:
         self._check("masks", self.masks, every=False)
         self.timer = Timer()
         self._motion_cache = RectificationCache(max_entries=2 * len(self.cameras))
+        self._features: dict[str, tuple[np.ndarray, Features]] = {}  # the last images' SIFT, by camera
+        # each camera's pixels that do not move with the scene, found as the rig moves (:mod:`.static`)
+        self.static = {n: StaticFinder(c, self.settings.max_distance) for n, c in self.cameras.items()}
         self.pairs: dict[tuple[str, str], Rectification] = {}
         self.unpaired: dict[tuple[str, str], str] = {}
         names = list(self.cameras)
@@ -272,6 +374,20 @@ class RigStereo:
                     f"{what}[{name!r}]: shape {shape}, but camera {name!r} is {camera.width}x{camera.height}"
                 )
 
+    def usable(self, name: str) -> np.ndarray | None:
+        """Camera ``name``'s pixels to match: its mask's, less those found static; None where all are."""
+        mask, static = self.masks.get(name), self.static[name].mask
+        if not static.any():
+            return mask
+        return ~static if mask is None else (np.asarray(mask) > 0) & ~static
+
+    def _described(self, name: str, image: np.ndarray, keep: dict) -> Features:
+        """The SIFT features of camera ``name``'s ``image``: the last call's where it is the same image."""
+        last = self._features.get(name)
+        found = last[1] if last is not None and last[0] is image else features(grey(image), MOTION_FEATURES)
+        keep[name] = (image, found)
+        return found
+
     def __call__(
         self,
         images: Mapping[str, np.ndarray],
@@ -292,6 +408,10 @@ class RigStereo:
         jobs = []  # (a's label, b's label, a image, b image, rectification or its pose, camera names)
         for (a, b), rect in self.pairs.items():
             jobs.append(((a, b), (b, a), images[a], images[b], rect, (a, b)))
+        left_out: dict[str, dict[str, str]] = defaultdict(dict)
+        checks: dict[str, dict[str, dict]] = defaultdict(dict)
+        described: dict[str, tuple[np.ndarray, Features]] = {}
+        verdicts: dict[str, MotionCheck] = {}  # camera -> its motion as its images see it
         if previous is not None:
             self._check("previous", previous, every=False)
             motion = finite_transform(motion, "motion")
@@ -301,22 +421,36 @@ class RigStereo:
                 if name in previous and np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline:
                     label = (name, f"{name}@previous")
                     jobs.append((label, None, images[name], previous[name], T_now_to_then, (name, name)))
+                    start = time.perf_counter()  # checked here: torch's forward AD is not for threads
+                    then = self._described(name, previous[name], {})
+                    now = self._described(name, images[name], described)
+                    verdicts[name] = check_motion(
+                        now, self.cameras[name], then, self.cameras[name], T_now_to_then
+                    )
+                    self.static[name].add(previous[name], images[name], np.linalg.inv(T_now_to_then))
+                    self.timer.add("motion", start)
 
         def run(job):
             timer = Timer()
             first, second, a, b, rect, cameras = job
-            if not isinstance(rect, Rectification):  # a motion pair: built here, once per motion
+            residual, record = 0.0, None
+            if not isinstance(rect, Rectification):  # a motion pair: checked and built here, once per motion
                 start = time.perf_counter()
                 camera = self.cameras[cameras[0]]
-                rect = partner_pair(camera, camera, rect, s, (True, False), self._motion_cache)
-                if not isinstance(rect, Rectification):  # left out: no partner
-                    return first, second, (None, None), timer
+                verdict = verdicts[cameras[0]]
+                record = verdict.record()
+                if verdict.left_out is not None:
+                    timer.add("rectify", start)
+                    return first, second, (None, None), timer, record, verdict.left_out
+                rect = partner_pair(camera, camera, verdict.T_a_to_b, s, (True, False), self._motion_cache)
+                residual = verdict.after_px / float(np.mean(camera.paraxial_focal()))
                 timer.add("rectify", start)
-            masks = tuple(self.masks.get(name) for name in cameras)
-            maps = match_pair(a, b, rect, s, rect.directions, timer, masks)
-            return first, second, maps, timer
+                if not isinstance(rect, Rectification):  # left out: no partner
+                    return first, second, (None, None), timer, record, rect
+            masks = tuple(self.usable(name) for name in cameras)
+            maps = match_pair(a, b, rect, s, (True, second is not None), timer, masks, residual)
+            return first, second, maps, timer, record, None
 
-        per_camera: dict[str, list[tuple[str, PixelMaps]]] = defaultdict(list)
         # the motion pairs first (their rectification is built in the job): the longest jobs start first
         order = sorted(range(len(jobs)), key=lambda i: isinstance(jobs[i][4], Rectification))
         if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's
@@ -331,21 +465,35 @@ class RigStereo:
                 torch.set_num_threads(threads[1])
         else:
             results = {i: run(jobs[i]) for i in order}
+        if previous is not None:
+            self._features = described  # this instant's features: the next call's previous ones
+        per_camera: dict[str, list[tuple[str, PixelMaps]]] = defaultdict(list)
         done = [results[i] for i in range(len(jobs))]  # partners in the rig's order, then the motion
-        for first, second, (maps_a, maps_b), timer in done:
+        for first, second, (maps_a, maps_b), timer, record, why in done:
             for stage, seconds in timer.seconds.items():
                 self.timer.seconds[stage] += seconds
-            if maps_a is not None:
-                per_camera[first[0]].append((first[1], maps_a))
-            if second is not None and maps_b is not None:
-                per_camera[second[0]].append((second[1], maps_b))
+            for label, maps in ((first, maps_a), (second, maps_b)):
+                if label is None:
+                    continue
+                own, partner = label
+                evidence = next((m.evidence for m in (maps_a, maps_b) if m is not None), None)
+                checks[own][partner] = {**(record or {}), **(evidence.record() if evidence else {})}
+                reason = why or (evidence.contradicted if evidence is not None else None)
+                if reason is not None:
+                    left_out[own][partner] = reason
+                elif maps is not None:
+                    per_camera[own].append((partner, maps))
         start = time.perf_counter()
         out = {}
         for name, camera in self.cameras.items():
             found = per_camera.get(name)
             if found:
-                out[name] = CameraResult(fuse([m for _, m in found]), tuple(p for p, _ in found))
+                fused = fuse([m for _, m in found])
+                for k, reason in fused.left_out.items():
+                    left_out[name][found[k][0]] = reason
+                partners = tuple(p for k, (p, _) in enumerate(found) if k not in fused.left_out)
+                out[name] = CameraResult(fused, partners, dict(left_out[name]), dict(checks[name]))
             else:
-                out[name] = CameraResult(nothing(camera), ())
+                out[name] = CameraResult(nothing(camera), (), dict(left_out[name]), dict(checks[name]))
         self.timer.add("fuse", start)
         return out

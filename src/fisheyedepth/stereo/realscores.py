@@ -54,8 +54,9 @@ def refine_adt(folder: Path) -> tuple[Tensor, dict[str, Any]]:
     left, right = (adt_camera(folder / "adt_sample.json", name) for name in ADT_CAMERAS)
     matches = Matches.pooled([match_features(a, left, b, right) for a, b in instants])
     refined = refine_relative_pose(matches, T, float(np.mean(right.paraxial_focal())), direction=False)
+    tensors = ("T_a_to_b", "correction", "covariance")
     record = {"instants": len(instants), **{k: round(v, 4) if isinstance(v, float) else v
-              for k, v in refined._asdict().items() if k != "T_a_to_b"}}  # fmt: skip
+              for k, v in refined._asdict().items() if k not in tensors}}  # fmt: skip
     return refined.T_a_to_b, record
 
 

@@ -68,8 +68,18 @@ from .mapback import PixelMaps
 from .match import MatcherSettings, off_the_rim, textured
 from .pipeline import StereoSettings, Timer, grey, match_pair, nothing, pair_step, partner_pair
 from .rectify import RAYS, Rectification, RectificationCache
-from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
+from .refine import (
+    MOTION_FEATURES,
+    REFINE,
+    Features,
+    check_motion,
+    features,
+    layout_image,
+    refine_rig,
+    refined_rig_yaml,
+)
 from .scores import panel, score
+from .static import StaticFinder
 from .sweep import SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
@@ -165,6 +175,23 @@ def masks(layout: RigLayout) -> dict[str, np.ndarray | None]:
     return out
 
 
+def static_masks(layout: RigLayout, max_distance: float, pairs: int = 12) -> dict[str, np.ndarray]:
+    """Each camera's pixels that do not move with the scene (:class:`.static.StaticFinder`), from up to
+    ``pairs`` pairs of its consecutive images spread over the recording (every sequence)."""
+    out = {}
+    for name, spec in layout.cameras.items():
+        finder = StaticFinder(spec.camera, max_distance)
+        found = []
+        for sequence in layout.sequences():
+            frames = layout.frames(sequence, name)
+            found += [(sequence, a, b) for a, b in zip(frames, frames[1:], strict=False)]
+        for sequence, a, b in found[:: max(1, len(found) // pairs)][:pairs]:
+            images = [layout_image(layout, sequence, name, frame) for frame in (a, b)]
+            finder.add(grey(images[0]), grey(images[1]), _T(layout, name, a, name, b))
+        out[name] = finder.mask
+    return out
+
+
 def _T(
     layout: RigLayout,
     camera_a: str,
@@ -190,7 +217,13 @@ class PairStore:
 
     def __init__(self, layout: RigLayout, settings: StereoSettings, timer: Timer, pairings: list[Pairing]):
         self.layout, self.settings, self.timer = layout, settings, timer
-        self.masks = masks(layout)
+        start = time.perf_counter()
+        self.static = static_masks(layout, settings.max_distance)
+        self.masks = {
+            name: ~self.static[name] if mask is None else mask & ~self.static[name]
+            for name, mask in masks(layout).items()
+        }
+        timer.add("motion", start)
         self.rectifications = RectificationCache(max_entries=64)
         self.wanted: dict[tuple, set[tuple[str, int]]] = defaultdict(set)  # pair -> the images asking
         for pairing in pairings:
@@ -200,7 +233,12 @@ class PairStore:
                 )
                 self.wanted[key].add((pairing.camera, pairing.frame.key))
         self.maps: dict[tuple, dict[tuple, PixelMaps | None]] = {}
-        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, too short a baseline)
+        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, too short a baseline,
+        # a motion its images do not explain, images that contradict the pair's geometry)
+        self.checks: dict[
+            str, dict
+        ] = {}  # pair name -> its evidence (round trip, rows, a motion's residuals)
+        self.described: dict[tuple, Features] = {}
 
     @staticmethod
     def _key(sequence: str, one: tuple[str, Frame], other: tuple[str, Frame]) -> tuple:
@@ -222,18 +260,49 @@ class PairStore:
         layout, s = self.layout, self.settings
         sides = (a[0], a[1].key), (b[0], b[1].key)
         directions = tuple(side in wanted for side in sides)
+        name = f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"
+        nothing_here = {side: None for side, want in zip(sides, directions, strict=True) if want}
         start = time.perf_counter()
         T = _T(layout, a[0], a[1], b[0], b[1])
         cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
+        images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
+        residual, record = 0.0, {}
+        if a[0] == b[0]:  # one camera at two instants: its motion checked against its images first
+            found = [
+                self._features(sequence, cam, frame, image)
+                for (cam, frame), image in zip((a, b), images, strict=True)
+            ]
+            verdict = check_motion(found[0], cameras[0], found[1], cameras[1], T)
+            record = verdict.record()
+            start = self.timer.add("motion", start)
+            if verdict.left_out is not None:
+                self.checks[name] = record
+                self.unmatched[name] = verdict.left_out
+                return nothing_here
+            T = verdict.T_a_to_b
+            residual = verdict.after_px / float(np.mean(cameras[1].paraxial_focal()))
         rect = partner_pair(*cameras, T, s, directions, self.rectifications)
         if not isinstance(rect, Rectification):  # left out, and why
-            self.unmatched[f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"] = rect
-            return {side: None for side, want in zip(sides, directions, strict=True) if want}
+            self.unmatched[name] = rect
+            return nothing_here
         self.timer.add("rectify", start)
-        images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
         pair_masks = (self.masks[a[0]], self.masks[b[0]])
-        maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks)
+        maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks, residual)
+        evidence = next(m.evidence for m in maps if m is not None)
+        self.checks[name] = {**record, **evidence.record()}
+        if evidence.contradicted:
+            self.unmatched[name] = evidence.contradicted
+            return nothing_here
         return {side: m for side, m, want in zip(sides, maps, directions, strict=True) if want}
+
+    def _features(self, sequence: str, camera: str, frame: Frame, image: np.ndarray) -> Features:
+        """An image's SIFT features, kept for the next pair it is in (the time pairs on its two sides)."""
+        key = (sequence, camera, frame.key)
+        if key not in self.described:
+            self.described[key] = features(grey(image), MOTION_FEATURES)
+            while len(self.described) > 4 * len(self.layout.cameras):
+                self.described.pop(next(iter(self.described)))
+        return self.described[key]
 
 
 def _sweep(layout: RigLayout, pairing: Pairing, sweep: SweepStereo, image: np.ndarray) -> Fused:
@@ -538,10 +607,14 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     if refine:
         refinement = refine_rig(layout, refine)
         for name, change in refinement["cameras"].items():
-            log.info("%s refined against %s: %.3f degrees; epipolar error %.2f -> %.2f px (%d inliers): %s",
-                     name, change["relative_to"], change["rotation_deg"], change["epipolar_px_before"],
-                     change["epipolar_px_after"], change["inliers"],
-                     "applied" if change["applied"] else "not applied (within the noise)")  # fmt: skip
+            if "rotation_deg" not in change:  # the fit itself failed
+                log.info("%s not refined against %s: %s", name, change["relative_to"], change["why"])
+                continue
+            c = change
+            log.info("%s refined against %s: %.3f degrees (%.3f bounded); epipolar error %.2f -> %.2f px "
+                     "(%d inliers): %s (%s)", name, c["relative_to"], c["rotation_deg"],
+                     c["bounded_rotation_deg"], c["epipolar_px_before"], c["epipolar_px_after"],
+                     c["inliers"], "applied" if c["applied"] else "not applied", c["why"])  # fmt: skip
         if refinement["unrefined"]:
             log.warning("not refined (too few matches with the other cameras): %s", refinement["unrefined"])
         atomic_write_text(out / "rig.yaml", refined_rig_yaml(layout))
@@ -572,6 +645,10 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
         "refinement": refinement,
         "images": images,
         "images_left_out": left_out,
+        "static": {n: round(float(m.mean()), 4) for n, m in store.static.items()}
+        if store is not None
+        else {},
+        "pairs": store.checks if store is not None else {},
         "pairs_left_out": store.unmatched if store is not None else {},
         "kept_nothing": [r["image"] for r in images if not r["kept_pixels"]],
         "seconds": {
@@ -588,12 +665,18 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
     start = time.perf_counter()
     image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
     own = (pairing.camera, pairing.frame)
+    disagree: dict[str, str] = {}
     if store is not None:
         found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
         used = [(p, m) for p, m in found if m is not None]
         fuse_start = time.perf_counter()
         fused = fuse([m for _, m in used]) if used else None
         timer.add("fuse", fuse_start)
+        if fused is not None:  # partners whose distances disagree with the others': named, not fused
+            disagree = {
+                f"{used[k][0].camera}/{used[k][0].frame.key}": why for k, why in fused.left_out.items()
+            }
+            used = [pm for k, pm in enumerate(used) if k not in fused.left_out]
     else:
         used = [(p, None) for p in pairing.partners]
         fused = _sweep(layout, pairing, matcher, image)
@@ -608,6 +691,7 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
     record: dict[str, Any] = {
         "image": pairing.name,
         "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
+        "partners_disagreeing": disagree,
         "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
         "kept": round(float((fused.distance > 0).mean()), 4),
         "kept_pixels": int((fused.distance > 0).sum()),

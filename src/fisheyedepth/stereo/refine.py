@@ -58,6 +58,34 @@ class Refinement(NamedTuple):
     error_after_px: float
     inliers: int
     matches: int
+    correction: Tensor | None = None  # [5] the correction's parameters (b's turn, axis-angle; its centre's
+    # move on the sphere about a, in the tangent basis of the starting direction)
+    covariance: Tensor | None = None  # [5, 5] their covariance from the fit's residuals (inf: not fitted)
+
+
+class PoseModel(NamedTuple):
+    """The pose of :func:`refine_relative_pose` as a function of its five parameters."""
+
+    R0: Tensor
+    direction0: Tensor
+    basis: Tensor
+    length: float
+
+    @staticmethod
+    def at(T_a_to_b: Tensor) -> PoseModel:
+        T0 = torch.as_tensor(T_a_to_b, dtype=torch.float64)
+        length = float(T0[:3, 3].norm())
+        direction0 = T0[:3, 3] / length
+        return PoseModel(T0[:3, :3], direction0, _tangent_basis(direction0), length)
+
+    def rotation_direction(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        turn = axis_angle_to_matrix(x[:3])  # b turned about its centre carries t = -R c_b along
+        direction = turn @ (self.direction0 + x[3:] @ self.basis)
+        return turn @ self.R0, direction / direction.norm()
+
+    def pose(self, x: Tensor) -> Tensor:
+        R, direction = self.rotation_direction(x)
+        return make_pose(R, direction * self.length)
 
 
 def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
@@ -72,16 +100,28 @@ def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
     return np.clip(array * scale, 0, 255).astype(np.uint8)
 
 
-def match_features(
-    image_a, camera_a: CameraModel, image_b, camera_b: CameraModel, ratio: float = 0.8, features: int = 4000
+class Features(NamedTuple):
+    """An image's SIFT keypoints (``[N, 2]`` pixels) and descriptors (``[N, 128]`` float32)."""
+
+    uv: np.ndarray
+    descriptors: np.ndarray | None
+
+
+def features(image, count: int = 4000) -> Features:
+    """The image's SIFT :class:`Features` (at most ``count``), computed once per image and reusable for
+    every pair it is in (:func:`match_described`)."""
+    keys, descriptors = cv2.SIFT_create(nfeatures=count).detectAndCompute(to_uint8(image), None)
+    return Features(np.array([k.pt for k in keys], np.float64).reshape(-1, 2), descriptors)
+
+
+def match_described(
+    found_a: Features, camera_a: CameraModel, found_b: Features, camera_b: CameraModel, ratio: float = 0.8
 ) -> Matches:
-    """SIFT matches between the two images (Lowe's ratio test, kept only when mutual), as unit bearings of
+    """The two images' features matched (Lowe's ratio test, kept only when mutual), as unit bearings of
     pixels that have a ray."""
-    sift = cv2.SIFT_create(nfeatures=features)
-    found = [sift.detectAndCompute(to_uint8(image), None) for image in (image_a, image_b)]
-    (keys_a, desc_a), (keys_b, desc_b) = found
     empty = Matches.pooled([])
-    if desc_a is None or desc_b is None or len(keys_a) < 2 or len(keys_b) < 2:
+    desc_a, desc_b = found_a.descriptors, found_b.descriptors
+    if desc_a is None or desc_b is None or len(desc_a) < 2 or len(desc_b) < 2:
         return empty
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     forward = matcher.knnMatch(desc_a, desc_b, k=2)
@@ -93,12 +133,19 @@ def match_features(
     ]
     if not pairs:
         return empty
-    uv_a = np.array([keys_a[i].pt for i, _ in pairs], np.float64)
-    uv_b = np.array([keys_b[j].pt for _, j in pairs], np.float64)
+    uv_a = found_a.uv[[i for i, _ in pairs]]
+    uv_b = found_b.uv[[j for _, j in pairs]]
     rays_a, ok_a = camera_a.unproject(torch.from_numpy(uv_a))
     rays_b, ok_b = camera_b.unproject(torch.from_numpy(uv_b))
     ok = (ok_a & ok_b).numpy()
     return Matches(rays_a[ok], rays_b[ok], uv_a[ok], uv_b[ok])
+
+
+def match_features(
+    image_a, camera_a: CameraModel, image_b, camera_b: CameraModel, ratio: float = 0.8, count: int = 4000
+) -> Matches:
+    """SIFT matches between the two images (:func:`features`, :func:`match_described`)."""
+    return match_described(features(image_a, count), camera_a, features(image_b, count), camera_b, ratio)
 
 
 def epipolar_angles(rays_a: Tensor, rays_b: Tensor, R: Tensor, t: Tensor) -> Tensor:
@@ -143,18 +190,16 @@ def refine_relative_pose(
             f"matches: {len(matches.rays_a)} feature matches; at least 8 are needed to refine a pose"
         )
     a, b = matches.rays_a.to(torch.float64), matches.rays_b.to(torch.float64)
-    direction0, basis = t0 / length, _tangent_basis(t0 / length)
+    model = PoseModel.at(T0)
+    pose = model.rotation_direction
+    direction0 = model.direction0
     scale = scale_px / focal_px
-
-    def pose(x: Tensor) -> tuple[Tensor, Tensor]:
-        turn = axis_angle_to_matrix(x[:3])  # b turned about its centre carries t = -R c_b along
-        direction = turn @ (direction0 + x[3:] @ basis)
-        return turn @ R0, direction / direction.norm()
-
     x = torch.zeros(5, dtype=torch.float64)
     before = epipolar_angles(a, b, R0, direction0)
     gate = math.radians(gate_deg)
     inliers = before < gate
+    H = torch.eye(5, dtype=torch.float64)
+    spread = float("inf")
     for _ in range(iterations):
         if int(inliers.sum()) < 8:
             raise ValueError(
@@ -172,6 +217,7 @@ def refine_relative_pose(
         J = torch.func.jacfwd(residual)(x)  # [N, 5]: five forward passes
         w = 1 / (1 + (r / scale) ** 2)  # Cauchy weights (iteratively reweighted least squares)
         H = J.T @ (w[:, None] * J) + 1e-12 * torch.eye(5, dtype=torch.float64)
+        spread = float((w * r**2).sum() / max(len(r) - (5 if direction else 3), 1))
         step = -torch.linalg.solve(H, J.T @ (w * r))
         if not direction:
             step[3:] = 0
@@ -180,18 +226,24 @@ def refine_relative_pose(
         inliers = epipolar_angles(a, b, *pose(x)) < gate
         if float(step.norm()) < 1e-10 and gate == 4 * scale:
             break
-    R, direction = pose(x)
-    kept = epipolar_angles(a, b, R, direction) < 4 * scale
+    R, towards = pose(x)
+    kept = epipolar_angles(a, b, R, towards) < 4 * scale
     cos_rotation = ((torch.trace(R @ R0.T) - 1) / 2).clamp(-1, 1)
-    centre, centre0 = R.T @ direction, R0.T @ direction0  # b's centre seen from a, over the baseline
+    centre, centre0 = R.T @ towards, R0.T @ direction0  # b's centre seen from a, over the baseline
+    covariance = spread * torch.linalg.inv(H)
+    if not direction:  # the rotation's alone, the direction held
+        covariance = torch.zeros_like(H)
+        covariance[:3, :3] = spread * torch.linalg.inv(H[:3, :3])
     return Refinement(
-        T_a_to_b=make_pose(R, direction * length),
+        T_a_to_b=make_pose(R, towards * length),
         rotation_deg=math.degrees(float(torch.acos(cos_rotation))),
         direction_deg=math.degrees(float(torch.acos((centre @ centre0).clamp(-1, 1)))),
         error_before_px=float(before[kept].median()) * focal_px if kept.any() else float("nan"),
-        error_after_px=float(epipolar_angles(a[kept], b[kept], R, direction).median()) * focal_px,
+        error_after_px=float(epipolar_angles(a[kept], b[kept], R, towards).median()) * focal_px,
         inliers=int(kept.sum()),
         matches=len(a),
+        correction=x,
+        covariance=covariance,
     )
 
 
@@ -202,6 +254,69 @@ def refine_pair(
     matches = match_features(image_a, camera_a, image_b, camera_b)
     focal = float(np.mean(camera_b.paraxial_focal()))
     return refine_relative_pose(matches, T_a_to_b, focal, direction=direction)
+
+
+class MotionCheck(NamedTuple):
+    """One camera's motion between two of its images, as its images see it (:func:`check_motion`)."""
+
+    T_a_to_b: np.ndarray  # [4, 4] float64: the pose to match with (refined where that is worth it)
+    before_px: float  # median epipolar error of the matches under the odometry's pose, pixels of camera b
+    after_px: float  # the same under the pose matched with
+    inliers: int
+    matches: int
+    applied: bool
+    left_out: str | None  # why the pair cannot be trusted, None where it can
+
+    def record(self) -> dict:
+        return {"epipolar_px_before": _rounded(self.before_px), "epipolar_px_after": _rounded(self.after_px),
+                "inliers": self.inliers, "matches": self.matches, "refined": self.applied,
+                "left_out": self.left_out}  # fmt: skip
+
+
+def _rounded(value: float) -> float | None:
+    return round(value, 3) if math.isfinite(value) else None
+
+
+# A time pair is matched when its images explain its pose to about a pixel (what SGBM needs on its
+# epipolar rows), from at least MIN_MOTION_INLIERS feature matches.
+MAX_MOTION_RESIDUAL_PX = 1.0
+MIN_MOTION_INLIERS = 30
+# SIFT features an image brings to the motion check: a thousand leave hundreds of matches (a 968x608
+# camera moving 1.3 m: 483 of 485), and matching them takes a tenth of the time four thousand take
+MOTION_FEATURES = 1000
+
+
+def check_motion(
+    found_a: Features, camera_a: CameraModel, found_b: Features, camera_b: CameraModel, T_a_to_b: np.ndarray
+) -> MotionCheck:
+    """A time pair's pose (the odometry's ``T_a_to_b``) checked and refined from its images' feature
+    matches: rotation and the direction of travel (:func:`refine_relative_pose`, the odometry's length
+    kept), applied where it lowers the epipolar error by more than what it leaves (:func:`worth_it`). The
+    pair is left out, and why said, where its matches are too few to check it or where the error left is
+    over :data:`MAX_MOTION_RESIDUAL_PX`: odometry is not a calibration (a hand-held camera's poses were 2.6-9
+    px inconsistent with its images)."""
+    matches = match_described(found_a, camera_a, found_b, camera_b)
+    focal = float(np.mean(camera_b.paraxial_focal()))
+    nan = float("nan")
+    if len(matches.rays_a) < MIN_MOTION_INLIERS:
+        why = f"{len(matches.rays_a)} feature matches between its images; its motion cannot be checked"
+        return MotionCheck(np.asarray(T_a_to_b), nan, nan, 0, len(matches.rays_a), False, why)
+    try:
+        refined = refine_relative_pose(matches, torch.as_tensor(T_a_to_b, dtype=torch.float64), focal)
+    except ValueError as err:
+        return MotionCheck(np.asarray(T_a_to_b), nan, nan, 0, len(matches.rays_a), False, str(err))
+    applied = worth_it(refined)
+    T = refined.T_a_to_b.numpy() if applied else np.asarray(T_a_to_b, np.float64)
+    after = refined.error_after_px if applied else refined.error_before_px
+    why = None
+    if refined.inliers < MIN_MOTION_INLIERS:
+        why = f"{refined.inliers} of {refined.matches} feature matches fit its motion; too few to check it"
+    elif not after <= MAX_MOTION_RESIDUAL_PX:
+        why = (
+            f"its images leave {after:.2f} px of epipolar error under its motion (refined: "
+            f"{refined.error_after_px:.2f} px); stereo needs about {MAX_MOTION_RESIDUAL_PX:g}"
+        )
+    return MotionCheck(T, refined.error_before_px, after, refined.inliers, refined.matches, applied, why)
 
 
 # ------------------------------------------------------------------ a whole rig, from its recording
@@ -231,15 +346,15 @@ def _same_instants(layout: RigLayout, a: str, b: str, limit: int, same_instant_n
     return found[::step][:limit]
 
 
-def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> tuple[Matches, int]:
-    """The SIFT matches between cameras ``a`` and ``b`` pooled over up to ``instants`` same-instant images."""
-    found, used = [], _same_instants(layout, a, b, instants)
-    for sequence, frame_a, frame_b in used:
+def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> list[Matches]:
+    """The SIFT matches between cameras ``a`` and ``b`` at each of up to ``instants`` same-instant images."""
+    found = []
+    for sequence, frame_a, frame_b in _same_instants(layout, a, b, instants):
         found.append(match_features(
             layout_image(layout, sequence, a, frame_a), layout.cameras[a].camera,
             layout_image(layout, sequence, b, frame_b), layout.cameras[b].camera,
         ))  # fmt: skip
-    return Matches.pooled(found), len(used)
+    return found
 
 
 def worth_it(refined: Refinement) -> bool:
@@ -251,49 +366,136 @@ def worth_it(refined: Refinement) -> bool:
     return bool(math.isfinite(gain) and gain > refined.error_after_px)
 
 
+SIGNIFICANT = 3.0  # standard errors a component of a correction must reach to be applied
+SAME_CORRECTION_DEG = 0.1  # how far apart two instants' corrections may lie beyond their uncertainty
+
+
+def bounded(refined: Refinement) -> Tensor:
+    """The part of a refinement's correction that its matches bound: in the eigenbasis of its covariance,
+    each component of :data:`SIGNIFICANT` standard errors or more (a thin overlap strip bounds a turn
+    about the axis across it weakly, and that part is not applied)."""
+    x, C = refined.correction, refined.covariance
+    active = torch.diagonal(C) > 0
+    out = torch.zeros_like(x)
+    values, vectors = torch.linalg.eigh(C[active][:, active])
+    z = vectors.T @ x[active]
+    keep = z.abs() > SIGNIFICANT * values.clamp(min=0).sqrt()
+    out[active] = vectors @ torch.where(keep, z, torch.zeros_like(z))
+    return out
+
+
+def _median_px(matches: Matches, T: Tensor, focal: float) -> float:
+    if len(matches.rays_a) == 0:
+        return float("nan")
+    return (
+        float(epipolar_angles(matches.rays_a, matches.rays_b, T[:3, :3], T[:3, 3] / T[:3, 3].norm()).median())
+        * focal
+    )
+
+
+def _subset(m: Matches, keep: np.ndarray) -> Matches:
+    index = torch.from_numpy(np.flatnonzero(keep))
+    return Matches(m.rays_a[index], m.rays_b[index], m.uv_a[keep], m.uv_b[keep])
+
+
+def guarded_refinement(per_instant: list[Matches], T_a_to_b: Tensor, focal: float, direction: bool) -> dict:
+    """A rig pair's correction from its matches at each instant, and whether to apply it, with why. It is
+    applied only where the evidence cannot be faked: the part its matches bound (:func:`bounded`); the
+    median epipolar error of the matches held out of each fit (every other match) falls by more than what
+    is left (:func:`worth_it`'s rule on them); and
+    each instant's own fit agrees with the pooled one within :data:`SAME_CORRECTION_DEG` and three
+    standard errors. Returns ``T_a_to_b`` (the corrected pose, or the one given), ``applied``, ``why``
+    and the figures behind them."""
+    T0 = torch.as_tensor(T_a_to_b, dtype=torch.float64)
+    model = PoseModel.at(T0)
+    pooled = Matches.pooled(per_instant)
+    refined = refine_relative_pose(pooled, T0, focal, direction=direction)
+    x = bounded(refined)
+    T = model.pose(x)
+    angle = math.degrees(float(x[:3].norm()))
+    record = {"matches": refined.matches, "inliers": refined.inliers, "instants": len(per_instant),
+              "rotation_deg": round(refined.rotation_deg, 4), "bounded_rotation_deg": round(angle, 4),
+              "direction_deg": round(refined.direction_deg, 4),
+              "epipolar_px_before": round(refined.error_before_px, 3),
+              "epipolar_px_after": round(refined.error_after_px, 3)}  # fmt: skip
+    # held out: fit on every other match, judge on the rest, and the other way round
+    alternate = np.arange(len(pooled.rays_a)) % 2 == 0
+    halves = [_subset(pooled, alternate), _subset(pooled, ~alternate)]
+    before = after = 0.0
+    for fit, held in (halves, halves[::-1]):
+        try:
+            part = refine_relative_pose(fit, T0, focal, direction=direction)
+        except ValueError:
+            return {**record, "T_a_to_b": T0, "applied": False, "why": "too few matches to hold half out"}
+        before += _median_px(held, T0, focal) / 2
+        after += _median_px(held, model.pose(bounded(part)), focal) / 2
+    record |= {"held_out_px_before": round(before, 3), "held_out_px_after": round(after, 3)}
+    if not angle > 0:
+        return {**record, "T_a_to_b": T0, "applied": False,
+                "why": "no part of the correction is bounded by the matches"}  # fmt: skip
+    if not before - after > after:
+        return {**record, "T_a_to_b": T0, "applied": False,
+                "why": "the matches held out of the fit are not explained better by it"}  # fmt: skip
+    worst = 0.0
+    for m in per_instant:
+        if len(m.rays_a) < 30:
+            continue
+        try:
+            own = refine_relative_pose(m, T0, focal, direction=direction)
+        except ValueError:
+            continue
+        apart = math.degrees(float((bounded(own)[:3] - x[:3]).norm()))
+        spread = math.degrees(float(torch.diagonal(own.covariance)[:3].sum().clamp(min=0).sqrt()))
+        worst = max(worst, apart - SIGNIFICANT * spread)
+    record["instants_apart_deg"] = round(worst, 4)
+    if worst > SAME_CORRECTION_DEG:
+        why = f"the instants' own corrections differ by {worst:.2f} degrees beyond their uncertainty"
+        return {**record, "T_a_to_b": T0, "applied": False, "why": why}
+    why = "bounded by its matches; the held-out matches explained better; the same at every instant"
+    return {**record, "T_a_to_b": T, "applied": True, "why": why}
+
+
 def refine_rig(layout: RigLayout, what: str = "rotation", instants: int = 5, min_inliers: int = 30) -> dict:
     """Each camera's extrinsics refined from its images (:mod:`.refine`): every pair of cameras matched at
     up to ``instants`` shared instants; from the first camera, which is kept, each other camera is reached
     through the pair with the most matches to a camera already placed (a maximum spanning tree), and its
     rotation (``what="pose"``: and its translation's direction) relative to that camera refined, the
-    baseline's length kept. ``layout.cameras`` is updated in place where the refinement is worth it
-    (:func:`worth_it`); returns per camera what was found and whether it was applied, and the cameras left
-    as they were (no pair with ``min_inliers`` matches to the placed ones)."""
+    baseline's length kept. ``layout.cameras`` is updated in place where the correction passes
+    :func:`guarded_refinement`; returns per camera what was found, whether it was applied and why, and the
+    cameras left as they were (no pair with ``min_inliers`` matches to the placed ones)."""
     if what not in REFINE:
         raise ValueError(f"--refine: {what!r}; choose from {', '.join(REFINE)}")
     names = list(layout.cameras)
     matches = {}
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
-            m, used = _pair_matches(layout, a, b, instants)
-            if len(m.rays_a) >= min_inliers:
-                matches[a, b] = (m, used)
+            found = _pair_matches(layout, a, b, instants)
+            if len(Matches.pooled(found).rays_a) >= min_inliers:
+                matches[a, b] = found
     placed, refined_cameras = [names[0]], {}
     while True:
-        edges = [(len(m.rays_a), a, b) for (a, b), (m, _) in matches.items() if (a in placed) ^ (b in placed)]
+        edges = [(sum(len(m.rays_a) for m in found), a, b) for (a, b), found in matches.items()
+                 if (a in placed) ^ (b in placed)]  # fmt: skip
         if not edges:
             break
         _, a, b = max(edges)
-        m, used = matches[a, b]
+        found = matches[a, b]
         if b in placed:  # refine the unplaced camera against the placed one
-            a, b, m = b, a, Matches(m.rays_b, m.rays_a, m.uv_b, m.uv_a)
+            a, b = b, a
+            found = [Matches(m.rays_b, m.rays_a, m.uv_b, m.uv_a) for m in found]
         E_a, E_b = layout.cameras[a].cam_to_body, layout.cameras[b].cam_to_body
         T_a_to_b = torch.from_numpy(np.linalg.inv(E_b) @ E_a)
         focal = float(np.mean(layout.cameras[b].camera.paraxial_focal()))
-        refined = refine_relative_pose(m, T_a_to_b, focal, direction=what == "pose")
-        applied = worth_it(refined)
-        if applied:
+        try:
+            verdict = guarded_refinement(found, T_a_to_b, focal, direction=what == "pose")
+        except ValueError as err:
+            verdict = {"T_a_to_b": T_a_to_b, "applied": False, "why": str(err)}
+        if verdict["applied"]:
             layout.cameras[b] = dataclasses.replace(
-                layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(refined.T_a_to_b.numpy())
+                layout.cameras[b], cam_to_body=E_a @ np.linalg.inv(verdict["T_a_to_b"].numpy())
             )
         placed.append(b)
-        refined_cameras[b] = {"relative_to": a, "instants": used, "matches": refined.matches,
-                     "inliers": refined.inliers, "applied": applied,
-                     "rotation_deg": round(refined.rotation_deg, 4),
-                     "direction_deg": round(refined.direction_deg, 4),
-                     "epipolar_px_before": round(refined.error_before_px, 3),
-                     "epipolar_px_after": round(refined.error_after_px, 3),
-                     "noise_px": round(refined.error_after_px, 3)}  # fmt: skip
+        refined_cameras[b] = {"relative_to": a, **{k: v for k, v in verdict.items() if k != "T_a_to_b"}}
     unrefined = [n for n in names if n not in placed]
     return {"what": what, "kept": names[0], "cameras": refined_cameras, "unrefined": unrefined}
 
