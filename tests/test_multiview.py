@@ -164,6 +164,14 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     assert "--hypotheses: an option of --matcher sweep, not sgbm" in capsys.readouterr().err
     assert main([*args[:3], "--matcher", "sweep", "--resolution", "0.5", "--quiet"]) == 2
     assert "--resolution: an option of --matcher sgbm, not sweep" in capsys.readouterr().err
+    assert main([*args[:3], "--min-confidence", "1.5", "--quiet"]) == 2
+    assert "--min-confidence: 1.5; need 0 <= it < 1" in capsys.readouterr().err
+    sure = tmp_path / "sure"  # only the pixels at 0.2 confidence or more: fewer, none of them less sure
+    assert main([str(tmp_path / "rec"), "--out", str(sure), "--min-distance", "0.5", "--max-distance", "20",
+                 "--min-confidence", "0.2", "--quiet"]) == 0  # fmt: skip
+    kept = np.load(sure / "seq" / "confidence" / "left" / f"{t0}.npy")
+    assert 0 < (kept > 0).sum() < (confidence > 0).sum() and kept[kept > 0].min() >= 0.2
+    assert json.loads((sure / "summary.json").read_text())["settings"]["min_confidence"] == 0.2
 
 
 def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path, capsys, monkeypatch):
@@ -198,11 +206,11 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
 
     calls = []
 
-    def fails_on_the_third(maps):
+    def fails_on_the_third(maps, min_confidence=0.0):
         calls.append(1)
         if len(calls) == 3:
             raise ValueError("maps: a failure halfway")
-        return recording.fuse(maps)
+        return recording.fuse(maps, min_confidence)
 
     monkeypatch.setattr(recording, "fuse", fails_on_the_third)
     fresh = tmp_path / "fresh"

@@ -62,6 +62,7 @@ def resolvable(camera, distance: torch.Tensor, sources: list[View], change: floa
 class Result(NamedTuple):
     distance: torch.Tensor  # [1, H, W]
     dense: torch.Tensor
+    confidence: torch.Tensor | None = None
 
 
 def rectified(reference: View, sources: list[View], settings: StereoSettings) -> Result:
@@ -72,7 +73,7 @@ def rectified(reference: View, sources: list[View], settings: StereoSettings) ->
         rect = rectify_pair(reference.camera, source.camera, T, settings, (True, False))
         maps.append(match_pair(reference.image, source.image, rect, settings, (True, False))[0])
     fused = fuse(maps)
-    return Result(torch.from_numpy(fused.distance)[None], torch.from_numpy(fused.dense)[None])
+    return Result(*(torch.from_numpy(x)[None] for x in (fused.distance, fused.dense, fused.confidence)))
 
 
 def main(argv=None) -> int:
@@ -106,6 +107,7 @@ def main(argv=None) -> int:
     evaluator = Evaluator(PROTOCOLS["full"], ("none",), rays=RAYS)
     totals: dict[str, list] = {"checked": [], "resolvable": [], "dense": []}
     errors = []  # the checked output's relative error on every pixel it keeps
+    confidences = []  # and its confidence there
     for index in range(0, len(dataset), step)[: args.frames]:
         sample = dataset[index]
         if "skipped" in sample or "distance" not in sample:
@@ -126,6 +128,8 @@ def main(argv=None) -> int:
         checked = score(result.distance[0], truth, scored)
         kept = scored & (result.distance[0] > 0) & (truth > 0)
         errors.append(((result.distance[0][kept] - truth[kept]).abs() / truth[kept]).double())
+        if result.confidence is not None:
+            confidences.append(result.confidence[0][kept].double())
         kept_resolvable = score(result.distance[0], truth, can)
         dense = score(result.dense[0], truth, scored)
         for key, value in (("checked", checked), ("resolvable", kept_resolvable), ("dense", dense)):
@@ -155,6 +159,15 @@ def main(argv=None) -> int:
     print(f"\nchecked output's ceiling: median relative error {float(error.median()):.3f}; without the "
           f"{1 - inliers.numel() / max(error.numel(), 1):.1%} of pixels off by more than 25 %, mean "
           f"{float(inliers.mean()):.3f}")  # fmt: skip
+    if confidences:  # the kept pixels by confidence decile, lowest first
+        confidence = torch.cat(confidences)
+        order = torch.argsort(confidence)
+        print("\nby confidence decile (lowest first): confidence from, abs_rel, share off by over 25 %")
+        for part in torch.tensor_split(order, 10):
+            print(
+                f"  {float(confidence[part].min()):.3f}  {float(error[part].mean()):.3f}  "
+                f"{float((error[part] > 0.25).double().mean()):.1%}"
+            )
     return 0
 
 

@@ -26,7 +26,8 @@ in (0, 1): ``n`` partners in the group out of ``kept`` that kept the pixel (one 
 as sure as two that agree), lowered where the fused estimate's expected error passes 5 %. The dense map
 takes the fused checked distance where there is one; elsewhere the filled estimates, where those of
 every partner that filled the pixel agree within their expected error (else nothing: a filled pixel has
-no evidence of its own to settle a disagreement).
+no evidence of its own to settle a disagreement) and, where one partner alone filled it, where that
+estimate resolves its distance as a lone kept one must.
 """
 
 from __future__ import annotations
@@ -100,8 +101,10 @@ def disagreeing(distance: np.ndarray, sigma: np.ndarray) -> dict[int, str]:
     return out
 
 
-def fuse(maps: Sequence[PixelMaps]) -> Fused:
-    """The partners' :class:`~.mapback.PixelMaps` of one image fused by evidence (module docstring)."""
+def fuse(maps: Sequence[PixelMaps], min_confidence: float = 0.0) -> Fused:
+    """The partners' :class:`~.mapback.PixelMaps` of one image fused by evidence (module docstring); a
+    kept pixel whose confidence is under ``min_confidence`` is dropped from the distance (the dense map
+    keeps it)."""
     if not maps:
         raise ValueError("maps: nothing to fuse; an image needs at least one partner")
     distance = np.stack([m.distance for m in maps])  # [P, H, W]
@@ -141,6 +144,9 @@ def fuse(maps: Sequence[PixelMaps]) -> Fused:
     confidence = np.where(total > 0, (1 - 0.5**n) * share / (1 + fused_sigma / SIGMA_SCALE), 0)
     dense = _dense(maps, left_out)
     dense_out = np.where(fused > 0, fused, dense)
+    if min_confidence > 0:
+        sure = confidence >= min_confidence
+        fused, confidence, n = (np.where(sure, x, 0) for x in (fused, confidence, n))
     return Fused(
         fused.astype(np.float32), dense_out.astype(np.float32), confidence.astype(np.float32),
         n.astype(np.uint8), left_out,
@@ -169,4 +175,5 @@ def _dense(maps: Sequence[PixelMaps], left_out: dict[int, str]) -> np.ndarray:
         weight = np.where(has, 1 / sigma**2, 0)
         total = weight.sum(0)
         mean = np.where(total > 0, (weight * dense).sum(0) / total, 0)
-    return np.where(agree.all(0) & (best_d > 0), mean, 0)
+    resolved = (has.sum(0) > 1) | (best_s <= MAX_LONE_SIGMA)  # a lone filled estimate must resolve too
+    return np.where(agree.all(0) & (best_d > 0) & resolved, mean, 0)

@@ -185,13 +185,17 @@ def match(
     return Disparity(matched, despeckle(matched, settings.speckle_pixels(step), settings.speckle_range))
 
 
-def _matched(left, right, left_seen, right_seen, disparities: int, settings: MatcherSettings, first: int):
-    """SGBM's disparity of ``left``'s pixels, :data:`INVALID` where a check of the module rejects it."""
-    a = normalise(left, left_seen, settings.normalise_window)
-    b = normalise(right, right_seen, settings.normalise_window)
-    raw = settings.sgbm(disparities, first).compute(a, b).astype(np.float32) / 16.0
+def _matched(left, right, left_seen, right_seen, disparities: int, settings: MatcherSettings, first: int,
+             normalised: tuple | None = None, contrast: np.ndarray | None = None):  # fmt: skip
+    """SGBM's disparity of ``left``'s pixels, :data:`INVALID` where a check of the module rejects it
+    (``normalised``: both images already normalised; ``contrast``: ``left``'s :func:`textured` pixels)."""
+    a, b = normalised or (normalise(x, seen, settings.normalise_window)
+                          for x, seen in ((left, left_seen), (right, right_seen)))  # fmt: skip
+    raw = settings.sgbm(disparities, first).compute(np.ascontiguousarray(a), np.ascontiguousarray(b))
+    raw = raw.astype(np.float32) / 16.0
     lowest, highest = first + settings.end_margin, first + disparities - 1 - settings.end_margin
-    ok = textured(left, left_seen, settings.block) & (raw >= lowest) & (raw <= highest)
+    contrast = textured(left, left_seen, settings.block) if contrast is None else contrast
+    ok = contrast & (raw >= lowest) & (raw <= highest)
     # the partner's pixel, looked up at column - disparity: outside its view, no match
     rows, cols = raw.shape
     at = np.arange(cols, dtype=np.float32)[None] - np.where(ok, raw, np.float32(0))
@@ -224,6 +228,7 @@ class Both(NamedTuple):
     roundtrip_b: np.ndarray | None
     answered: int  # pixels of the asked cameras that SGBM answered inside the range and the views
     returned: int  # of those, the ones whose partner's answer leads back within ``round_trip``
+    normalised: tuple[np.ndarray, np.ndarray] | None = None  # both images as the matcher saw them
 
 
 def match_both(
@@ -242,9 +247,11 @@ def match_both(
     back to it within ``settings.round_trip`` grid pixels (:func:`round_trip`): an answer where the
     partner cannot see the point (outside its view, occluded) finds no way back. Then each camera asked
     for in ``directions`` is despeckled."""
-    for_a = _matched(a, b, a_seen, b_seen, disparities, settings, first)
+    w = settings.normalise_window
+    na, nb = normalise(a, a_seen, w), normalise(b, b_seen, w)  # once: the window is symmetric
+    for_a = _matched(a, b, a_seen, b_seen, disparities, settings, first, (na, nb))
     mirrored = _matched(b[:, ::-1], a[:, ::-1], b_seen[:, ::-1], a_seen[:, ::-1], disparities, settings,
-                        first)  # fmt: skip
+                        first, (nb[:, ::-1], na[:, ::-1]))  # fmt: skip
     for_b = np.ascontiguousarray(mirrored[:, ::-1])
     out: list = [None, None, None, None]
     answered = returned = 0
@@ -258,7 +265,7 @@ def match_both(
         kept = np.where(back, own, INVALID).astype(np.float32)
         out[i] = Disparity(kept, despeckle(kept, settings.speckle_pixels(step), settings.speckle_range))
         out[2 + i] = np.where(back, miss, 0).astype(np.float32)
-    return Both(*out, answered, returned)
+    return Both(*out, answered, returned, (na, nb))
 
 
 class RowCheck(NamedTuple):
@@ -278,8 +285,9 @@ def row_offsets(
     window: int,
     row_scale: np.ndarray | None = None,
     reach: int = 4,
-    samples: int = 1500,
+    samples: int = 500,
     seed: int = 0,
+    normalised: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RowCheck:
     """Whether the matches lie on their epipolar rows: at up to ``samples`` matched pixels of ``left``
     (``disparity``: its checked disparity), where in ``[-reach, reach]`` grid pixels of rows and of
@@ -292,7 +300,8 @@ def row_offsets(
     in the square: a median of about half the reach. ``row_scale``: per column, the length of a row step
     in column steps (on the sphere, ``sin theta`` of the column's angle from the baseline); only columns
     where it is a half or more are sampled: nearer an epipole the rows crowd together, neighbouring rows
-    hold nearly the same pixels and the best one is a matter of noise."""
+    hold nearly the same pixels and the best one is a matter of noise. ``normalised``: both images already
+    contrast-normalised (the matcher's)."""
     rows, cols = disparity.shape
     half = window // 2
     where = np.flatnonzero((disparity != INVALID).ravel())
@@ -306,8 +315,8 @@ def row_offsets(
         r, c = r[pick], c[pick]
     if len(r) == 0:
         return RowCheck(0, float("nan"), float("nan"))
-    a = normalise(left, left_seen, 15).astype(np.float32)
-    b = normalise(right, right_seen, 15).astype(np.float32)
+    a, b = normalised or (normalise(left, left_seen, 15), normalise(right, right_seen, 15))
+    a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
     offsets = np.arange(-half, half + 1)
     dy, dx = np.meshgrid(offsets, offsets, indexing="ij")
     own = a[r[:, None, None] + dy, c[:, None, None] + dx].reshape(len(r), -1)

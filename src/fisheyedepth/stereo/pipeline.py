@@ -52,7 +52,9 @@ class StereoSettings:
     per rectified pixel (None: the coarser camera of each pair); ``min_baseline``: metres a camera must
     have moved for its previous image to be a partner; ``matcher``: :class:`~.match.MatcherSettings`;
     ``smooth``: the median window over filled pixels (:func:`~.fill.fill`); ``max_disparities``: the
-    most grid pixels of parallax one pair searches (a longer range coarsens its step: :func:`pair_range`)."""
+    most grid pixels of parallax one pair searches (a longer range coarsens its step: :func:`pair_range`);
+    ``min_confidence``: the least fused confidence a kept pixel needs (:func:`~.fuse.fuse`; 0: every pixel
+    the evidence keeps)."""
 
     min_distance: float = 0.3
     max_distance: float = 80.0
@@ -61,6 +63,7 @@ class StereoSettings:
     matcher: MatcherSettings = field(default_factory=MatcherSettings)
     smooth: int = 5
     max_disparities: int = 256
+    min_confidence: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0 < self.min_distance < self.max_distance < math.inf:
@@ -72,6 +75,8 @@ class StereoSettings:
             raise ValueError(f"--resolution: {math.degrees(self.resolution):g} degrees; need 0 < it < 10")
         if not self.min_baseline > 0:
             raise ValueError(f"min_baseline: {self.min_baseline} metres; must be > 0")
+        if not 0 <= self.min_confidence < 1:
+            raise ValueError(f"--min-confidence: {self.min_confidence}; need 0 <= it < 1")
         if not 16 <= self.max_disparities <= 1024:
             raise ValueError(f"max_disparities: {self.max_disparities}; 16 to 1024")
         if self.smooth not in (0, 3, 5):
@@ -145,12 +150,15 @@ def match_pair(
     found = match_both(a, b, seen[0], seen[1], d, rect.grid.step, m, directions, first)
     grid = rect.grid
     row_scale = np.sin(math.pi - (grid.psi0 + grid.step * np.arange(grid.cols)))  # a row step, in columns
+    na, nb = found.normalised
     if directions[0]:
-        rows = row_offsets(a, b, seen[0], seen[1], found.a.checked, ROW_WINDOW, row_scale)
+        rows = row_offsets(
+            a, b, seen[0], seen[1], found.a.checked, ROW_WINDOW, row_scale, normalised=(na, nb)
+        )
     else:  # b's matches, mirrored: b the left image
-        flip = (x[:, ::-1] for x in (b, a, seen[1], seen[0], found.b.checked, row_scale[None]))
-        *flipped, scale = flip
-        rows = row_offsets(*flipped, ROW_WINDOW, scale[0])
+        flip = (x[:, ::-1] for x in (b, a, seen[1], seen[0], found.b.checked, row_scale[None], nb, na))
+        *flipped, scale, nb_, na_ = flip
+        rows = row_offsets(*flipped, ROW_WINDOW, scale[0], normalised=(nb_, na_))
     evidence = judge(found.answered, found.returned, rows)
     start = timer.add("match", start)
     out: list[PixelMaps | None] = []
@@ -488,7 +496,7 @@ class RigStereo:
         for name, camera in self.cameras.items():
             found = per_camera.get(name)
             if found:
-                fused = fuse([m for _, m in found])
+                fused = fuse([m for _, m in found], s.min_confidence)
                 for k, reason in fused.left_out.items():
                     left_out[name][found[k][0]] = reason
                 partners = tuple(p for k, (p, _) in enumerate(found) if k not in fused.left_out)

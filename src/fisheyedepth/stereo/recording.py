@@ -635,7 +635,8 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     seconds = time.perf_counter() - begun
     if isinstance(matcher, StereoSettings):
         settings = {"matcher": "sgbm", **{k: getattr(matcher, k) for k in ("min_distance", "max_distance",
-                    "resolution", "min_baseline", "smooth")}, **vars(matcher.matcher)}  # fmt: skip
+                    "resolution", "min_baseline", "smooth", "max_disparities", "min_confidence")},
+                    **vars(matcher.matcher)}  # fmt: skip
     else:
         settings = {"matcher": "sweep", **{k: getattr(matcher, k) for k in matcher.__dataclass_fields__}}
     return {
@@ -670,7 +671,7 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
         found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
         used = [(p, m) for p, m in found if m is not None]
         fuse_start = time.perf_counter()
-        fused = fuse([m for _, m in used]) if used else None
+        fused = fuse([m for _, m in used], matcher.min_confidence) if used else None
         timer.add("fuse", fuse_start)
         if fused is not None:  # partners whose distances disagree with the others': named, not fused
             disagree = {
@@ -718,6 +719,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--max-distance", type=float, default=80.0, help="metres (default 80)")
     parser.add_argument("--resolution", type=float, default=None,
                         help="degrees per rectified pixel (default: each pair's coarser camera)")  # fmt: skip
+    parser.add_argument("--min-confidence", type=float, default=None,
+                        help="--matcher sgbm: the least confidence a kept pixel needs (default 0: every "
+                        "pixel the checks keep; docs/inference.md says what each level keeps)")  # fmt: skip
     parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
     parser.add_argument("--hypotheses", type=int, default=None, help="--matcher sweep: distances (128)")
     parser.add_argument("--cost", choices=("zncc", "census"), default=None, help="--matcher sweep (zncc)")
@@ -739,9 +743,9 @@ def main(argv: list[str] | None = None) -> int:
             cv2.setNumThreads(args.threads)
         if args.max_images is not None and args.max_images < 1:
             raise ValueError(f"--max-images: {args.max_images}; at least 1 (or leave it out: every image)")
-        only = {"sweep": ("hypotheses", "cost"), "sgbm": ("resolution",)}
+        only = {"sweep": ("hypotheses", "cost"), "sgbm": ("resolution", "min_confidence")}
         for matcher, options in only.items():
-            given = [f"--{o}" for o in options if getattr(args, o) is not None]
+            given = [f"--{o.replace('_', '-')}" for o in options if getattr(args, o) is not None]
             if given and args.matcher != matcher:
                 raise ValueError(f"{', '.join(given)}: an option of --matcher {matcher}, not {args.matcher}")
         if args.matcher == "sweep":
@@ -750,7 +754,8 @@ def main(argv: list[str] | None = None) -> int:
             )
         else:
             resolution = None if args.resolution is None else math.radians(args.resolution)
-            matcher = StereoSettings(args.min_distance, args.max_distance, resolution)
+            matcher = StereoSettings(args.min_distance, args.max_distance, resolution,
+                                     min_confidence=args.min_confidence or 0.0)  # fmt: skip
         sources = tuple(args.sources.split(","))
         summary = run(
             args.root,
