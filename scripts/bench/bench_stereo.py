@@ -298,8 +298,11 @@ def car_section(rounds: int, quick: bool) -> list[str]:
     seconds = []
     for i in range(2, len(body)):
         motion = (torch.linalg.inv(body[i - 1]) @ body[i]).numpy()
-        seconds.append(statistics.median(interleaved(
-            {"": lambda i=i, motion=motion: rig(images[i], previous=images[i - 1], motion=motion)}, 1, warmup=0)[""]))  # fmt: skip
+
+        def instant(i=i, motion=motion):
+            rig(images[i], previous=images[i - 1], motion=motion)
+
+        seconds.append(statistics.median(interleaved({"": instant}, 1, warmup=0)[""]))
     rig_s = statistics.median(seconds)
     threads(1)
     a, b = (normalise(images[0]["front_left"].astype(np.float32), np.ones((h, w), bool), 15) for _ in (0, 1))
