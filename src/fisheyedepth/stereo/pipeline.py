@@ -36,7 +36,7 @@ from .rectify import (
     pair_step,
     remap,
 )
-from .refine import MOTION_FEATURES, Features, MotionCheck, check_motion, features
+from .refine import MOTION_FEATURES, Features, check_motion, features
 from .static import StaticFinder
 
 STAGES = ("motion", "rectify", "match", "fill", "map_back", "fuse")  # "motion": a time pair's check
@@ -419,7 +419,6 @@ class RigStereo:
         left_out: dict[str, dict[str, str]] = defaultdict(dict)
         checks: dict[str, dict[str, dict]] = defaultdict(dict)
         described: dict[str, tuple[np.ndarray, Features]] = {}
-        verdicts: dict[str, MotionCheck] = {}  # camera -> its motion as its images see it
         if previous is not None:
             self._check("previous", previous, every=False)
             motion = finite_transform(motion, "motion")
@@ -429,14 +428,10 @@ class RigStereo:
                 if name in previous and np.linalg.norm(T_now_to_then[:3, 3]) >= s.min_baseline:
                     label = (name, f"{name}@previous")
                     jobs.append((label, None, images[name], previous[name], T_now_to_then, (name, name)))
-                    start = time.perf_counter()  # checked here: torch's forward AD is not for threads
-                    then = self._described(name, previous[name], {})
-                    now = self._described(name, images[name], described)
-                    verdicts[name] = check_motion(
-                        now, self.cameras[name], then, self.cameras[name], T_now_to_then
-                    )
-                    self.static[name].add(previous[name], images[name], np.linalg.inv(T_now_to_then))
-                    self.timer.add("motion", start)
+
+        # the pixels to match, as the instants before this one found them (this one's motion adds to them
+        # for the next): every pair of one call sees the same masks
+        usable = {name: self.usable(name) for name in self.cameras}
 
         def run(job):
             timer = Timer()
@@ -445,7 +440,12 @@ class RigStereo:
             if not isinstance(rect, Rectification):  # a motion pair: checked and built here, once per motion
                 start = time.perf_counter()
                 camera = self.cameras[cameras[0]]
-                verdict = verdicts[cameras[0]]
+                name = cameras[0]  # its motion checked against its images, and its static pixels
+                then = self._described(name, b, {})
+                now = self._described(name, a, described)
+                verdict = check_motion(now, camera, then, camera, rect)
+                self.static[name].add(b, a, np.linalg.inv(rect))
+                start = timer.add("motion", start)
                 record = verdict.record()
                 if verdict.left_out is not None:
                     timer.add("rectify", start)
@@ -455,7 +455,7 @@ class RigStereo:
                 timer.add("rectify", start)
                 if not isinstance(rect, Rectification):  # left out: no partner
                     return first, second, (None, None), timer, record, rect
-            masks = tuple(self.usable(name) for name in cameras)
+            masks = tuple(usable[name] for name in cameras)
             maps = match_pair(a, b, rect, s, (True, second is not None), timer, masks, residual)
             return first, second, maps, timer, record, None
 

