@@ -19,9 +19,14 @@ is then kept where
   smoothness would otherwise hand it its neighbours' disparity (uniform grey images kept 13-19 % of
   their pixels at an abs_rel of 0.46 before this test, none after);
 
+where the partner's own answer at the pixel it names leads back to it within a grid pixel (the round
+trip, :func:`match_both`: both directions are matched whatever is asked; moving a camera forward, SGBM
+answers the band outside the partner's view with a smaller wrong disparity, which finds no way back);
 and where it belongs to a region of consistent disparity larger than a speckle: a solid angle
 (``speckle_deg2``), so that the same scene detail counts as noise at any resolution (the *checked*
-disparity, what the outputs and the filling start from; the *matched* one is SGBM's before it).
+disparity, what the outputs and the filling start from; the *matched* one is SGBM's before it). The
+pair as a whole is checked by :func:`row_offsets`: how far off their epipolar rows its matches correlate
+best.
 
 Disparities are SGBM's sixteenths of a grid pixel: sub-pixel from its parabola through the winner.
 """
