@@ -77,7 +77,7 @@ def test_the_round_trip_drops_answers_outside_the_partners_view():
 
 
 # ------------------------------------------------------------------ odometry is not a calibration
-def test_a_motion_off_by_3_cm_and_half_a_degree_is_refined_from_its_images():
+def test_a_motion_off_by_5_cm_and_one_and_a_half_degrees_is_refined_from_its_images():
     """The odometry says the camera moved 0.35 m, but it also turned by 1.5 degrees and slid 5 cm: the
     motion check finds its images over a pixel off the odometry's epipolar curves, refines the rotation
     and the direction of travel (the length kept), and leaves a fraction of a pixel; matched with the
