@@ -54,9 +54,7 @@ class PixelMaps(NamedTuple):
     dense_parallax: np.ndarray  # [H, W] float32 radians of the filled map
     step: float  # radians of one grid pixel: a pixel of disparity error is step / parallax of distance
     roundtrip: np.ndarray | None = None  # [H, W] float32 grid pixels the kept match misses the way back by
-    residual: float = (
-        0.0  # grid pixels of the pair's pose left unexplained by its images (its epipolar error)
-    )
+    residual: float = 0.0  # grid pixels of the pair's pose its images leave unexplained (epipolar error)
     evidence: Evidence | None = None  # the pair's self-checks (:class:`Evidence`)
 
 

@@ -191,16 +191,15 @@ def match(
 
 
 def _matched(left, right, left_seen, right_seen, disparities: int, settings: MatcherSettings, first: int,
-             normalised: tuple | None = None, contrast: np.ndarray | None = None):  # fmt: skip
+             normalised: tuple | None = None):  # fmt: skip
     """SGBM's disparity of ``left``'s pixels, :data:`INVALID` where a check of the module rejects it
-    (``normalised``: both images already normalised; ``contrast``: ``left``'s :func:`textured` pixels)."""
+    (``normalised``: both images already normalised)."""
     a, b = normalised or (normalise(x, seen, settings.normalise_window)
                           for x, seen in ((left, left_seen), (right, right_seen)))  # fmt: skip
     raw = settings.sgbm(disparities, first).compute(np.ascontiguousarray(a), np.ascontiguousarray(b))
     raw = raw.astype(np.float32) / 16.0
     lowest, highest = first + settings.end_margin, first + disparities - 1 - settings.end_margin
-    contrast = textured(left, left_seen, settings.block) if contrast is None else contrast
-    ok = contrast & (raw >= lowest) & (raw <= highest)
+    ok = textured(left, left_seen, settings.block) & (raw >= lowest) & (raw <= highest)
     # the partner's pixel, looked up at column - disparity: outside its view, no match
     rows, cols = raw.shape
     at = np.arange(cols, dtype=np.float32)[None] - np.where(ok, raw, np.float32(0))
@@ -233,7 +232,7 @@ class Both(NamedTuple):
     roundtrip_b: np.ndarray | None
     answered: int  # pixels of the asked cameras that SGBM answered inside the range and the views
     returned: int  # of those, the ones whose partner's answer leads back within ``round_trip``
-    normalised: tuple[np.ndarray, np.ndarray] | None = None  # both images as the matcher saw them
+    normalised: tuple[np.ndarray, np.ndarray]  # both images contrast-normalised, as the matcher saw them
 
 
 def match_both(
@@ -284,15 +283,12 @@ class RowCheck(NamedTuple):
 def row_offsets(
     left: np.ndarray,
     right: np.ndarray,
-    left_seen: np.ndarray,
-    right_seen: np.ndarray,
     disparity: np.ndarray,
     window: int,
     row_scale: np.ndarray | None = None,
     reach: int = 4,
     samples: int = 500,
     seed: int = 0,
-    normalised: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> RowCheck:
     """Whether the matches lie on their epipolar rows: at up to ``samples`` matched pixels of ``left``
     (``disparity``: its checked disparity), where in ``[-reach, reach]`` grid pixels of rows and of
@@ -305,8 +301,8 @@ def row_offsets(
     in the square: a median of about half the reach. ``row_scale``: per column, the length of a row step
     in column steps (on the sphere, ``sin theta`` of the column's angle from the baseline); only columns
     where it is a half or more are sampled: nearer an epipole the rows crowd together, neighbouring rows
-    hold nearly the same pixels and the best one is a matter of noise. ``normalised``: both images already
-    contrast-normalised (the matcher's)."""
+    hold nearly the same pixels and the best one is a matter of noise. ``left``, ``right``: the rectified
+    pair contrast-normalised, as the matcher saw it (:attr:`Both.normalised`)."""
     rows, cols = disparity.shape
     half = window // 2
     where = np.flatnonzero((disparity != INVALID).ravel())
@@ -320,8 +316,7 @@ def row_offsets(
         r, c = r[pick], c[pick]
     if len(r) == 0:
         return RowCheck(0, float("nan"), float("nan"))
-    a, b = normalised or (normalise(left, left_seen, 15), normalise(right, right_seen, 15))
-    a, b = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
+    a, b = np.ascontiguousarray(left, np.float32), np.ascontiguousarray(right, np.float32)
     offsets = np.arange(-half, half + 1)
     dy, dx = np.meshgrid(offsets, offsets, indexing="ij")
     own = a[r[:, None, None] + dy, c[:, None, None] + dx].reshape(len(r), -1)

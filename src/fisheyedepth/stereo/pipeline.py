@@ -37,7 +37,7 @@ from .rectify import (
     remap,
 )
 from .refine import MOTION_FEATURES, Features, check_motion, features
-from .static import StaticFinder
+from .static import StaticFinder, usable
 
 STAGES = ("motion", "rectify", "match", "fill", "map_back", "fuse")  # "motion": a time pair's check
 # A rig pair whose parallax at the nearest distance is under this many grid pixels is left out: one pixel
@@ -124,9 +124,9 @@ def match_pair(
     ``masks``: each camera's usable pixels (``H x W``, nonzero: the scene; zero: its own body, or what
     does not move with the scene), None where all are. ``residual``: radians of the pair's pose its
     images leave unexplained (its epipolar error; 0: a calibrated rig pair), carried into the maps for
-    fusion in grid pixels. Both
-    directions are matched whatever is asked (the round trip needs both); the maps carry the pair's
-    :class:`~.mapback.Evidence`, and where the images contradict the pair's geometry they keep no pixel."""
+    fusion in grid pixels. Both directions are matched whatever is asked (the round trip needs both);
+    the maps carry the pair's :class:`~.mapback.Evidence`, and where the images contradict the pair's
+    geometry they keep no pixel."""
     if not any(directions):
         raise ValueError("directions: neither camera asked for")
     if not all(rect.directions):
@@ -151,15 +151,12 @@ def match_pair(
     grid = rect.grid
     row_scale = np.sin(math.pi - (grid.psi0 + grid.step * np.arange(grid.cols)))  # a row step, in columns
     na, nb = found.normalised
-    if directions[0]:
-        rows = row_offsets(
-            a, b, seen[0], seen[1], found.a.checked, ROW_WINDOW, row_scale, normalised=(na, nb)
-        )
-    else:  # b's matches, mirrored: b the left image
-        flip = (x[:, ::-1] for x in (b, a, seen[1], seen[0], found.b.checked, row_scale[None], nb, na))
-        *flipped, scale, nb_, na_ = flip
-        rows = row_offsets(*flipped, ROW_WINDOW, scale[0], normalised=(nb_, na_))
-    evidence = judge(found.answered, found.returned, rows)
+    left, right, disparity = (na, nb, found.a.checked) if directions[0] else (nb, na, found.b.checked)
+    if not directions[0]:  # b's matches, mirrored: b the left image
+        left, right, disparity, row_scale = (x[..., ::-1] for x in (left, right, disparity, row_scale))
+    evidence = judge(
+        found.answered, found.returned, row_offsets(left, right, disparity, ROW_WINDOW, row_scale)
+    )
     start = timer.add("match", start)
     out: list[PixelMaps | None] = []
     for side, disparity, miss, own, partner, left in (
@@ -384,17 +381,12 @@ class RigStereo:
 
     def usable(self, name: str) -> np.ndarray | None:
         """Camera ``name``'s pixels to match: its mask's, less those found static; None where all are."""
-        mask, static = self.masks.get(name), self.static[name].mask
-        if not static.any():
-            return mask
-        return ~static if mask is None else (np.asarray(mask) > 0) & ~static
+        return usable(self.masks.get(name), self.static[name].mask)
 
-    def _described(self, name: str, image: np.ndarray, keep: dict) -> Features:
+    def _described(self, name: str, image: np.ndarray) -> Features:
         """The SIFT features of camera ``name``'s ``image``: the last call's where it is the same image."""
         last = self._features.get(name)
-        found = last[1] if last is not None and last[0] is image else features(grey(image), MOTION_FEATURES)
-        keep[name] = (image, found)
-        return found
+        return last[1] if last is not None and last[0] is image else features(grey(image), MOTION_FEATURES)
 
     def __call__(
         self,
@@ -441,17 +433,16 @@ class RigStereo:
                 start = time.perf_counter()
                 camera = self.cameras[cameras[0]]
                 name = cameras[0]  # its motion checked against its images, and its static pixels
-                then = self._described(name, b, {})
-                now = self._described(name, a, described)
+                now, then = self._described(name, a), self._described(name, b)
+                described[name] = (a, now)  # the next call's previous image
                 verdict = check_motion(now, camera, then, camera, rect)
                 self.static[name].add(b, a, np.linalg.inv(rect))
                 start = timer.add("motion", start)
                 record = verdict.record()
                 if verdict.left_out is not None:
-                    timer.add("rectify", start)
                     return first, second, (None, None), timer, record, verdict.left_out
                 rect = partner_pair(camera, camera, verdict.T_a_to_b, s, (True, False), self._motion_cache)
-                residual = verdict.after_px / float(np.mean(camera.paraxial_focal()))
+                residual = verdict.residual
                 timer.add("rectify", start)
                 if not isinstance(rect, Rectification):  # left out: no partner
                     return first, second, (None, None), timer, record, rect

@@ -79,7 +79,7 @@ from .refine import (
     refined_rig_yaml,
 )
 from .scores import panel, score
-from .static import StaticFinder
+from .static import StaticFinder, usable
 from .sweep import SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
@@ -219,10 +219,7 @@ class PairStore:
         self.layout, self.settings, self.timer = layout, settings, timer
         start = time.perf_counter()
         self.static = static_masks(layout, settings.max_distance)
-        self.masks = {
-            name: ~self.static[name] if mask is None else mask & ~self.static[name]
-            for name, mask in masks(layout).items()
-        }
+        self.masks = {name: usable(mask, self.static[name]) for name, mask in masks(layout).items()}
         timer.add("motion", start)
         self.rectifications = RectificationCache(max_entries=64)
         self.wanted: dict[tuple, set[tuple[str, int]]] = defaultdict(set)  # pair -> the images asking
@@ -235,9 +232,8 @@ class PairStore:
         self.maps: dict[tuple, dict[tuple, PixelMaps | None]] = {}
         self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, too short a baseline,
         # a motion its images do not explain, images that contradict the pair's geometry)
-        self.checks: dict[
-            str, dict
-        ] = {}  # pair name -> its evidence (round trip, rows, a motion's residuals)
+        # pair name -> its evidence (round trip, rows, a motion's residuals)
+        self.checks: dict[str, dict] = {}
         self.described: dict[tuple, Features] = {}
 
     @staticmethod
@@ -265,9 +261,9 @@ class PairStore:
         start = time.perf_counter()
         T = _T(layout, a[0], a[1], b[0], b[1])
         cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
-        images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
-        residual, record = 0.0, {}
+        residual, record, images = 0.0, {}, None
         if a[0] == b[0]:  # one camera at two instants: its motion checked against its images first
+            images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
             found = [
                 self._features(sequence, cam, frame, image)
                 for (cam, frame), image in zip((a, b), images, strict=True)
@@ -279,13 +275,13 @@ class PairStore:
                 self.checks[name] = record
                 self.unmatched[name] = verdict.left_out
                 return nothing_here
-            T = verdict.T_a_to_b
-            residual = verdict.after_px / float(np.mean(cameras[1].paraxial_focal()))
+            T, residual = verdict.T_a_to_b, verdict.residual
         rect = partner_pair(*cameras, T, s, directions, self.rectifications)
         if not isinstance(rect, Rectification):  # left out, and why
             self.unmatched[name] = rect
             return nothing_here
         self.timer.add("rectify", start)
+        images = images or [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
         pair_masks = (self.masks[a[0]], self.masks[b[0]])
         maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks, residual)
         evidence = next(m.evidence for m in maps if m is not None)

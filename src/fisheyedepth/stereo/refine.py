@@ -60,7 +60,7 @@ class Refinement(NamedTuple):
     matches: int
     correction: Tensor | None = None  # [5] the correction's parameters (b's turn, axis-angle; its centre's
     # move on the sphere about a, in the tangent basis of the starting direction)
-    covariance: Tensor | None = None  # [5, 5] their covariance from the fit's residuals (inf: not fitted)
+    covariance: Tensor | None = None  # [5, 5] their covariance from the fit's residuals (0 where held)
 
 
 class PoseModel(NamedTuple):
@@ -277,6 +277,7 @@ class MotionCheck(NamedTuple):
     matches: int
     applied: bool
     left_out: str | None  # why the pair cannot be trusted, None where it can
+    residual: float = 0.0  # radians: ``after_px`` as an angle, what fusion counts against the pair
 
     def record(self) -> dict:
         return {"epipolar_px_before": _rounded(self.before_px), "epipolar_px_after": _rounded(self.after_px),
@@ -327,7 +328,8 @@ def check_motion(
             f"its images leave {after:.2f} px of epipolar error under its motion (refined: "
             f"{refined.error_after_px:.2f} px); stereo needs about {MAX_MOTION_RESIDUAL_PX:g}"
         )
-    return MotionCheck(T, refined.error_before_px, after, refined.inliers, refined.matches, applied, why)
+    return MotionCheck(T, refined.error_before_px, after, refined.inliers, refined.matches, applied, why,
+                       after / focal)  # fmt: skip
 
 
 # ------------------------------------------------------------------ a whole rig, from its recording
@@ -373,8 +375,13 @@ def worth_it(refined: Refinement) -> bool:
     the median epipolar error by more than the error left after it (the matches' own noise, what the
     best pose cannot explain). A correct 128 px rig (the test room's) was otherwise turned by 0.52
     degrees for a drop from 0.124 to 0.123 px, and its images' abs_rel went from 0.09-0.11 to 0.14-0.16."""
-    gain = refined.error_before_px - refined.error_after_px
-    return bool(math.isfinite(gain) and gain > refined.error_after_px)
+    return explains_better(refined.error_before_px, refined.error_after_px)
+
+
+def explains_better(before: float, after: float) -> bool:
+    """An epipolar error that falls from ``before`` by more than the ``after`` left (both pixels)."""
+    gain = before - after
+    return bool(math.isfinite(gain) and gain > after)
 
 
 SIGNIFICANT = 3.0  # standard errors a component of a correction must reach to be applied
@@ -444,12 +451,12 @@ def guarded_refinement(per_instant: list[Matches], T_a_to_b: Tensor, focal: floa
     if not angle > 0:
         return {**record, "T_a_to_b": T0, "applied": False,
                 "why": "no part of the correction is bounded by the matches"}  # fmt: skip
-    if not before - after > after:
+    if not explains_better(before, after):
         return {**record, "T_a_to_b": T0, "applied": False,
                 "why": "the matches held out of the fit are not explained better by it"}  # fmt: skip
     worst = 0.0
     for m in per_instant:
-        if len(m.rays_a) < 30:
+        if len(m.rays_a) < MIN_MOTION_INLIERS:  # too few to fit an instant alone
             continue
         try:
             own = refine_relative_pose(m, T0, focal, direction=direction)

@@ -91,3 +91,11 @@ class StaticFinder:
         found = ((self.static >= MIN_PAIRS) & ~self.moved).astype(np.uint8)
         found = cv2.morphologyEx(found, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))  # no lone pixels
         return cv2.dilate(found, np.ones((WINDOW, WINDOW), np.uint8)) > 0
+
+
+def usable(mask: np.ndarray | None, static: np.ndarray) -> np.ndarray | None:
+    """A camera's pixels to match: its ``mask``'s (nonzero: the scene; None: every pixel) less its
+    ``static`` ones; None where that is every pixel."""
+    if not static.any():
+        return mask
+    return ~static if mask is None else (np.asarray(mask) > 0) & ~static
