@@ -27,13 +27,15 @@ from fisheyedepth.stereo import (
 )
 from fisheyedepth.stereo.fill import fill, fill_rows, matchable
 from fisheyedepth.stereo.mapback import PixelMaps, sample
-from fisheyedepth.stereo.match import INVALID, despeckle, match, normalise
+from fisheyedepth.stereo.match import INVALID, despeckle, match, match_both, normalise
+from fisheyedepth.stereo.pipeline import grey as grey_image
 from fisheyedepth.stereo.rectify import nearest_parallax
 from stereo_world import pair, pose, render, texture_volume
 
 from conftest import aria_fisheye624, kitti02, realdata_dir
 
 # ------------------------------------------------------------------ the rectification's geometry
+NARROW = PinholeCamera(width=160, height=120, fx=150.0, fy=150.0, cx=79.5, cy=59.5)  # 34 degrees to a corner
 PAIRS = {
     # two fisheyes side by side, turned 20 degrees apart: a rig pair
     "rig_pair": lambda: (kitti02().resize(160, 160), kitti02().resize(160, 160), pose(-10, (-0.15, 0, 0)),
@@ -44,6 +46,8 @@ PAIRS = {
     # two models, the second turned 80 degrees away and 0.1 m up: overlap only at high incidence
     "two_models": lambda: (kitti02().resize(160, 160), aria_fisheye624().resize(180, 180), pose(),
                            pose(80, (0.3, -0.1, 0))),
+    # a narrow pinhole moving 1 m along its axis: a whole circle of rows, coarser than its columns
+    "narrow_forward": lambda: (NARROW, NARROW, pose(), pose(0, (0, 0, 1.0))),
 }  # fmt: skip
 
 
@@ -79,7 +83,7 @@ def test_rows_are_epipolar_lines_and_the_law_of_sines_gives_distance(case):
     from_b = rect.distance("b", theta_b.numpy(), alpha)
     assert np.allclose(from_a, points_a.norm(dim=-1).numpy(), rtol=1e-9)
     assert np.allclose(from_b, points_b.norm(dim=-1).numpy(), rtol=1e-9)
-    if case != "two_models":
+    if case not in ("two_models", "narrow_forward"):
         incidence = torch.rad2deg(torch.acos(ray_a[:, 2]))
         assert (incidence > 90).sum() > 20  # rays beyond 90 degrees are rectified like the rest
 
@@ -124,6 +128,58 @@ def test_the_disparity_range_runs_from_the_farthest_parallax_to_the_nearest():
     ahead = build_rectification(camera, camera, (invert_pose(pose(0, (0, 0, 1.0))) @ pose()).numpy(), 0.5,
                                 max_distance=80.0)  # fmt: skip
     assert ahead.first_disparity == 0
+
+
+def test_a_forward_pair_searches_what_its_view_can_show_on_rows_as_fine_as_its_columns():
+    """A narrow camera moving 1.3 m along its axis, from 2.6 m on (a car's front camera): no ray runs
+    across the baseline, so a point 2.6 m away shows at most the parallax at the image's corner (11
+    degrees, not the 30 of asin(L / D)), and the rows around the epipole need be no finer on the sphere
+    than the columns at that corner."""
+    T = (invert_pose(pose(0, (0, 0, -1.3))) @ pose()).numpy()  # now -> then: then lies 1.3 m behind
+    step = math.radians(0.5)
+    rect = build_rectification(NARROW, NARROW, T, 2.6, step, directions=(True, True), max_distance=50.0,
+                               asked=(True, False))  # fmt: skip
+    corner = math.atan(math.hypot(80, 60) / 150)  # radians off the axis
+    D, L = 2.6, 1.3
+    from_b = math.atan2(D * math.sin(corner), D * math.cos(corner) + L)  # the corner's point, seen from b
+    largest = (corner - from_b) / step
+    assert math.degrees(corner - from_b) == pytest.approx(11.1, abs=0.1)
+    assert largest <= rect.first_disparity + rect.disparities - 1 - 2  # inside the range, end margin off
+    assert rect.disparities <= 16 * math.ceil((largest + 4) / 16)  # and no more than that
+    assert rect.disparities < nearest_parallax(L, D, step)
+    assert rect.grid.phi_step == pytest.approx(step / math.sin(corner), rel=0.05)
+    assert rect.grid.rows < 2 * math.pi / step * 0.6
+    scale = rect.grid.row_scale()  # a row step on the sphere, in column steps: at most one
+    psi = rect.grid.psi0 + step * np.arange(rect.grid.cols)
+    assert scale[psi <= corner].max() == pytest.approx(1.0, abs=0.05)
+    # b asked too: its pixels see points 2.6 m from b, 1.3 m nearer a: the range reaches further
+    both = build_rectification(NARROW, NARROW, T, 2.6, step, max_distance=50.0)
+    assert both.disparities > rect.disparities
+
+
+def test_each_direction_is_matched_over_its_own_span_of_columns():
+    """A grid answering both cameras is padded on each side for one of them: each direction matched over
+    its own span gives what the whole grid gives on the columns of real directions (psi in [0, pi]: the
+    columns past them are the padding, where the whole grid's answers name no pixel of either camera)."""
+    camera = kitti02().resize(160, 160)
+    T_a, T_b = pose(-10, (-0.15, 0, 0)), pose(10, (0.15, 0, 0))
+    rect = build_rectification(camera, camera, (invert_pose(T_b) @ T_a).numpy(), 0.5, max_distance=20.0)
+    (a0, a1), (b0, b1) = rect.spans
+    pad = rect.first_disparity + rect.disparities
+    assert a0 == 0 and b1 == rect.grid.cols and a1 < rect.grid.cols - pad // 2 and b0 > pad // 2
+    volume = texture_volume(3)
+    a, b = (remap(grey_image(render(camera, P, volume)[0]), side)
+            for P, side in ((T_a, rect.a), (T_b, rect.b)))  # fmt: skip
+    both = [match_both(a, b, rect.a.valid, rect.b.valid, rect.disparities, rect.grid.step, MatcherSettings(),
+                       first=rect.first_disparity, spans=spans) for spans in (rect.spans, None)]  # fmt: skip
+    psi = rect.grid.psi0 + rect.grid.step * np.arange(rect.grid.cols)
+    real = (psi >= 0) & (psi <= math.pi)
+    for spanned, whole in ((both[0].a, both[1].a), (both[0].b, both[1].b)):
+        spanned, whole = spanned.checked[:, real], whole.checked[:, real]
+        kept = whole != INVALID
+        assert kept.mean() > 0.2
+        assert (np.abs(spanned - whole) < 0.5)[kept].mean() > 0.97
+        assert ((spanned != INVALID) & ~kept).mean() < 0.005
 
 
 def test_a_pair_without_baseline_or_overlap_is_refused():

@@ -157,7 +157,7 @@ def off_the_rim(seen: np.ndarray) -> np.ndarray:
     return cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8), borderValue=0) > 0
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=16)
 def _rows(rows: int, cols: int) -> np.ndarray:
     """``[rows, cols]`` float32: each pixel's row, for ``cv2.remap`` along the rows."""
     return np.ascontiguousarray(np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], (rows, cols)))
@@ -245,18 +245,30 @@ def match_both(
     settings: MatcherSettings,
     directions: tuple[bool, bool] = (True, True),
     first: int = 0,
+    spans: tuple[tuple[int, int], tuple[int, int]] | None = None,
 ) -> Both:
     """Both directions matched (``a`` the left image; for b's pixels both images are mirrored, so that b
     becomes the left image), each answer kept only where the partner's answer at the pixel it names leads
     back to it within ``settings.round_trip`` grid pixels (:func:`round_trip`): an answer where the
     partner cannot see the point (outside its view, occluded) finds no way back. Then each camera asked
-    for in ``directions`` is despeckled."""
+    for in ``directions`` is despeckled. ``spans``: the columns each direction's matches need
+    (:attr:`.rectify.Rectification.spans`; None: all): each is matched over its own span only, since
+    a grid that answers both cameras is padded on each side for one of them."""
     w = settings.normalise_window
     na, nb = normalise(a, a_seen, w), normalise(b, b_seen, w)  # once: the window is symmetric
-    for_a = _matched(a, b, a_seen, b_seen, disparities, settings, first, (na, nb))
-    mirrored = _matched(b[:, ::-1], a[:, ::-1], b_seen[:, ::-1], a_seen[:, ::-1], disparities, settings,
-                        first, (nb[:, ::-1], na[:, ::-1]))  # fmt: skip
-    for_b = np.ascontiguousarray(mirrored[:, ::-1])
+    cols = a.shape[1]
+    (a0, a1), (b0, b1) = spans or ((0, cols), (0, cols))
+    for_a = np.full(a.shape, INVALID, np.float32)
+    for_b = np.full(a.shape, INVALID, np.float32)
+    if a1 > a0:
+        part = slice(a0, a1)
+        for_a[:, part] = _matched(a[:, part], b[:, part], a_seen[:, part], b_seen[:, part], disparities,
+                                  settings, first, (na[:, part], nb[:, part]))  # fmt: skip
+    if b1 > b0:
+        part = slice(b1 - 1, b0 - 1 if b0 > 0 else None, -1)  # b's span, mirrored
+        mirrored = _matched(b[:, part], a[:, part], b_seen[:, part], a_seen[:, part], disparities, settings,
+                            first, (nb[:, part], na[:, part]))  # fmt: skip
+        for_b[:, b0:b1] = mirrored[:, ::-1]
     out: list = [None, None, None, None]
     answered = returned = 0
     for i, (own, partner, left) in enumerate(((for_a, for_b, True), (for_b, for_a, False))):

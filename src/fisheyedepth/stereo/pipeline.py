@@ -147,9 +147,10 @@ def match_pair(
     d = rect.disparities
     first = rect.first_disparity
     m = settings.matcher
-    found = match_both(a, b, seen[0], seen[1], d, rect.grid.step, m, directions, first)
+    pixel = math.sqrt(rect.grid.step * rect.grid.phi_step)  # radians: a grid pixel's side, on the mean
+    found = match_both(a, b, seen[0], seen[1], d, pixel, m, directions, first, rect.spans)
     grid = rect.grid
-    row_scale = np.sin(math.pi - (grid.psi0 + grid.step * np.arange(grid.cols)))  # a row step, in columns
+    row_scale = grid.row_scale()  # a row step, in columns
     na, nb = found.normalised
     left, right, disparity = (na, nb, found.a.checked) if directions[0] else (nb, na, found.b.checked)
     if not directions[0]:  # b's matches, mirrored: b the left image
@@ -253,13 +254,13 @@ def rectify_pair(
 ) -> Rectification:
     """The pair's :class:`~.rectify.Rectification` for ``settings`` (its range and step from its geometry,
     :func:`pair_range`, and the matcher's end margin), through ``cache``: built once per pair, calibration
-    and motion. Its grid answers both cameras whatever ``directions`` asks: the round trip matches both
-    ways."""
+    and motion. Its grid answers both cameras whatever ``directions`` asks (the round trip matches both
+    ways); its range is what the cameras asked can show."""
     s = settings
     baseline = float(np.linalg.norm(np.asarray(T_a_to_b, dtype=np.float64)[:3, 3]))
     nearest, step = pair_range(camera_a, camera_b, baseline, s)
     return cache.get(camera_a, camera_b, T_a_to_b, nearest, step, (True, True), s.max_distance,
-                     s.matcher.end_margin)  # fmt: skip
+                     s.matcher.end_margin, tuple(directions))  # fmt: skip
 
 
 def partner_pair(
@@ -452,47 +453,53 @@ class RigStereo:
 
         # the motion pairs first (their rectification is built in the job): the longest jobs start first
         order = sorted(range(len(jobs)), key=lambda i: isinstance(jobs[i][4], Rectification))
-        if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's
+        per_camera: dict[str, list[tuple[str, PixelMaps]]] = defaultdict(list)
+
+        def collect(done) -> None:  # each partner's maps to its camera, in the rig's order, then the motion
+            for first, second, (maps_a, maps_b), timer, record, why in done:
+                for stage, seconds in timer.seconds.items():
+                    self.timer.seconds[stage] += seconds
+                for label, maps in ((first, maps_a), (second, maps_b)):
+                    if label is None:
+                        continue
+                    own, partner = label
+                    evidence = next((m.evidence for m in (maps_a, maps_b) if m is not None), None)
+                    checks[own][partner] = {**(record or {}), **(evidence.record() if evidence else {})}
+                    reason = why or (evidence.contradicted if evidence is not None else None)
+                    if reason is not None:
+                        left_out[own][partner] = reason
+                    elif maps is not None:
+                        per_camera[own].append((partner, maps))
+
+        def fused(name: str) -> CameraResult:
+            found, why, evidence = per_camera.get(name), dict(left_out.get(name, {})), checks.get(name, {})
+            if not found:
+                return CameraResult(nothing(self.cameras[name]), (), why, dict(evidence))
+            out = fuse([m for _, m in found], s.min_confidence)
+            why.update({found[k][0]: reason for k, reason in out.left_out.items()})
+            partners = tuple(p for k, (p, _) in enumerate(found) if k not in out.left_out)
+            return CameraResult(out, partners, why, dict(evidence))
+
+        names = list(self.cameras)
+        if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's; then images
             threads = cv2.getNumThreads(), torch.get_num_threads()
             cv2.setNumThreads(1)
             torch.set_num_threads(1)
             try:
                 with ThreadPoolExecutor(self.threads) as pool:
                     results = dict(zip(order, pool.map(run, [jobs[i] for i in order]), strict=True))
+                    collect(results[i] for i in range(len(jobs)))
+                    start = time.perf_counter()
+                    out = dict(zip(names, pool.map(fused, names), strict=True))
             finally:
                 cv2.setNumThreads(threads[0])
                 torch.set_num_threads(threads[1])
         else:
             results = {i: run(jobs[i]) for i in order}
+            collect(results[i] for i in range(len(jobs)))
+            start = time.perf_counter()
+            out = {name: fused(name) for name in names}
         if previous is not None:
             self._features = described  # this instant's features: the next call's previous ones
-        per_camera: dict[str, list[tuple[str, PixelMaps]]] = defaultdict(list)
-        done = [results[i] for i in range(len(jobs))]  # partners in the rig's order, then the motion
-        for first, second, (maps_a, maps_b), timer, record, why in done:
-            for stage, seconds in timer.seconds.items():
-                self.timer.seconds[stage] += seconds
-            for label, maps in ((first, maps_a), (second, maps_b)):
-                if label is None:
-                    continue
-                own, partner = label
-                evidence = next((m.evidence for m in (maps_a, maps_b) if m is not None), None)
-                checks[own][partner] = {**(record or {}), **(evidence.record() if evidence else {})}
-                reason = why or (evidence.contradicted if evidence is not None else None)
-                if reason is not None:
-                    left_out[own][partner] = reason
-                elif maps is not None:
-                    per_camera[own].append((partner, maps))
-        start = time.perf_counter()
-        out = {}
-        for name, camera in self.cameras.items():
-            found = per_camera.get(name)
-            if found:
-                fused = fuse([m for _, m in found], s.min_confidence)
-                for k, reason in fused.left_out.items():
-                    left_out[name][found[k][0]] = reason
-                partners = tuple(p for k, (p, _) in enumerate(found) if k not in fused.left_out)
-                out[name] = CameraResult(fused, partners, dict(left_out[name]), dict(checks[name]))
-            else:
-                out[name] = CameraResult(nothing(camera), (), dict(left_out[name]), dict(checks[name]))
         self.timer.add("fuse", start)
         return out

@@ -13,9 +13,12 @@ point) gives the distance from either camera by the law of sines:
 
 The grid has uniform steps in both angles (``step`` radians, by default the coarser camera's angular
 resolution): a point at any incidence gets the same treatment, and near the epipoles (where no parallax
-is) rows crowd together rather than thin out. It covers the rays both cameras see, padded by the
-disparity range on the side each camera's partner lies, so that the first columns can be answered.
-Every table depends on the two cameras and the pose only: built once per rig pair, and once per motion
+is) rows crowd together rather than thin out; where the grid wraps around the whole circle (an epipole
+in view) and no column lies across the baseline (a narrow camera moving along its axis), its rows are as
+coarse as keeps a row step on the sphere within a column's. It covers the rays both cameras see, padded
+by the disparity range on the side each camera's partner lies, so that the first columns can be
+answered; each camera's matches need only its own span of columns. The range is the parallax the
+cameras asked for can show between the farthest and the nearest distance. Every table depends on the two cameras and the pose only: built once per rig pair, and once per motion
 for one camera at two instants (:func:`rectification`, an LRU of them).
 """
 
@@ -37,14 +40,19 @@ from ..cameras.rays import RayCache
 
 RAYS = RayCache(max_entries=32)  # each camera's rays at its own size, unprojected once
 MAX_GRID_PIXELS = 16_000_000  # a rectified grid larger than this is a mistake (a step far too fine)
+# columns past each end of a camera's span that its matches still see: more than SGBM's window and the
+# row check's, so that no window of a kept pixel reaches the cut
+SPAN_MARGIN = 16
+MAX_ROW_STEP = 4  # a whole circle's rows are at most this many times its columns' step
 SEAM = 4  # rows repeated past each end of a grid that wraps around the whole circle: the matcher's window
 
 
 @dataclass(frozen=True)
 class SphericalGrid:
-    """The rectified grid: ``rows x cols`` pixels of ``step`` radians, row ``i`` at ``phi0 + i step``
-    and column ``j`` at ``psi0 + j step``; ``frame`` ``[3, 3]`` holds ``e``, ``m`` and ``n`` as rows
-    (a's frame to the grid's: ``phi = atan2(d.n, d.m)``)."""
+    """The rectified grid: ``rows x cols`` pixels, row ``i`` at ``phi0 + i row_step`` and column ``j``
+    at ``psi0 + j step``; ``frame`` ``[3, 3]`` holds ``e``, ``m`` and ``n`` as rows (a's frame to the
+    grid's: ``phi = atan2(d.n, d.m)``). A row step of ``phi`` is ``sin theta`` of it on the sphere:
+    ``row_step`` (None: ``step``) is coarser where no column of the grid lies across the baseline."""
 
     frame: np.ndarray
     baseline: float
@@ -53,10 +61,21 @@ class SphericalGrid:
     psi0: float
     rows: int
     cols: int
+    row_step: float | None = None
+
+    @property
+    def phi_step(self) -> float:
+        """Radians of ``phi`` between two rows."""
+        return self.step if self.row_step is None else self.row_step
+
+    def row_scale(self) -> np.ndarray:
+        """``[cols]``: the length of a row step on the sphere at each column, in column steps."""
+        theta = math.pi - (self.psi0 + self.step * np.arange(self.cols))
+        return np.sin(theta) * self.phi_step / self.step
 
     def directions(self) -> Tensor:
         """``[rows, cols, 3]`` float64 unit directions of the grid's pixels, in a's frame."""
-        phi = self.phi0 + self.step * torch.arange(self.rows, dtype=torch.float64)
+        phi = self.phi0 + self.phi_step * torch.arange(self.rows, dtype=torch.float64)
         theta = math.pi - (self.psi0 + self.step * torch.arange(self.cols, dtype=torch.float64))
         e, m, n = torch.from_numpy(self.frame)
         sin_t, cos_t = torch.sin(theta)[None, :, None], torch.cos(theta)[None, :, None]
@@ -70,7 +89,7 @@ class SphericalGrid:
         across = torch.sqrt(local[..., 1] ** 2 + local[..., 2] ** 2)
         theta = torch.atan2(across, local[..., 0])
         phi = torch.atan2(local[..., 2], local[..., 1])
-        centre = self.phi0 + self.step * (self.rows - 1) / 2
+        centre = self.phi0 + self.phi_step * (self.rows - 1) / 2
         phi = torch.remainder(phi - centre + math.pi, 2 * math.pi) - math.pi + centre
         return phi, theta
 
@@ -78,7 +97,7 @@ class SphericalGrid:
         """Fractional ``(row, column)`` ``[..., 2]`` of directions in a's frame, and their ``theta``."""
         phi, theta = self.angles(directions)
         return torch.stack(
-            ((phi - self.phi0) / self.step, (math.pi - theta - self.psi0) / self.step), -1
+            ((phi - self.phi0) / self.phi_step, (math.pi - theta - self.psi0) / self.step), -1
         ), theta
 
 
@@ -107,7 +126,9 @@ class Rectification:
     """Cameras ``a`` and ``b`` on one :class:`SphericalGrid`. The matcher's range: ``disparities`` grid
     pixels (a multiple of 16) from ``first_disparity`` on, from a little below the least parallax of the
     farthest distance (0 where an epipole is in view) up to the parallax of the nearest; ``directions``:
-    which camera's pixels the grid can answer (a, b)."""
+    which camera's pixels the grid can answer (a, b); ``spans``: for each camera, the half-open range of
+    grid columns its own matches need (its columns and the partner's within the range: a matcher of a's
+    pixels needs nothing right of a's span, one of b's nothing left of b's), None for the whole grid."""
 
     grid: SphericalGrid
     a: Side
@@ -115,6 +136,7 @@ class Rectification:
     disparities: int
     first_disparity: int = 0
     directions: tuple[bool, bool] = (True, True)
+    spans: tuple[tuple[int, int], tuple[int, int]] | None = None
 
     def distance(self, side: str, theta: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         """Metres from camera ``side`` ("a" or "b") along a ray at ``theta`` from the baseline, for
@@ -150,6 +172,17 @@ def farthest_parallax(
     least = [np.min(np.arctan2(D * np.sin(t), D * np.cos(t) - L) - t) for t in (theta_a,) if len(t)]
     least += [np.min(t - np.arctan2(D * np.sin(t), D * np.cos(t) + L)) for t in (theta_b,) if len(t)]
     return max(0.0, float(min(least)))
+
+
+def largest_parallax(theta_a: np.ndarray, theta_b: np.ndarray, baseline: float, min_distance: float) -> float:
+    """Radians of the largest parallax a point ``min_distance`` from its camera shows at any of the angles
+    from the baseline given (the mirror of :func:`farthest_parallax`): at most ``asin(L / D)``, reached
+    only where a ray runs across the baseline; a forward camera whose rays stay near its epipole sees far
+    less (a car's front camera moving 1.3 m, 50 degrees off its axis at 2.6 m: 16 degrees, not 30)."""
+    D, L = min_distance, baseline
+    most = [np.max(np.arctan2(D * np.sin(t), D * np.cos(t) - L) - t) for t in (theta_a,) if len(t)]
+    most += [np.max(t - np.arctan2(D * np.sin(t), D * np.cos(t) + L)) for t in (theta_b,) if len(t)]
+    return max(0.0, float(max(most)))
 
 
 def _frame(e: np.ndarray, axes: np.ndarray) -> np.ndarray:
@@ -233,16 +266,20 @@ def any_within(seen: np.ndarray, before: int, after: int) -> np.ndarray:
 
 
 def _extent(
-    frame, baseline, step, nearest, max_distance, margin, camera_a, camera_b, R_ab, directions
+    frame, baseline, step, min_distance, max_distance, margin, camera_a, camera_b, R_ab, directions, asked
 ) -> tuple:
     """The grid's ``phi0``, ``psi0``, rows and columns, and the matcher's first disparity and count: the
     rows and columns where a's cells have a partner in b within the parallax of the nearest distance (a
     point at ``psi`` in a lies at ``psi - alpha`` in b) or b's in a (each as ``directions`` asks); the
     range from ``margin`` pixels below the least parallax of the farthest distance in those columns (0
-    where an epipole is in view) to as far above the nearest's (the matcher's end checks reject within
-    ``margin`` of either end), a multiple of 16;
+    where an epipole is in view) to as far above the largest parallax of the nearest distance in the
+    columns of the cameras ``asked`` (the matcher's end checks reject within ``margin`` of either end), a
+    multiple of 16;
     a's columns padded by it on the left, b's on the right. Found on the whole sphere in cells of up to a
-    few grid pixels (about a million cells), then widened by a cell."""
+    few grid pixels (about a million cells), then widened by a cell. Last, each camera's span of columns
+    (:attr:`Rectification.spans`), widened by :data:`SPAN_MARGIN`, and the step between rows: the
+    column's step, or where the grid wraps around the whole circle, as coarse as keeps a row step on the
+    sphere within a column's at the column farthest from the baseline's axis."""
     cell = max(1, math.ceil(math.sqrt(2 * math.pi * math.pi / step**2 / 1e6)))
     coarse = step * cell
     sphere = SphericalGrid(
@@ -250,6 +287,7 @@ def _extent(
     )
     seen_a = _occupancy(sphere, camera_a, torch.eye(3, dtype=torch.float64))
     seen_b = _occupancy(sphere, camera_b, torch.from_numpy(R_ab))
+    nearest = nearest_parallax(baseline, min_distance, step)
     reach = math.ceil((nearest + 1 + margin) / cell)
     seen_a, seen_b = seen_a.numpy(), seen_b.numpy()
     matched_a = seen_a & any_within(seen_b, reach, 0) & directions[0]
@@ -260,12 +298,16 @@ def _extent(
     rows_used = np.flatnonzero(both.any(1))
     cols_a, cols_b = np.flatnonzero(matched_a.any(0)), np.flatnonzero(matched_b.any(0))
     first = 0
+    theta_a, theta_b = (math.pi - coarse * np.arange(c.min() - 1, c.max() + 2) if len(c) else c
+                        for c in (cols_a, cols_b))  # fmt: skip
     if max_distance is not None:
-        theta_a, theta_b = (math.pi - coarse * np.arange(c.min() - 1, c.max() + 2) if len(c) else c
-                            for c in (cols_a, cols_b))  # fmt: skip
         first = max(
             0, math.floor(farthest_parallax(theta_a, theta_b, baseline, max_distance) / step) - margin
         )
+    if baseline < min_distance:  # else a point beyond the partner may show any parallax up to pi
+        mine = [t if ask else t[:0] for t, ask in zip((theta_a, theta_b), asked, strict=True)]
+        largest = largest_parallax(*mine, baseline, min_distance)
+        nearest = min(nearest, math.ceil(largest / step))
     count = max(16, 16 * math.ceil((nearest + 1 + margin - first) / 16))
     pad = first + count
     lows, highs = [], []
@@ -275,12 +317,24 @@ def _extent(
     if len(cols_b):
         lows.append((int(cols_b.min()) - 1) * cell)
         highs.append((int(cols_b.max()) + 1) * cell + pad)
+    left, cols = min(lows), max(highs) - min(lows) + 1
+    spans = tuple(
+        (max(0, lo - left - SPAN_MARGIN), min(cols, hi - left + 1 + SPAN_MARGIN)) if len(c) else (0, 0)
+        for c, lo, hi in (
+            (cols_a, lows[0], highs[0]),
+            (cols_b, lows[-1], highs[-1]),
+        )
+    )
     first_row, last_row = (int(rows_used.min()) - 1) * cell, (int(rows_used.max()) + 1) * cell
     phi_lo, rows = sphere.phi0 + step * first_row, last_row - first_row + 1
+    row_step = step
     if rows * step >= 2 * math.pi - 2 * coarse:  # the whole circle (an epipole in view): it wraps, and the
-        # matcher's window at the seam sees the rows past it
-        phi_lo, rows = -math.pi - SEAM * step, math.ceil(2 * math.pi / step) + 2 * SEAM
-    return phi_lo, step * min(lows), rows, max(highs) - min(lows) + 1, first, count
+        # matcher's window at the seam sees the rows past it. Its rows need be no finer on the sphere than
+        # its columns where they lie farthest apart: at the column farthest from the baseline's axis
+        across = max(float(np.max(np.abs(np.sin(t)))) for t in (theta_a, theta_b) if len(t))
+        row_step = step / max(across, 1 / MAX_ROW_STEP)
+        phi_lo, rows = -math.pi - SEAM * row_step, math.ceil(2 * math.pi / row_step) + 2 * SEAM
+    return phi_lo, step * left, rows, cols, first, count, spans, row_step
 
 
 def build_rectification(
@@ -292,13 +346,17 @@ def build_rectification(
     directions: tuple[bool, bool] = (True, True),
     max_distance: float | None = None,
     margin: int = 2,
+    asked: tuple[bool, bool] | None = None,
 ) -> Rectification:
     """The grid and both cameras' tables for the pair (``T_a_to_b``: ``X_b = R X_a + t``, metres).
     ``step``: radians per grid pixel; None: the coarser camera's :func:`angular_resolution`;
     ``directions``: the cameras whose pixels it must answer (a motion pair answers the newer image only:
     its grid is narrower by the disparity range); ``min_distance``, ``max_distance``: metres, the range
     searched (None: to infinity); ``margin``: grid pixels the matcher rejects at each end of its range
-    (:attr:`.match.MatcherSettings.end_margin`), added to it."""
+    (:attr:`.match.MatcherSettings.end_margin`), added to it; ``asked``: the cameras whose own distances
+    are wanted (None: ``directions``): the range reaches the largest parallax their pixels can show at
+    ``min_distance``; a camera matched only for the round trip needs no more, as a point shows one
+    parallax from either camera."""
     if not 0 < min_distance < (math.inf if max_distance is None else max_distance):
         raise ValueError(f"min_distance, max_distance: {min_distance}, {max_distance}; need 0 < min < max")
     T = np.asarray(T_a_to_b, dtype=np.float64)
@@ -314,22 +372,23 @@ def build_rectification(
         raise ValueError(f"step: {step} radians per pixel; must be > 0")
     e = centre_b / baseline
     frame = _frame(e, np.stack((np.array([0.0, 0.0, 1.0]), R_ab.T @ np.array([0.0, 0.0, 1.0]))))
-    nearest = nearest_parallax(baseline, min_distance, step)
     if not any(directions):
         raise ValueError("directions: neither camera asked for; nothing to rectify for")
-    phi_lo, psi_lo, rows, cols, first, count = _extent(
-        frame, baseline, step, nearest, max_distance, math.ceil(margin), camera_a, camera_b, R_ab, directions
-    )
+    asked = directions if asked is None else asked
+    phi_lo, psi_lo, rows, cols, first, count, spans, row_step = _extent(
+        frame, baseline, step, min_distance, max_distance, math.ceil(margin), camera_a, camera_b, R_ab,
+        directions, asked,
+    )  # fmt: skip
     if rows * cols > MAX_GRID_PIXELS:
         raise ValueError(
             f"resolution: a step of {math.degrees(step):.4g} degrees makes a {rows} x {cols} rectified grid "
             f"(at most {MAX_GRID_PIXELS:,} pixels); choose a coarser step"
         )
-    grid = SphericalGrid(frame, baseline, step, phi_lo, psi_lo, rows, cols)
+    grid = SphericalGrid(frame, baseline, step, phi_lo, psi_lo, rows, cols, row_step)
     looking = grid.directions().float()
     side_a = _side(camera_a, np.eye(3), grid, looking, directions[0])
     side_b = _side(camera_b, R_ab, grid, looking, directions[1])
-    return Rectification(grid, side_a, side_b, count, first, tuple(bool(x) for x in directions))
+    return Rectification(grid, side_a, side_b, count, first, tuple(bool(x) for x in directions), spans)
 
 
 def remap(image: np.ndarray, side: Side) -> np.ndarray:
@@ -348,7 +407,7 @@ def remap(image: np.ndarray, side: Side) -> np.ndarray:
 
 class RectificationCache:
     """An LRU of :class:`Rectification`, keyed by both cameras, the pose (to the micrometre and the
-    microradian), the range, the step and the directions."""
+    microradian), the range, the step, the directions and the cameras asked."""
 
     def __init__(self, max_entries: int = 32):
         self.max_entries = max_entries
@@ -359,10 +418,13 @@ class RectificationCache:
     def get(
         self, camera_a, camera_b, T_a_to_b, min_distance: float, step: float | None = None,
         directions: tuple[bool, bool] = (True, True), max_distance: float | None = None, margin: int = 2,
+        asked: tuple[bool, bool] | None = None,
     ) -> Rectification:  # fmt: skip
         T = np.asarray(T_a_to_b, dtype=np.float64)
         pose = tuple(np.round(T[:3].ravel(), 6))
-        key = (camera_a, camera_b, pose, float(min_distance), max_distance, step, tuple(directions), margin)
+        asked = tuple(directions if asked is None else asked)
+        key = (camera_a, camera_b, pose, float(min_distance), max_distance, step, tuple(directions), margin,
+               asked)  # fmt: skip
         with self._lock:
             entry = self._entries.get(key)
             if entry is not None:
@@ -370,7 +432,7 @@ class RectificationCache:
                 return entry
             self.misses += 1
         entry = build_rectification(
-            camera_a, camera_b, T, min_distance, step, directions, max_distance, margin
+            camera_a, camera_b, T, min_distance, step, directions, max_distance, margin, asked
         )
         with self._lock:
             self._entries[key] = entry
