@@ -57,24 +57,34 @@ class Fused(NamedTuple):
     left_out: dict[int, str] = {}  # partner index -> why it was not fused (it disagrees with the others)
 
 
-def sigmas(maps: Sequence[PixelMaps], dense: bool = False) -> np.ndarray:
-    """``[P, H, W]`` each partner's expected relative error where it has an estimate (``inf`` elsewhere)."""
+def sigmas(maps: Sequence[PixelMaps], dense: bool = False, at: np.ndarray | None = None) -> np.ndarray:
+    """``[P, N]`` each partner's expected relative error where it has an estimate (``inf`` elsewhere), at
+    the flat pixel indices ``at`` (None: every pixel, ``N = H W``)."""
     out = []
     for m in maps:
         parallax = m.dense_parallax if dense else m.parallax
         miss = 0 if (dense or m.roundtrip is None) else m.roundtrip
+        parallax = parallax.reshape(-1) if at is None else parallax.reshape(-1)[at]
+        if not np.isscalar(miss):
+            miss = miss.reshape(-1) if at is None else miss.reshape(-1)[at]
         with np.errstate(divide="ignore", invalid="ignore"):
             sigma = (1 + miss + m.residual) * m.step / parallax
         out.append(np.where((parallax > 0) & np.isfinite(sigma), sigma, np.inf))
     return np.stack(out).astype(np.float32)
 
 
-def disagreeing(distance: np.ndarray, sigma: np.ndarray) -> dict[int, str]:
-    """The partners (``[P, H, W]`` distances, 0 where none; their ``sigma``) left out because they
-    disagree as wholes with the others (module docstring), with why."""
+def combined(sigma_a: np.ndarray, sigma_b: np.ndarray) -> np.ndarray:
+    """The expected error of the difference of two independent estimates: ``sqrt(a^2 + b^2)``."""
+    return np.sqrt(sigma_a * sigma_a + sigma_b * sigma_b)
+
+
+def disagreeing(distance: np.ndarray, sigma: np.ndarray, pixels: int | None = None) -> dict[int, str]:
+    """The partners (``[P, ...]`` distances, 0 where none; their ``sigma``) left out because they
+    disagree as wholes with the others (module docstring), with why. ``pixels``: the image's (None: the
+    size of a partner's distances; give it where they hold only some of the image's pixels)."""
     P = len(distance)
     kept = distance > 0
-    floor = max(MIN_SHARED, distance[0].size // 1000)
+    floor = max(MIN_SHARED, (distance[0].size if pixels is None else pixels) // 1000)
     apart: dict[tuple[int, int], float] = {}
     for i in range(P):
         for j in range(i + 1, P):
@@ -82,7 +92,7 @@ def disagreeing(distance: np.ndarray, sigma: np.ndarray) -> dict[int, str]:
             if int(both.sum()) < floor:
                 continue
             log_ratio = np.log(distance[i][both] / distance[j][both])
-            allowed = AGREE * np.median(np.hypot(sigma[i][both], sigma[j][both]))
+            allowed = AGREE * np.median(combined(sigma[i][both], sigma[j][both]))
             if abs(float(np.median(log_ratio))) > allowed:
                 apart[i, j] = float(np.exp(np.median(log_ratio)))
     out: dict[int, str] = {}
@@ -104,22 +114,28 @@ def disagreeing(distance: np.ndarray, sigma: np.ndarray) -> dict[int, str]:
 def fuse(maps: Sequence[PixelMaps], min_confidence: float = 0.0) -> Fused:
     """The partners' :class:`~.mapback.PixelMaps` of one image fused by evidence (module docstring); a
     kept pixel whose confidence is under ``min_confidence`` is dropped from the distance (the dense map
-    keeps it)."""
+    keeps it). Computed on the pixels some partner keeps only."""
     if not maps:
         raise ValueError("maps: nothing to fuse; an image needs at least one partner")
-    distance = np.stack([m.distance for m in maps])  # [P, H, W]
-    sigma = sigmas(maps)
-    left_out = disagreeing(distance, sigma) if len(maps) > 1 else {}
+    shape = maps[0].distance.shape
+    at = np.flatnonzero(np.logical_or.reduce([m.distance.reshape(-1) > 0 for m in maps]))
+    distance = np.stack([m.distance.reshape(-1)[at] for m in maps])  # [P, N]
+    sigma = sigmas(maps, at=at)
+    left_out = disagreeing(distance, sigma, int(np.prod(shape))) if len(maps) > 1 else {}
     for k in left_out:
         distance[k] = 0
         sigma[k] = np.inf
     kept = distance > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_d = np.where(kept, np.log(np.where(kept, distance, 1)), 0)
-        # agree[i, j]: estimates i and j agree (both kept)
-        close = np.abs(log_d[:, None] - log_d[None]) <= AGREE * np.hypot(sigma[:, None], sigma[None])
-    agree = close & kept[:, None] & kept[None]
-    support = agree.sum(1)  # [P, H, W]: how many agree with each estimate (itself included)
+    log_d = np.log(np.where(kept, distance, 1))
+    P = len(maps)
+    agree = np.zeros((P, *kept.shape), bool)  # agree[i, j]: estimates i and j agree (both kept)
+    for i in range(P):
+        agree[i, i] = kept[i]
+        for j in range(i + 1, P):
+            with np.errstate(invalid="ignore"):  # inf - inf where neither has an estimate
+                close = np.abs(log_d[i] - log_d[j]) <= AGREE * combined(sigma[i], sigma[j])
+            agree[i, j] = agree[j, i] = close & kept[i] & kept[j]
+    support = agree.sum(1)  # [P, N]: how many agree with each estimate (itself included)
     # the anchor: the most support, then the smallest sigma
     order = np.where(kept, support * 1e6 - np.minimum(sigma, 1e5), -np.inf)
     anchor = np.argmax(order, axis=0)[None]
@@ -142,19 +158,23 @@ def fuse(maps: Sequence[PixelMaps], min_confidence: float = 0.0) -> Fused:
         n = np.where(total > 0, n_group, 0)
         share = n / np.maximum(n_kept, 1)
     confidence = np.where(total > 0, (1 - 0.5**n) * share / (1 + fused_sigma / SIGMA_SCALE), 0)
-    dense = _dense(maps, left_out)
-    dense_out = np.where(fused > 0, fused, dense)
     if min_confidence > 0:
         sure = confidence >= min_confidence
+        kept_fused = fused
         fused, confidence, n = (np.where(sure, x, 0) for x in (fused, confidence, n))
-    return Fused(
-        fused.astype(np.float32), dense_out.astype(np.float32), confidence.astype(np.float32),
-        n.astype(np.uint8), left_out,
-    )  # fmt: skip
+    else:
+        kept_fused = fused
+    dense = _dense(maps, left_out)
+    whole = [np.zeros(shape, dtype).reshape(-1) for dtype in (np.float32, np.float32, np.float32, np.uint8)]
+    for image, values in zip(whole, (kept_fused, fused, confidence, n), strict=True):
+        image[at] = values
+    dense_out, fused, confidence, n = (x.reshape(shape) for x in whole)
+    dense_out = np.where(dense_out > 0, dense_out, dense)
+    return Fused(fused, dense_out.astype(np.float32), confidence, n, left_out)
 
 
 def _row(agree: np.ndarray, anchor: np.ndarray) -> np.ndarray:
-    """``[P, H, W]``: the estimates that agree with the anchor (``[1, H, W]`` partner index) at each pixel."""
+    """``[P, ...]``: the estimates that agree with the anchor (``[1, ...]`` partner index) at each pixel."""
     P = agree.shape[0]
     index = np.broadcast_to(anchor[None], (1, P, *anchor.shape[1:]))
     return np.take_along_axis(agree, index, 0)[0]
@@ -162,18 +182,26 @@ def _row(agree: np.ndarray, anchor: np.ndarray) -> np.ndarray:
 
 def _dense(maps: Sequence[PixelMaps], left_out: dict[int, str]) -> np.ndarray:
     """The filled estimates' inverse-variance mean where every partner that filled the pixel agrees
-    with the most precise one, else 0."""
-    dense = np.stack([np.zeros_like(m.dense) if i in left_out else m.dense for i, m in enumerate(maps)])
-    sigma = np.where(dense > 0, sigmas(maps, dense=True), np.inf)
+    with the most precise one, else 0 (``[H, W]``; computed on the pixels some partner filled)."""
+    shape = maps[0].dense.shape
+    used = [m for i, m in enumerate(maps) if i not in left_out]
+    out = np.zeros(int(np.prod(shape)), np.float64)
+    if not used:
+        return out.reshape(shape)
+    at = np.flatnonzero(np.logical_or.reduce([m.dense.reshape(-1) > 0 for m in used]))
+    dense = np.stack([np.zeros(len(at), np.float32) if i in left_out else m.dense.reshape(-1)[at]
+                      for i, m in enumerate(maps)])  # fmt: skip
+    sigma = np.where(dense > 0, sigmas(maps, dense=True, at=at), np.inf)
     has = dense > 0
     best = np.argmin(sigma, axis=0)[None]
     best_d = np.take_along_axis(dense, best, 0)[0]
     best_s = np.take_along_axis(sigma, best, 0)[0]
     with np.errstate(divide="ignore", invalid="ignore"):
         log_ratio = np.abs(np.log(np.where(has, dense, 1) / np.where(best_d > 0, best_d, 1)))
-        agree = ~has | (log_ratio <= AGREE * np.hypot(sigma, best_s))
+        agree = ~has | (log_ratio <= AGREE * combined(sigma, best_s))
         weight = np.where(has, 1 / sigma**2, 0)
         total = weight.sum(0)
         mean = np.where(total > 0, (weight * dense).sum(0) / total, 0)
     resolved = (has.sum(0) > 1) | (best_s <= MAX_LONE_SIGMA)  # a lone filled estimate must resolve too
-    return np.where(agree.all(0) & (best_d > 0) & resolved, mean, 0)
+    out[at] = np.where(agree.all(0) & (best_d > 0) & resolved, mean, 0)
+    return out.reshape(shape)

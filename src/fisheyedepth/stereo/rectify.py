@@ -18,8 +18,9 @@ in view) and no column lies across the baseline (a narrow camera moving along it
 coarse as keeps a row step on the sphere within a column's. It covers the rays both cameras see, padded
 by the disparity range on the side each camera's partner lies, so that the first columns can be
 answered; each camera's matches need only its own span of columns. The range is the parallax the
-cameras asked for can show between the farthest and the nearest distance. Every table depends on the two cameras and the pose only: built once per rig pair, and once per motion
-for one camera at two instants (:func:`rectification`, an LRU of them).
+cameras asked for can show between the farthest and the nearest distance. Every table depends on the
+two cameras and the pose only: built once per rig pair, and once per motion for one camera at two
+instants (:class:`RectificationCache`, an LRU of them).
 """
 
 from __future__ import annotations
