@@ -175,6 +175,12 @@ def jacobian(f, x: Tensor, h: float = 1e-7) -> Tensor:
     return torch.stack(columns, -1)
 
 
+# A Gauss-Newton step under this (radians, or radians of the direction on the unit sphere) ends the
+# refinement: the steps shrink by about half an iteration, so the steps left add up to less than the last,
+# a ten-thousandth of a pixel at a focal length of 1000 px (and under it, central differences' rounding).
+CONVERGED = 1e-7
+
+
 def refine_relative_pose(
     matches: Matches,
     T_a_to_b: Tensor,
@@ -235,7 +241,7 @@ def refine_relative_pose(
         x = x + step
         gate = max(gate / 2, 4 * scale)
         inliers = epipolar_angles(a, b, *pose(x)) < gate
-        if float(step.norm()) < 1e-10 and gate == 4 * scale:
+        if float(step.norm()) < CONVERGED and gate == 4 * scale:
             break
     R, towards = pose(x)
     kept = epipolar_angles(a, b, R, towards) < 4 * scale
