@@ -157,7 +157,7 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     assert main([*args[:3], "--sources", "rig,gps", "--quiet"]) == 2
     assert "--sources: 'rig,gps'; choose from rig,time" in capsys.readouterr().err
     assert main([*args[:3], "--threads", "0", "--quiet"]) == 2
-    assert "--threads: 0; at least 1" in capsys.readouterr().err
+    assert "--threads: 0; a whole number from 1 to" in capsys.readouterr().err
     assert main([*args[:3], "--max-images", "-1", "--quiet"]) == 2  # not Python's [:-1]
     assert "--max-images: -1; at least 1" in capsys.readouterr().err
     assert main([*args[:3], "--hypotheses", "64", "--quiet"]) == 2  # the sweep's option, not ignored

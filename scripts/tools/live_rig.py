@@ -34,6 +34,7 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.stereo.recording import masks
+from fisheyedepth.utils import check_apart, check_threads
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 
@@ -149,10 +150,13 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     try:
-        for option in ("points", "max_instants", "threads"):
+        for option in ("points", "max_instants"):
             value = getattr(args, option)
             if value is not None and value < 1:
                 raise ValueError(f"--{option.replace('_', '-')}: {value}; at least 1")
+        check_threads(args.threads, "--threads")
+        if not args.no_record:
+            check_apart(args.out, "--out", {"the rig recording": args.rig})
         summary = run(args)
     except (OSError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)

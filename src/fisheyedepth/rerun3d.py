@@ -44,9 +44,9 @@ import numpy as np
 import torch
 
 from .cameras import CameraModel, RayCache
-from .geometry import finite_transform
+from .geometry import rigid_transform
 from .outputs import place_new
-from .utils import temporary_beside
+from .utils import is_number, is_whole, temporary_beside
 from .viz import colourise
 
 TRUTH_COLOUR = (255, 0, 255)  # ground-truth points: magenta, apart from any image's colours
@@ -98,8 +98,8 @@ class RigRecorder:
         overwrite: bool = False,
     ):
         self.path = Path(path)
-        if int(points_per_image) < 1:
-            raise ValueError(f"points_per_image: {points_per_image}; at least 1")
+        if not is_whole(points_per_image) or points_per_image < 1:
+            raise ValueError(f"points_per_image: {points_per_image!r}; a whole number, at least 1")
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
         self.rr = import_rerun()
@@ -121,7 +121,7 @@ class RigRecorder:
     def rig(self, cam_to_body: Mapping[str, np.ndarray], name: str = "rig") -> None:
         """Each camera's 4x4 pose in the body frame, static, under ``world/body/<name>/<camera>``; the
         rig :meth:`instant` uses when it is given none is the last one logged."""
-        rr, poses = self.rr, {c: finite_transform(T, f"cam_to_body[{c!r}]") for c, T in cam_to_body.items()}
+        rr, poses = self.rr, {c: rigid_transform(T, f"cam_to_body[{c!r}]") for c, T in cam_to_body.items()}
         for camera, T in poses.items():
             entity = f"world/body/{name}/{camera}"
             self.stream.log(entity, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]), static=True)
@@ -142,14 +142,21 @@ class RigRecorder:
         """Every camera of ``views`` at one instant (module docstring). ``body_to_world``: the body's
         4x4 pose (None: identity); ``cam_to_body``: the cameras' poses on the body (None: the last
         :meth:`rig`, identity for a camera it does not name)."""
+        for what, value in (("timestamp_ns", timestamp_ns), ("index", index)):
+            if not is_whole(value) or not -(2**63) < value < 2**63:
+                raise ValueError(f"{what}: {value!r}; a whole number within a signed 64-bit integer")
+        for camera, view in views.items():
+            for name, value in view.scores.items():
+                if value is not None and not is_number(value):
+                    raise ValueError(f"views[{camera!r}].scores[{name!r}]: {value!r}; a number or None")
         self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
         self.stream.set_time("frame", sequence=int(index))
-        body = np.eye(4) if body_to_world is None else finite_transform(body_to_world, "body_to_world")
+        body = np.eye(4) if body_to_world is None else rigid_transform(body_to_world, "body_to_world")
         self._log_body(body, int(index))
         rig = cam_to_body if cam_to_body is not None else (self.latest_rig or {})
         for camera, view in views.items():
             extrinsic = (
-                finite_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
+                rigid_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
             )
             self._log_view(camera, view, body @ extrinsic)
 

@@ -18,6 +18,33 @@ import numpy as np
 import yaml
 
 
+def is_number(value) -> bool:
+    """A real number (int or float, NumPy's too), not a bool or a string."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+
+
+def is_whole(value) -> bool:
+    """A whole number (int, NumPy's too), not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
+def cores() -> int:
+    """The CPU cores this process may run on (its affinity where the system says; else every core)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def check_threads(value, option: str) -> int:
+    """``value`` as a thread count from 1 to :func:`cores`, else a ValueError naming ``option`` (more
+    threads than cores only slow a CPU down, and thousands fail inside the thread library)."""
+    most = cores()
+    if not is_whole(value) or not 1 <= value <= most:
+        raise ValueError(f"{option}: {value!r}; a whole number from 1 to {most} (this machine's cores)")
+    return int(value)
+
+
 def run_config(run: str | os.PathLike) -> dict[str, Any]:
     """A run folder's Hydra config (``RUN/.hydra/config.yaml``) as plain data; {} when it has none."""
     path = Path(run) / ".hydra" / "config.yaml"
@@ -78,6 +105,22 @@ def inside(root: str | os.PathLike, path: str | os.PathLike, source: str | os.Pa
     if os.path.commonpath([top, where]) != top:
         raise ValueError(f"{source}: {path} lies outside {root}")
     return Path(path)
+
+
+def check_apart(out: str | os.PathLike, option: str, inputs: dict[str, str | os.PathLike]) -> None:
+    """``out`` (what ``option`` writes: a file or a folder) neither is, lies inside, nor holds any of
+    ``inputs`` ({what: path} a command reads), compared as resolved paths: through links too, so that no
+    command writes over what it reads. A ValueError names the option and the input."""
+    where = os.path.realpath(out)
+    for what, path in inputs.items():
+        top = os.path.realpath(path)
+        if os.path.commonpath([top, where]) not in (top, where):
+            continue
+        how = "is" if top == where else "lies inside" if os.path.commonpath([top, where]) == top else "holds"
+        through = "" if (os.path.abspath(out), os.path.abspath(path)) == (where, top) else " (through a link)"
+        raise ValueError(
+            f"{option}: {out} {how} {what} {path}{through}; write the outputs to a place of their own"
+        )
 
 
 # Writes the machine refuses (a read-only or full filesystem, a folder without write permission): the

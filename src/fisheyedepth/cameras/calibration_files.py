@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from ..geometry.se3 import rigid_problem
 from .base import CameraModel
 from .io import CalibrationError, camera_from_mapping, load_json, load_yaml
 
@@ -129,29 +130,25 @@ def _resolution(value, path, key: str) -> tuple[int, int]:
 
 
 def _rigid(value, path, key: str) -> np.ndarray:
-    """A 4x4 rigid transform (nested lists), checked: last row 0 0 0 1, orthonormal rotation, det +1."""
+    """A 4x4 rigid transform (nested lists), checked (:func:`~fisheyedepth.geometry.rigid_problem`)."""
     try:
         m = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         m = None
     if m is None or m.shape != (4, 4):
         raise CalibrationError(path, key, f"expected a 4x4 matrix, got {value!r}")
-    if not np.isfinite(m).all():
-        raise CalibrationError(path, key, "the matrix holds a non-finite value")
     out = np.eye(4)
     out[:3] = m[:3]
     return checked_rigid(out, path, key, last_row=m[3])
 
 
 def checked_rigid(T: np.ndarray, path, key: str, last_row: np.ndarray | None = None) -> np.ndarray:
-    """``T`` (4x4) if it is a rigid transform: finite, its rotation orthonormal with det +1, and the last
-    row of the matrix it was read from (``last_row``, when one was given) 0 0 0 1; otherwise
+    """``T`` (4x4) if it is a rigid transform (:func:`~fisheyedepth.geometry.rigid_problem`), with the last
+    row of the matrix it was read from (``last_row``, when one was given); otherwise
     :class:`CalibrationError` naming ``path`` and ``key``."""
-    if last_row is not None and not np.allclose(last_row, (0, 0, 0, 1)):
-        raise CalibrationError(path, key, f"the last row of a 4x4 transform must be 0 0 0 1, got {last_row}")
-    R = T[:3, :3]
-    if not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-        raise CalibrationError(path, key, "not a rigid transform (rotation must be orthonormal, det +1)")
+    problem = rigid_problem(T if last_row is None else np.vstack([T[:3], last_row]))
+    if problem is not None:
+        raise CalibrationError(path, key, problem)
     return T
 
 

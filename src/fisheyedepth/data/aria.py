@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
-from ..utils import inside, move_into_place, path_name, staged_folder
+from ..utils import check_apart, inside, move_into_place, path_name, staged_folder
 from .layouts import RigLayout, _transform, unit_quaternion
 
 CALIBRATION = "calib_slam_fisheye624.json"
@@ -228,6 +228,7 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
     try:
+        check_apart(args.out, "--out", {"the Aria export": args.src})
         summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
     except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
         print(f"error: {err}", file=sys.stderr)

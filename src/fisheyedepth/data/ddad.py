@@ -61,7 +61,7 @@ from tqdm import tqdm
 
 from ..cameras import CalibrationError, PinholeCamera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
-from ..utils import atomic_write_npy, inside, move_into_place, path_name, staged_folder
+from ..utils import atomic_write_npy, check_apart, inside, move_into_place, path_name, staged_folder
 from .kitti360 import OCCLUSION, project_points
 from .layouts import RigLayout, quaternion_matrix, unit_quaternion
 
@@ -688,6 +688,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         masks = _named_paths(args.mask, "--mask")
+        check_apart(args.out, "--out", {"the DDAD scene": args.src})
         summary = ddad_to_rig(
             args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
         )

@@ -20,6 +20,7 @@ import torch
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
 from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_camera, read_calibration
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
+from ..geometry.se3 import rig_extent_problem
 from ..utils import path_name
 
 log = logging.getLogger(__name__)
@@ -151,6 +152,9 @@ class RigLayout:
             raise CalibrationError(
                 rig_file, "cameras", f"no camera named {sorted(set(cameras) - set(self.cameras))}"
             )
+        spread = rig_extent_problem({n: c.cam_to_body for n, c in self.cameras.items()})
+        if spread is not None:
+            raise CalibrationError(rig_file, "cameras[].cam_to_body", spread)
         self._frames: dict[tuple[str, str], list[Frame]] = {}
         self.outside: dict[tuple[str, str], list[int]] = {}
         self.in_gaps: dict[tuple[str, str], list[int]] = {}

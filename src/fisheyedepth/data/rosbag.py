@@ -42,7 +42,7 @@ from ..cameras import CameraModel, load_camera, load_yaml, save_camera
 from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
-from ..utils import inside, move_into_place, path_name, staged_folder
+from ..utils import check_apart, inside, move_into_place, path_name, staged_folder
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
 from .layouts import _transform as read_transform
 
@@ -609,6 +609,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     try:
+        check_apart(args.out, "--out", {"the bag": args.bag})
         extrinsics = {}
         if args.extrinsics:
             data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file

@@ -10,13 +10,82 @@ import numpy as np
 import torch
 from torch import Tensor
 
+# How far a rotation block may be from orthonormal (``|R R^T - I|``, elementwise) and the last row from
+# ``0 0 0 1``: files keep rotations to about 1e-9 (KITTI-360) or 1e-6 (float32); a block scaled by 1.01 or
+# sheared by half a degree is far beyond it.
+RIGID_TOLERANCE = 1e-4
 
-def finite_transform(T, what: str) -> np.ndarray:
-    """``T`` as a finite 4x4 float64 array, else a ValueError naming ``what``."""
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"{what}: a finite 4x4 transform expected, got shape {T.shape}")
-    return T
+
+def rigid_problem(T: np.ndarray, tolerance: float = RIGID_TOLERANCE) -> str | None:
+    """Why the float ``[4, 4]`` (or ``[3, 4]``) ``T`` is not a rigid transform, or None: a value that is not
+    finite, a last row other than ``0 0 0 1``, a rotation block that is scaled, sheared or not a rotation
+    (``|R R^T - I|`` over ``tolerance``), or a reflection (det -1)."""
+    if T.shape not in ((4, 4), (3, 4)):
+        return f"a 4x4 (or 3x4) rigid transform expected, got shape {T.shape}"
+    if not np.isfinite(T).all():
+        return "not a rigid transform: it holds a value that is not finite"
+    if T.shape == (4, 4) and not np.abs(T[3] - (0, 0, 0, 1)).max() <= tolerance:
+        last = np.round(T[3], 6).tolist()
+        return f"not a rigid transform: the last row of a 4x4 transform must be 0 0 0 1, got {last}"
+    R = T[:3, :3]
+    error = float(np.abs(R @ R.T - np.eye(3)).max())
+    if error > tolerance:
+        return (
+            f"not a rigid transform: its rotation is not orthonormal (|R R^T - I| = {error:.2g}, "
+            f"tolerance {tolerance:g}): scaled, sheared or not a rotation"
+        )
+    if np.linalg.det(R) < 0:
+        return "not a rigid transform: its rotation has det -1 (a reflection: a left-handed frame?)"
+    return None
+
+
+def rigid_transform(T, what: str, tolerance: float = RIGID_TOLERANCE) -> np.ndarray:
+    """``T`` (a 4x4 or 3x4 matrix: array, tensor or nested lists) as a 4x4 float64 rigid transform, else a
+    ValueError naming ``what`` and why (:func:`rigid_problem`). The one check every transform the project
+    accepts goes through: calibrations, the live API's extrinsics and motion, recorded poses."""
+    if isinstance(T, Tensor):
+        T = T.detach().cpu().numpy()
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{what}: a 4x4 matrix of numbers expected, got {type(T).__name__} {T!r:.60}"
+        ) from None
+    problem = rigid_problem(T, tolerance)
+    if problem is not None:
+        raise ValueError(f"{what}: {problem}")
+    out = np.eye(4)
+    out[:3] = T[:3]
+    return out
+
+
+# The farthest two cameras of one rig may lie apart, metres: a car is five metres long, a robot less;
+# extrinsics written in millimetres put a rig's cameras hundreds of metres apart.
+MAX_RIG_BASELINE = 10.0
+# The farthest a body may move between two instants it is matched across, metres: a car at 36 m/s (130
+# km/h) with instants 0.28 s apart; beyond it odometry in the wrong unit is the likelier reading.
+MAX_MOTION = 10.0
+
+
+def rig_extent_problem(cam_to_body) -> str | None:
+    """Why a rig's extrinsics (``{camera: 4x4 camera -> body}``, metres) cannot be a rig: two cameras over
+    :data:`MAX_RIG_BASELINE` apart (named with their distance); else None."""
+    centres = {name: np.asarray(T, dtype=np.float64)[:3, 3] for name, T in cam_to_body.items()}
+    names = list(centres)
+    widest = max(
+        (
+            (float(np.linalg.norm(centres[a] - centres[b])), a, b)
+            for i, a in enumerate(names)
+            for b in names[i + 1 :]
+        ),
+        default=(0.0, "", ""),
+    )
+    if widest[0] > MAX_RIG_BASELINE:
+        return (
+            f"cameras {widest[1]!r} and {widest[2]!r} lie {widest[0]:.4g} m apart; a rig's cameras lie "
+            f"within {MAX_RIG_BASELINE:g} m of each other (extrinsics are in metres: millimetres?)"
+        )
+    return None
 
 
 def make_pose(R, t) -> Tensor:

@@ -10,7 +10,9 @@ Metric throughout: the calibration's baselines and the odometry's motion carry t
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 import time
 from collections import defaultdict
 from collections.abc import Mapping
@@ -23,7 +25,8 @@ import numpy as np
 import torch
 
 from ..cameras.base import CameraModel
-from ..geometry import finite_transform
+from ..geometry import MAX_MOTION, rig_extent_problem, rigid_transform
+from ..utils import check_threads, is_number, is_whole
 from .fill import fill, matchable
 from .fuse import Fused, fuse
 from .mapback import Evidence, PixelMaps, to_pixels
@@ -66,6 +69,15 @@ class StereoSettings:
     min_confidence: float = 0.0
 
     def __post_init__(self) -> None:
+        for name in ("min_distance", "max_distance", "resolution", "min_baseline", "min_confidence"):
+            value = getattr(self, name)
+            if not (value is None and name == "resolution") and not is_number(value):
+                raise ValueError(f"{name}: {value!r}; a number expected")
+        for name in ("smooth", "max_disparities"):
+            if not is_whole(getattr(self, name)):
+                raise ValueError(f"{name}: {getattr(self, name)!r}; a whole number expected")
+        if not isinstance(self.matcher, MatcherSettings):
+            raise ValueError(f"matcher: {type(self.matcher).__name__}; a MatcherSettings expected")
         if not 0 < self.min_distance < self.max_distance < math.inf:
             raise ValueError(
                 f"--min-distance, --max-distance: {self.min_distance}, {self.max_distance}; need "
@@ -81,6 +93,32 @@ class StereoSettings:
             raise ValueError(f"max_disparities: {self.max_disparities}; 16 to 1024")
         if self.smooth not in (0, 3, 5):
             raise ValueError(f"smooth: {self.smooth}; 0, 3 or 5")
+
+
+# OpenCV's and torch's thread counts are the process's: calls that match pairs side by side (one thread
+# of each a pair) set them to 1 while any such call runs, and the last to finish restores them
+_THREADS = threading.Lock()
+_SIDE_BY_SIDE = {"calls": 0, "saved": (1, 1)}
+
+
+@contextlib.contextmanager
+def one_thread_each():
+    """OpenCV and torch on one thread each while inside (for pairs matched side by side on threads of
+    our own), restored by the last of any concurrent callers to leave."""
+    with _THREADS:
+        if _SIDE_BY_SIDE["calls"] == 0:
+            _SIDE_BY_SIDE["saved"] = (cv2.getNumThreads(), torch.get_num_threads())
+            cv2.setNumThreads(1)
+            torch.set_num_threads(1)
+        _SIDE_BY_SIDE["calls"] += 1
+    try:
+        yield
+    finally:
+        with _THREADS:
+            _SIDE_BY_SIDE["calls"] -= 1
+            if _SIDE_BY_SIDE["calls"] == 0:
+                cv2.setNumThreads(_SIDE_BY_SIDE["saved"][0])
+                torch.set_num_threads(_SIDE_BY_SIDE["saved"][1])
 
 
 class Timer:
@@ -335,14 +373,26 @@ class RigStereo:
         threads: int = 1,
         masks: Mapping[str, np.ndarray] | None = None,
     ):
-        if int(threads) < 1:
-            raise ValueError(f"threads: {threads}; at least 1")
+        threads = check_threads(threads, "threads")
+        for what, given in (("cameras", cameras), ("cam_to_body", cam_to_body), ("masks", masks or {})):
+            if not isinstance(given, Mapping):
+                raise ValueError(
+                    f"{what}: a mapping of camera name -> value expected, got {type(given).__name__}"
+                )
         if set(cameras) != set(cam_to_body):
             raise ValueError(
                 f"cameras, cam_to_body: name different cameras ({sorted(cameras)}, {sorted(cam_to_body)})"
             )
+        for name, camera in cameras.items():
+            if not isinstance(camera, CameraModel):
+                raise ValueError(f"cameras[{name!r}]: {type(camera).__name__}; a camera model expected")
         self.cameras = dict(cameras)
-        self.cam_to_body = {n: np.asarray(T, dtype=np.float64) for n, T in cam_to_body.items()}
+        self.cam_to_body = {n: rigid_transform(T, f"cam_to_body[{n!r}]") for n, T in cam_to_body.items()}
+        spread = rig_extent_problem(self.cam_to_body)
+        if spread is not None:
+            raise ValueError(f"cam_to_body: {spread}")
+        if settings is not None and not isinstance(settings, StereoSettings):
+            raise ValueError(f"settings: {type(settings).__name__}; a StereoSettings expected")
         self.settings = settings or StereoSettings()
         self.threads = int(threads)
         self.masks = dict(masks or {})
@@ -368,6 +418,10 @@ class RigStereo:
 
     def _check(self, what: str, arrays: Mapping[str, np.ndarray], every: bool = True) -> None:
         """Each image (or mask) at its camera's calibrated size; with ``every``, one for every camera."""
+        if not isinstance(arrays, Mapping):
+            raise ValueError(
+                f"{what}: a mapping of camera name -> image expected, got {type(arrays).__name__}"
+            )
         missing = sorted(set(self.cameras) - set(arrays)) if every else []
         if missing:
             raise ValueError(f"{what}: no image of camera {', '.join(missing)}")
@@ -378,6 +432,15 @@ class RigStereo:
             if len(shape) not in (2, 3) or (shape[1], shape[0]) != (camera.width, camera.height):
                 raise ValueError(
                     f"{what}[{name!r}]: shape {shape}, but camera {name!r} is {camera.width}x{camera.height}"
+                )
+            values = array.detach().cpu().numpy() if isinstance(array, torch.Tensor) else np.asarray(array)
+            if values.dtype.kind not in "biuf":
+                raise ValueError(f"{what}[{name!r}]: {values.dtype} values; numbers expected")
+            if values.dtype.kind == "f" and not np.isfinite(values).all():
+                bad = int((~np.isfinite(values)).sum())
+                raise ValueError(
+                    f"{what}[{name!r}]: {bad} values are not finite (NaN or inf); give finite pixels, and "
+                    "leave out what the camera does not see with a mask"
                 )
 
     def usable(self, name: str) -> np.ndarray | None:
@@ -412,9 +475,17 @@ class RigStereo:
         left_out: dict[str, dict[str, str]] = defaultdict(dict)
         checks: dict[str, dict[str, dict]] = defaultdict(dict)
         described: dict[str, tuple[np.ndarray, Features]] = {}
+        moved_too_far = None
         if previous is not None:
             self._check("previous", previous, every=False)
-            motion = finite_transform(motion, "motion")
+            motion = rigid_transform(motion, "motion")
+            travelled = float(np.linalg.norm(motion[:3, 3]))
+            if travelled > MAX_MOTION:
+                moved_too_far = (
+                    f"the body moved {travelled:.4g} m since the previous instant, over {MAX_MOTION:g} m: "
+                    "odometry in metres expected (another unit?)"
+                )
+                previous = {}
             for name in self.cameras:
                 E = self.cam_to_body[name]
                 T_now_to_then = _relative(E, E, motion)
@@ -481,19 +552,15 @@ class RigStereo:
             return CameraResult(out, partners, why, dict(evidence))
 
         names = list(self.cameras)
+        if moved_too_far is not None:
+            for name in self.cameras:
+                left_out[name][f"{name}@previous"] = moved_too_far
         if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's; then images
-            threads = cv2.getNumThreads(), torch.get_num_threads()
-            cv2.setNumThreads(1)
-            torch.set_num_threads(1)
-            try:
-                with ThreadPoolExecutor(self.threads) as pool:
-                    results = dict(zip(order, pool.map(run, [jobs[i] for i in order]), strict=True))
-                    collect(results[i] for i in range(len(jobs)))
-                    start = time.perf_counter()
-                    out = dict(zip(names, pool.map(fused, names), strict=True))
-            finally:
-                cv2.setNumThreads(threads[0])
-                torch.set_num_threads(threads[1])
+            with one_thread_each(), ThreadPoolExecutor(self.threads) as pool:
+                results = dict(zip(order, pool.map(run, [jobs[i] for i in order]), strict=True))
+                collect(results[i] for i in range(len(jobs)))
+                start = time.perf_counter()
+                out = dict(zip(names, pool.map(fused, names), strict=True))
         else:
             results = {i: run(jobs[i]) for i in order}
             collect(results[i] for i in range(len(jobs)))

@@ -59,6 +59,8 @@ from ..utils import (
     atomic_write_npy,
     atomic_write_png,
     atomic_write_text,
+    check_apart,
+    check_threads,
     check_writable,
     move_into_place,
     staged_folder,
@@ -336,12 +338,8 @@ def outputs(pairing: Pairing) -> list[Path]:
 
 def check_out(root: Path, out: Path) -> None:
     """``--out`` is a folder of its own: neither the recording, nor inside it (its ground truth lies at the
-    outputs' own paths), nor around it."""
-    top, where = (os.path.normpath(os.path.abspath(p)) for p in (root, out))
-    if os.path.commonpath([top, where]) in (top, where):
-        what = "is the recording" if top == where else "lies inside the recording" if where.startswith(top) \
-            else "holds the recording"  # fmt: skip
-        raise ValueError(f"--out: {out} {what} {root}; write the outputs to a folder of their own")
+    outputs' own paths), nor around it, compared as resolved paths (links followed)."""
+    check_apart(out, "--out", {"the recording": root})
 
 
 NO_PARTNER = "no partner at its instant or among its camera's neighbours"
@@ -733,8 +731,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     try:
         if args.threads is not None:
-            if args.threads < 1:
-                raise ValueError(f"--threads: {args.threads}; at least 1")
+            check_threads(args.threads, "--threads")
             torch.set_num_threads(args.threads)
             cv2.setNumThreads(args.threads)
         if args.max_images is not None and args.max_images < 1:
@@ -746,7 +743,10 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f"{', '.join(given)}: an option of --matcher {matcher}, not {args.matcher}")
         if args.matcher == "sweep":
             matcher = SweepStereo(
-                args.hypotheses or 128, args.min_distance, args.max_distance, args.cost or "zncc"
+                128 if args.hypotheses is None else args.hypotheses,
+                args.min_distance,
+                args.max_distance,
+                args.cost or "zncc",
             )
         else:
             resolution = None if args.resolution is None else math.radians(args.resolution)

@@ -1,0 +1,203 @@
+"""Transforms, values and paths a user can get wrong, refused before any work with one line naming the
+option, field or file: one rigid-transform check for every transform the project accepts (calibrations,
+the live API's extrinsics and motion, the recorder's poses) with plausibility bounds on a rig's size and
+a body's motion; values that are not numbers, not finite or beyond the machine; outputs that would land
+on an input, compared as resolved paths (through links too)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import threading
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.data.layouts import RigLayout
+from fisheyedepth.geometry import MAX_MOTION, rigid_transform
+from fisheyedepth.geometry.se3 import axis_angle_to_matrix, make_pose
+from fisheyedepth.stereo import RigStereo, StereoSettings, recording
+from fisheyedepth.utils import check_apart, cores
+from test_multiview import small_rig
+
+from conftest import load_script
+
+CAMERA = PinholeCamera(width=80, height=60, fx=70.0, fy=70.0, cx=39.5, cy=29.5)
+
+
+def turned(deg: float = 20.0, t=(0.1, 0.0, 0.0)) -> np.ndarray:
+    R = axis_angle_to_matrix(torch.tensor([0.0, np.radians(deg), 0.0], dtype=torch.float64))
+    return make_pose(R, torch.tensor(t, dtype=torch.float64)).numpy()
+
+
+# ------------------------------------------------------------------ one rigid-transform check
+@pytest.mark.parametrize(
+    "T, why",
+    [
+        (np.diag([2.0, 2.0, 2.0, 1.0]), "its rotation is not orthonormal"),  # a rotation scaled by 2
+        (np.array([[1, 0.3, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), "not orthonormal"),  # shear
+        (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0.1, 0, 0, 2.0]]), "last row .* 0 0 0 1"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "det -1 \\(a reflection"),
+        (np.zeros((4, 4)), "last row"),
+        (np.eye(3), "a 4x4 \\(or 3x4\\) rigid transform expected, got shape \\(3, 3\\)"),
+        ("identity", "a 4x4 matrix of numbers expected, got str 'identity'"),
+        (np.where(np.eye(4) > 0, np.nan, 0.0), "not finite"),
+    ],
+)
+def test_a_transform_that_is_not_rigid_is_named_with_why(T, why):
+    with pytest.raises(ValueError, match=rf"^motion: not a rigid transform: .*{why}|^motion: .*{why}"):
+        rigid_transform(T, "motion")
+
+
+def test_a_rigid_transform_passes_as_4x4_float64_from_any_form():
+    T = turned(30.0, (0.2, -0.1, 1.5))
+    for given in (T, T[:3], torch.from_numpy(T).float(), T.tolist()):
+        out = rigid_transform(given, "T")
+        assert out.shape == (4, 4) and out.dtype == np.float64 and np.allclose(out, T, atol=1e-6)
+
+
+def test_the_live_api_checks_its_extrinsics_and_its_motion():
+    cameras = {"a": CAMERA, "b": CAMERA}
+    good = {"a": np.eye(4), "b": turned()}
+    RigStereo(cameras, good)  # accepted
+    scaled = {"a": np.eye(4), "b": np.diag([1.5, 1.5, 1.5, 1.0])}
+    with pytest.raises(ValueError, match=r"^cam_to_body\['b'\]: not a rigid transform: its rotation"):
+        RigStereo(cameras, scaled)
+    nan = {
+        "a": np.eye(4),
+        "b": np.where(np.eye(4) > 0, 1.0, 0.0) + np.array([[0, 0, 0, np.nan]] + [[0] * 4] * 3),
+    }
+    with pytest.raises(ValueError, match=r"^cam_to_body\['b'\]: not a rigid transform: .*not finite"):
+        RigStereo(cameras, nan)
+    with pytest.raises(ValueError, match=r"^cam_to_body\['b'\]: a 4x4 \(or 3x4\)"):
+        RigStereo(cameras, {"a": np.eye(4), "b": np.eye(3)})
+    millimetres = {"a": np.eye(4), "b": turned(20.0, (200.0, 0.0, 0.0))}  # 0.2 m written as 200
+    with pytest.raises(ValueError, match=r"cameras 'a' and 'b' lie 200 m apart.*millimetres\?"):
+        RigStereo(cameras, millimetres)
+    rig = RigStereo(cameras, good)
+    images = {n: np.full((60, 80), 100, np.uint8) for n in cameras}
+    wrong = [(np.diag([2.0, 2.0, 2.0, 1.0]), "not orthonormal"), (np.zeros((4, 4)), "last row"),
+             (np.diag([1.0, -1.0, 1.0, 1.0]), "det -1"), ("identity", "matrix of numbers")]  # fmt: skip
+    for motion, why in wrong:
+        with pytest.raises(ValueError, match=rf"^motion: .*{why}"):
+            rig(images, previous=images, motion=motion)
+    far = turned(0.0, (0.0, 0.0, 2 * MAX_MOTION))  # odometry in decimetres, say: not matched, and named
+    out = rig(images, previous=images, motion=far)
+    for name in cameras:
+        assert f"{name}@previous" not in out[name].partners
+        assert "moved 20 m since the previous instant" in out[name].left_out[f"{name}@previous"]
+
+
+def test_a_rig_yaml_whose_cameras_lie_hundreds_of_metres_apart_is_refused(tmp_path):
+    rec = tmp_path / "rec"
+    shutil.copytree(small_rig(tmp_path.parent / "small_rig"), rec)
+    rig = yaml.safe_load((rec / "rig.yaml").read_text())
+    rig["cameras"][1]["cam_to_body"][0][3] = 300.0  # millimetres
+    (rec / "rig.yaml").write_text(yaml.safe_dump(rig))
+    with pytest.raises(
+        ValueError, match=r"rig.yaml: key 'cameras\[\].cam_to_body': cameras 'left' and 'right' lie 300.3 m"
+    ):
+        RigLayout(rec)
+
+
+def test_the_recorder_refuses_poses_that_are_not_rigid_and_values_that_are_not_numbers(tmp_path):
+    pytest.importorskip("rerun")
+    from fisheyedepth.rerun3d import CameraView, RigRecorder
+
+    with pytest.raises(ValueError, match="points_per_image: nan; a whole number"):
+        RigRecorder(tmp_path / "a.rrd", points_per_image=float("nan"))
+    view = CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})
+    with RigRecorder(tmp_path / "b.rrd") as recorder:
+        with pytest.raises(ValueError, match=r"^body_to_world: not a rigid transform: its rotation"):
+            recorder.instant(
+                0, 0, {"a": view}, body_to_world=np.diag([3.0, 3.0, 3.0, 1.0])
+            )  # a world 3x too big
+        with pytest.raises(ValueError, match="timestamp_ns: 18446744073709551616; a whole number within"):
+            recorder.instant(2**64, 0, {"a": view})
+        with pytest.raises(ValueError, match=r"views\['a'\].scores\['abs_rel'\]: '0.1'; a number or None"):
+            recorder.instant(0, 0, {"a": CameraView(CAMERA, view.image, {}, scores={"abs_rel": "0.1"})})
+        recorder.instant(0, 0, {"a": view})
+
+
+# ------------------------------------------------------------------ values
+def test_the_live_api_names_values_it_cannot_use():
+    cameras = {"a": CAMERA, "b": CAMERA}
+    extrinsics = {"a": np.eye(4), "b": turned()}
+    for threads in (0, float("nan"), 2.0, cores() + 1, 999):
+        with pytest.raises(
+            ValueError, match=r"^threads: .*; a whole number from 1 to \d+ \(this machine's cores\)"
+        ):
+            RigStereo(cameras, extrinsics, threads=threads)
+    with pytest.raises(ValueError, match=r"^min_distance: '0.5'; a number expected"):
+        StereoSettings(min_distance="0.5")
+    with pytest.raises(ValueError, match=r"^masks\['a'\]: 1 values are not finite"):
+        mask = np.ones((60, 80), np.float32)
+        mask[3, 4] = np.nan
+        RigStereo(cameras, extrinsics, masks={"a": mask})
+    rig = RigStereo(cameras, extrinsics)
+    images = {n: np.full((60, 80), 100.0, np.float32) for n in cameras}
+    with pytest.raises(ValueError, match=r"^images: a mapping of camera name -> image expected, got list"):
+        rig(list(images.values()))
+    patched = {**images, "b": images["b"].copy()}
+    patched["b"][10:40, 10:40] = np.nan  # a 30x30 NaN patch would blank the whole match
+    with pytest.raises(ValueError, match=r"^images\['b'\]: 900 values are not finite \(NaN or inf\)"):
+        rig(patched)
+
+
+def test_concurrent_calls_leave_the_process_thread_counts_as_they_were():
+    cameras = {"a": CAMERA, "b": CAMERA}
+    rig = [RigStereo(cameras, {"a": np.eye(4), "b": turned()}, threads=2) for _ in range(3)]
+    images = {n: np.random.default_rng(0).integers(0, 255, (60, 80), dtype=np.uint8) for n in cameras}
+    before = cv2.getNumThreads(), torch.get_num_threads()
+    calls = [threading.Thread(target=r, args=(images,)) for r in rig]
+    for call in calls:
+        call.start()
+    for call in calls:
+        call.join()
+    assert (cv2.getNumThreads(), torch.get_num_threads()) == before
+
+
+def test_the_sweep_refuses_zero_hypotheses(tmp_path, capsys):
+    rec = small_rig(tmp_path.parent / "small_rig")
+    assert (
+        recording.main([str(rec), "--out", str(tmp_path / "out"), "--matcher", "sweep", "--hypotheses", "0"])
+        == 2
+    )
+    assert "hypotheses: 0; at least 3" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------ paths, resolved
+def test_an_output_through_a_link_onto_an_input_is_refused(tmp_path):
+    data = tmp_path / "in" / "rec"
+    data.mkdir(parents=True)
+    (tmp_path / "out").mkdir()
+    os.symlink(data, tmp_path / "out" / "lnk")
+    for out, how in ((tmp_path / "out" / "lnk", "is"), (tmp_path / "out" / "lnk" / "mv", "lies inside"),
+                     (tmp_path / "in", "holds")):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"^--out: {out} {how} the recording {data}"):
+            check_apart(out, "--out", {"the recording": data})
+    with pytest.raises(ValueError, match=r"\(through a link\)"):
+        check_apart(tmp_path / "out" / "lnk", "--out", {"the recording": data})
+    check_apart(tmp_path / "out" / "elsewhere", "--out", {"the recording": data})  # apart: no error
+
+
+def test_the_commands_never_write_into_what_they_read_through_a_link(tmp_path, capsys):
+    rec = tmp_path / "in" / "rec"
+    shutil.copytree(small_rig(tmp_path.parent / "small_rig"), rec)
+    before = {p: p.read_bytes() for p in rec.rglob("*") if p.is_file()}
+    (tmp_path / "out").mkdir()
+    os.symlink(rec, tmp_path / "out" / "lnk")
+    for out in (tmp_path / "out" / "lnk", tmp_path / "out" / "lnk" / "mv"):
+        assert recording.main([str(rec), "--out", str(out), "--overwrite"]) == 2
+        assert "the recording" in capsys.readouterr().err
+    assert recording.main([str(tmp_path / "out" / "lnk"), "--out", str(rec / "mv")]) == 2  # ROOT via a link
+    assert "lies inside the recording" in capsys.readouterr().err
+    live_rig = load_script("tools/live_rig")
+    assert live_rig.main([str(rec), "--out", str(rec / "rig.yaml"), "--overwrite"]) == 2
+    assert "--out: " in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in rec.rglob("*") if p.is_file()} == before  # nothing written or lost
