@@ -201,3 +201,104 @@ def test_the_commands_never_write_into_what_they_read_through_a_link(tmp_path, c
     assert live_rig.main([str(rec), "--out", str(rec / "rig.yaml"), "--overwrite"]) == 2
     assert "--out: " in capsys.readouterr().err
     assert {p: p.read_bytes() for p in rec.rglob("*") if p.is_file()} == before  # nothing written or lost
+
+
+# ------------------------------------------------------------------ recordings that fail, signals
+def test_a_recording_that_cannot_be_written_is_one_error_and_leaves_nothing(tmp_path):
+    pytest.importorskip("rerun")
+    from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
+
+    (tmp_path / "folder.rrd").mkdir()
+    with pytest.raises(ValueError, match=r"folder.rrd: a folder; a recording is a file"):
+        RigRecorder(tmp_path / "folder.rrd")
+    target = tmp_path / "rec.rrd"
+    recorder = RigRecorder(target)
+    recorder.instant(0, 0, {"a": CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})})
+
+    def stopped():
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    recorder.stream.flush = stopped  # what the SDK raises when the disk fills under it
+    with pytest.raises(RecordingError, match=r"rec.rrd: the recording could not be written .*full disk"):
+        recorder.close()
+    assert not target.exists() and not list(tmp_path.glob(".rec.rrd.*"))
+
+
+def test_a_killed_writers_temporary_is_removed_by_the_next_run(tmp_path):
+    pytest.importorskip("rerun")
+    from fisheyedepth.rerun3d import RigRecorder
+
+    dead = tmp_path / ".rec.rrd.abc123.999999999.tmp"  # no process has this pid
+    alive = tmp_path / f".rec.rrd.def456.{os.getpid()}.tmp"
+    dead.write_bytes(b"x" * 100)
+    alive.write_bytes(b"x")
+    with RigRecorder(tmp_path / "rec.rrd"):
+        pass
+    assert not dead.exists() and alive.exists() and (tmp_path / "rec.rrd").is_file()
+
+
+def _started(args, until: str, cwd):
+    """A command started as a new process, read until a line holds ``until``."""
+    import subprocess
+    import sys
+
+    pipes = {"stdout": subprocess.PIPE, "stderr": subprocess.PIPE}
+    process = subprocess.Popen([sys.executable, *args], cwd=cwd, text=True, **pipes,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})  # fmt: skip
+    for line in process.stdout:
+        if until in line:
+            return process
+    process.wait()
+    raise AssertionError(f"{args}: ended before {until!r}: {process.stderr.read()}")
+
+
+@pytest.mark.parametrize("signum, status", [(2, 130), (15, 143)])
+def test_the_live_rig_stopped_by_a_signal_keeps_the_instants_it_finished(tmp_path, signum, status):
+    pytest.importorskip("rerun")
+    from test_multiview import write_room_rig
+    from test_rerun import Recording
+
+    from conftest import ROOT
+
+    write_room_rig(tmp_path / "rec", size=128, half_baseline=0.3)
+    out = tmp_path / "live.rrd"
+    args = [str(ROOT / "scripts/tools/live_rig.py"), str(tmp_path / "rec"), "--out", str(out),
+            "--threads", "1", "--min-distance", "0.5", "--max-distance", "20", "--points", "500"]  # fmt: skip
+    process = _started(args, "instant 1/3", tmp_path)
+    process.send_signal(signum)
+    _, err = process.communicate(timeout=120)
+    if process.returncode == 0:  # the replay finished before the signal arrived: a whole recording
+        assert out.is_file() and not list(tmp_path.glob(".live.rrd*"))
+        return
+    assert process.returncode == status, err
+    assert "Traceback" not in err and err.strip().splitlines()[-1].startswith("error: ")
+    assert "keeps them" in err  # stopped after one or two instants: a closed, valid recording of them
+    frames = {r["frame"] for r in Recording(out).rows["/world/points/left/kept"]}
+    assert 1 <= len(frames) <= 2
+    assert not list(tmp_path.glob(".live.rrd*"))
+
+
+@pytest.mark.parametrize(
+    "signum, status, said", [(2, 130, "interrupted (SIGINT)"), (15, 143, "terminated (SIGTERM)")]
+)
+def test_the_multiview_command_stopped_by_a_signal_leaves_nothing(
+    tmp_path, monkeypatch, capsys, signum, status, said
+):
+    import signal
+
+    rec = small_rig(tmp_path.parent / "small_rig")
+    out = tmp_path / "out"
+    calls = []
+    fuse = recording.fuse
+
+    def signalled_on_the_second(*args, **kwargs):  # the signal arrives halfway through the run
+        calls.append(1)
+        if len(calls) == 2:
+            signal.raise_signal(signum)
+        return fuse(*args, **kwargs)
+
+    monkeypatch.setattr(recording, "fuse", signalled_on_the_second)
+    assert recording.main([str(rec), "--out", str(out)]) == status
+    err = capsys.readouterr().err
+    assert f"error: {said}; nothing was written to {out}" in err and "Traceback" not in err
+    assert not out.exists() and not list(tmp_path.glob(".out*"))  # no output, no staging, no lock

@@ -14,6 +14,10 @@ RIG: a rig layout (docs/data-format.md), or a Project Aria export such as ``real
 An instant is an image of the first camera; another camera takes part with its image nearest in time,
 within half the first camera's median frame interval; a camera without one at some instant is left out
 (named). The body's pose is the odometry at the first camera's image.
+
+Ctrl-C (exit 130) or SIGTERM (143) stops the replay: the recording keeps the instants finished (it is
+closed and valid), or nothing is written where none was; the Aria conversion's temporary folder is removed
+either way.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.stereo.recording import masks
-from fisheyedepth.utils import check_apart, check_threads
+from fisheyedepth.utils import Terminated, check_apart, check_threads, sigterm_raises
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 
@@ -123,6 +127,7 @@ def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=
             views = {n: CameraView(stereo.cameras[n], rgb(images[n]), maps(r)) for n, r in results.items()}
             recorder.instant(instant.time_ns, instant.index, views, instant.body_to_world)
         seconds = time.perf_counter() - began
+        yield instant, results, seconds  # counted as finished before it is announced
         if not quiet:
             partners = sum(len(r.partners) for r in results.values())
             print(
@@ -130,7 +135,6 @@ def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=
                 f"{done / (time.perf_counter() - start):.2f} instants/s so far",
                 flush=True,
             )
-        yield instant, results, seconds
 
 
 def main(argv=None) -> int:
@@ -157,10 +161,21 @@ def main(argv=None) -> int:
         check_threads(args.threads, "--threads")
         if not args.no_record:
             check_apart(args.out, "--out", {"the rig recording": args.rig})
-        summary = run(args)
+        with sigterm_raises():
+            summary = run(args)
     except (OSError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except (Terminated, KeyboardInterrupt) as stop:  # before the first instant: nothing recorded
+        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        print(f"error: {why} before any instant was finished; nothing recorded", file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
+    if summary["stopped"] is not None:
+        stop = summary["stopped"]
+        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        kept = f"; {args.out} keeps them" if not args.no_record else ""
+        print(f"error: {why} after {summary['instants']} instants{kept}", file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
     print(
         f"{summary['instants']} instants in {summary['seconds']:.1f} s: {summary['fps']:.2f} instants/s"
         + (f"; recording {args.out}" if not args.no_record else "")
@@ -192,9 +207,17 @@ def run(args) -> dict:
                     RigRecorder(args.out, "fisheyedepth-live-rig", args.points, args.overwrite)
                 )
                 recorder.rig(extrinsics)
-            seconds = [s for _, _, s in replay(layout, stereo, found, recorder, args.quiet)]
+            seconds, stopped = [], None
+            try:
+                for _, _, s in replay(layout, stereo, found, recorder, args.quiet):
+                    seconds.append(s)
+            except (Terminated, KeyboardInterrupt) as stop:  # the instants finished are kept
+                if not seconds:
+                    raise
+                stopped = stop
     total = sum(seconds)
-    return {"instants": len(seconds), "seconds": total, "fps": len(seconds) / total if total else 0.0}
+    return {"instants": len(seconds), "seconds": total, "fps": len(seconds) / total if total else 0.0,
+            "stopped": stopped}  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -46,7 +46,7 @@ import torch
 from .cameras import CameraModel, RayCache
 from .geometry import rigid_transform
 from .outputs import place_new
-from .utils import is_number, is_whole, temporary_beside
+from .utils import check_writable, is_number, is_whole, remove_stale_temporaries, temporary_beside
 from .viz import colourise
 
 TRUTH_COLOUR = (255, 0, 255)  # ground-truth points: magenta, apart from any image's colours
@@ -79,6 +79,16 @@ class CameraView:
     scores: Mapping[str, float] = field(default_factory=dict)
 
 
+class RecordingError(ValueError):
+    """A recording that could not be written (the disk filled, a file-size limit): named by its path;
+    nothing is left at it."""
+
+    def __init__(self, path: Path, err: Exception) -> None:
+        super().__init__(
+            f"{path}: the recording could not be written ({err}); a full disk or a file-size limit?"
+        )
+
+
 class RigRecorder:
     """Writes one ``.rrd`` recording (module docstring): :meth:`rig` once (or again with another
     ``name``), :meth:`instant` per instant, :meth:`close` at the end, or use it in a ``with`` block.
@@ -100,8 +110,12 @@ class RigRecorder:
         self.path = Path(path)
         if not is_whole(points_per_image) or points_per_image < 1:
             raise ValueError(f"points_per_image: {points_per_image!r}; a whole number, at least 1")
+        if self.path.is_dir():
+            raise ValueError(f"{self.path}: a folder; a recording is a file (OUT/recording.rrd)")
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
+        check_writable(self.path.parent, str(self.path))
+        remove_stale_temporaries(self.path)  # a killed writer's
         self.rr = import_rerun()
         self.points_per_image, self.overwrite = int(points_per_image), overwrite
         self.colour_range: tuple[float, float] | None = None
@@ -149,16 +163,20 @@ class RigRecorder:
             for name, value in view.scores.items():
                 if value is not None and not is_number(value):
                     raise ValueError(f"views[{camera!r}].scores[{name!r}]: {value!r}; a number or None")
-        self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
-        self.stream.set_time("frame", sequence=int(index))
         body = np.eye(4) if body_to_world is None else rigid_transform(body_to_world, "body_to_world")
-        self._log_body(body, int(index))
         rig = cam_to_body if cam_to_body is not None else (self.latest_rig or {})
-        for camera, view in views.items():
-            extrinsic = (
-                rigid_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
-            )
-            self._log_view(camera, view, body @ extrinsic)
+        extrinsics = {
+            camera: rigid_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
+            for camera in views
+        }
+        try:
+            self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
+            self.stream.set_time("frame", sequence=int(index))
+            self._log_body(body, int(index))
+            for camera, view in views.items():
+                self._log_view(camera, view, body @ extrinsics[camera])
+        except RuntimeError as err:  # the SDK's file writer stopped: a full disk, a file-size limit
+            raise RecordingError(self.path, err) from None
 
     def _log_body(self, body: np.ndarray, index: int) -> None:
         rr = self.rr
@@ -223,8 +241,8 @@ class RigRecorder:
         ``overwrite`` is off: FileExistsError, the temporary file removed)."""
         if self.tmp is None:
             return
-        self._finish()
         try:
+            self._finish()
             if self.overwrite:
                 os.replace(self.tmp, self.path)
             else:
@@ -243,9 +261,14 @@ class RigRecorder:
         self.tmp = None
 
     def _finish(self) -> None:
-        self.stream.flush()
-        self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
-        self.stream.disconnect()
+        try:
+            self.stream.flush()
+            self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
+            self.stream.disconnect()
+        except RuntimeError as err:  # the SDK's file writer stopped: a full disk, a file-size limit
+            with contextlib.suppress(Exception):
+                self.stream.disconnect()
+            raise RecordingError(self.path, err) from None
 
     def __enter__(self) -> RigRecorder:
         return self

@@ -8,7 +8,9 @@ import hashlib
 import io
 import os
 import shutil
+import signal
 import tempfile
+import threading
 import unicodedata
 from collections.abc import Iterator
 from pathlib import Path
@@ -341,3 +343,53 @@ def keep_freed_memory(top_pad: int = 1 << 29, trim_threshold: int = 1 << 30) -> 
         return False
     settings = ((_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, trim_threshold), (_M_TOP_PAD, top_pad))
     return all(libc.mallopt(param, value) == 1 for param, value in settings)
+
+
+# ------------------------------------------------------------------ signals
+class Terminated(SystemExit):
+    """SIGTERM arrived while a command ran; exits with status 143 (128 + SIGTERM), as an untrapped one."""
+
+    def __init__(self) -> None:
+        super().__init__(128 + int(signal.SIGTERM))
+
+
+@contextlib.contextmanager
+def sigterm_raises() -> Iterator[None]:
+    """While the block runs, SIGTERM raises ``Terminated`` in the main thread so that the cleanup runs as on
+    Ctrl-C; a second SIGTERM during that cleanup is ignored. The previous handler comes back afterwards.
+    A no-op off the main thread, and where SIGTERM is ignored or handled outside Python."""
+    previous = signal.getsignal(signal.SIGTERM)
+    if threading.current_thread() is not threading.main_thread() or previous in (signal.SIG_IGN, None):
+        yield
+        return
+    fired = False
+
+    def handler(signum, frame) -> None:
+        nonlocal fired
+        if not fired:
+            fired = True
+            raise Terminated
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries :func:`temporary_beside` left beside ``path`` for writers that are no longer
+    alive (killed: SIGKILL, a power cut); a live writer's are kept. Returns those removed."""
+    path = Path(path)
+    removed = []
+    for tmp in path.parent.glob(f".{glob_escape(path.name)}.*.tmp"):
+        pid = tmp.name[: -len(".tmp")].rsplit(".", 1)[-1]
+        if pid.isdigit() and not pid_alive(int(pid)):
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+                removed.append(tmp)
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)

@@ -363,7 +363,13 @@ class RigStereo:
     leave over a pixel of epipolar error); every pair's images are checked against its geometry
     (:class:`~.mapback.Evidence`); a partner left out is named in its camera's result with why. As the
     rig moves, each camera's pixels that do not move with the scene (a border, an overlay, the robot's
-    body: :class:`~.static.StaticFinder`, ``static[name].mask``) are found and left out of its matches."""
+    body: :class:`~.static.StaticFinder`, ``static[name].mask``) are found and left out of its matches.
+
+    Refused with a ValueError naming the argument (docs/faults.md): extrinsics or a motion that are not
+    rigid transforms (:func:`~fisheyedepth.geometry.rigid_transform`), cameras over
+    :data:`~fisheyedepth.geometry.MAX_RIG_BASELINE` apart, images or masks that are not a mapping by camera
+    or hold values that are not finite, ``threads`` beyond the machine's cores. A motion over
+    :data:`~fisheyedepth.geometry.MAX_MOTION` is not matched, and named in each camera's ``left_out``."""
 
     def __init__(
         self,

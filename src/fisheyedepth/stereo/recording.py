@@ -56,6 +56,7 @@ from ..option_checks import check_memory
 from ..outputs import same_file
 from ..utils import (
     WRITE_ERRORS,
+    Terminated,
     atomic_write_npy,
     atomic_write_png,
     atomic_write_text,
@@ -63,6 +64,7 @@ from ..utils import (
     check_threads,
     check_writable,
     move_into_place,
+    sigterm_raises,
     staged_folder,
 )
 from .fuse import Fused, fuse
@@ -753,20 +755,25 @@ def main(argv: list[str] | None = None) -> int:
             matcher = StereoSettings(args.min_distance, args.max_distance, resolution,
                                      min_confidence=args.min_confidence or 0.0)  # fmt: skip
         sources = tuple(args.sources.split(","))
-        summary = run(
-            args.root,
-            args.out,
-            matcher,
-            sources,
-            args.overwrite,
-            not args.quiet,
-            args.max_images,
-            args.refine,
-            args.rerun,
-        )
+        with sigterm_raises():
+            summary = run(
+                args.root,
+                args.out,
+                matcher,
+                sources,
+                args.overwrite,
+                not args.quiet,
+                args.max_images,
+                args.refine,
+                args.rerun,
+            )
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder and lock are gone with it
+        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
     except OSError as err:  # the disk filled, a folder turned read-only, or an input cannot be read
         if err.errno not in WRITE_ERRORS:
             raise

@@ -128,8 +128,7 @@ class Rectification:
     pixels (a multiple of 16) from ``first_disparity`` on, from a little below the least parallax of the
     farthest distance (0 where an epipole is in view) up to the parallax of the nearest; ``directions``:
     which camera's pixels the grid can answer (a, b); ``spans``: for each camera, the half-open range of
-    grid columns its own matches need (its columns and the partner's within the range: a matcher of a's
-    pixels needs nothing right of a's span, one of b's nothing left of b's), None for the whole grid."""
+    grid columns its own matches need (:func:`_spans`), None for the whole grid."""
 
     grid: SphericalGrid
     a: Side
@@ -277,8 +276,7 @@ def _extent(
     columns of the cameras ``asked`` (the matcher's end checks reject within ``margin`` of either end), a
     multiple of 16;
     a's columns padded by it on the left, b's on the right. Found on the whole sphere in cells of up to a
-    few grid pixels (about a million cells), then widened by a cell. Last, each camera's span of columns
-    (:attr:`Rectification.spans`), widened by :data:`SPAN_MARGIN`, and the step between rows: the
+    few grid pixels (about a million cells), then widened by a cell. Last, the step between rows: the
     column's step, or where the grid wraps around the whole circle, as coarse as keeps a row step on the
     sphere within a column's at the column farthest from the baseline's axis."""
     cell = max(1, math.ceil(math.sqrt(2 * math.pi * math.pi / step**2 / 1e6)))
@@ -319,13 +317,6 @@ def _extent(
         lows.append((int(cols_b.min()) - 1) * cell)
         highs.append((int(cols_b.max()) + 1) * cell + pad)
     left, cols = min(lows), max(highs) - min(lows) + 1
-    spans = tuple(
-        (max(0, lo - left - SPAN_MARGIN), min(cols, hi - left + 1 + SPAN_MARGIN)) if len(c) else (0, 0)
-        for c, lo, hi in (
-            (cols_a, lows[0], highs[0]),
-            (cols_b, lows[-1], highs[-1]),
-        )
-    )
     first_row, last_row = (int(rows_used.min()) - 1) * cell, (int(rows_used.max()) + 1) * cell
     phi_lo, rows = sphere.phi0 + step * first_row, last_row - first_row + 1
     row_step = step
@@ -335,7 +326,7 @@ def _extent(
         across = max(float(np.max(np.abs(np.sin(t)))) for t in (theta_a, theta_b) if len(t))
         row_step = step / max(across, 1 / MAX_ROW_STEP)
         phi_lo, rows = -math.pi - SEAM * row_step, math.ceil(2 * math.pi / row_step) + 2 * SEAM
-    return phi_lo, step * left, rows, cols, first, count, spans, row_step
+    return phi_lo, step * left, rows, cols, first, count, row_step
 
 
 def build_rectification(
@@ -376,7 +367,7 @@ def build_rectification(
     if not any(directions):
         raise ValueError("directions: neither camera asked for; nothing to rectify for")
     asked = directions if asked is None else asked
-    phi_lo, psi_lo, rows, cols, first, count, spans, row_step = _extent(
+    phi_lo, psi_lo, rows, cols, first, count, row_step = _extent(
         frame, baseline, step, min_distance, max_distance, math.ceil(margin), camera_a, camera_b, R_ab,
         directions, asked,
     )  # fmt: skip
@@ -389,7 +380,21 @@ def build_rectification(
     looking = grid.directions().float()
     side_a = _side(camera_a, np.eye(3), grid, looking, directions[0])
     side_b = _side(camera_b, R_ab, grid, looking, directions[1])
+    spans = _spans(side_a.valid, side_b.valid)
     return Rectification(grid, side_a, side_b, count, first, tuple(bool(x) for x in directions), spans)
+
+
+def _spans(seen_a: np.ndarray, seen_b: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
+    """Each camera's span of grid columns (half-open), from where each sees: a's pixel at column ``j``
+    matches b's at ``j - d``, so a's matches need nothing right of the last column a sees; b's match a's
+    at ``j + d``, so they need nothing left of the first column b sees. Each widened by
+    :data:`SPAN_MARGIN`: the columns cut hold only what neither camera of that direction sees, so its
+    result is the whole grid's but where the matcher's paths start."""
+    cols = seen_a.shape[1]
+    in_a, in_b = np.flatnonzero(seen_a.any(0)), np.flatnonzero(seen_b.any(0))
+    a = (0, min(cols, int(in_a.max()) + 1 + SPAN_MARGIN)) if in_a.size else (0, 0)
+    b = (max(0, int(in_b.min()) - SPAN_MARGIN), cols) if in_b.size else (0, 0)
+    return a, b
 
 
 def remap(image: np.ndarray, side: Side) -> np.ndarray:

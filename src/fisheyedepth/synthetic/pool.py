@@ -12,24 +12,17 @@ import ctypes
 import os
 import signal
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from contextlib import contextmanager
 from multiprocessing import get_context
 
 import torch
 from tqdm import tqdm
 
+from ..utils import Terminated, sigterm_raises  # noqa: F401  (the renderer's, re-exported)
+
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
-
-
-class Terminated(SystemExit):
-    """SIGTERM arrived while rendering; exits with status 143 (128 + SIGTERM) like an untrapped SIGTERM."""
-
-    def __init__(self) -> None:
-        super().__init__(128 + int(signal.SIGTERM))
 
 
 _WORKER: Callable | None = None  # a worker process's frame renderer
@@ -57,30 +50,6 @@ def _init_worker(parent: int, make_worker: Callable, *args) -> None:
 def _run_job(job) -> None:
     assert _WORKER is not None
     _WORKER(job)
-
-
-@contextmanager
-def sigterm_raises() -> Iterator[None]:
-    """While the block runs, SIGTERM raises ``Terminated`` in the main thread so that the cleanup runs as on
-    Ctrl-C; a second SIGTERM during that cleanup is ignored. The previous handler comes back afterwards.
-    A no-op off the main thread, and where SIGTERM is ignored or handled outside Python."""
-    previous = signal.getsignal(signal.SIGTERM)
-    if threading.current_thread() is not threading.main_thread() or previous in (signal.SIG_IGN, None):
-        yield
-        return
-    fired = False
-
-    def handler(signum, frame) -> None:
-        nonlocal fired
-        if not fired:
-            fired = True
-            raise Terminated
-
-    signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _stop_pool(pool: ProcessPoolExecutor, timeout: float = 5.0) -> None:
