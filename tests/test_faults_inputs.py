@@ -26,6 +26,7 @@ from fisheyedepth.cameras import CalibrationError, save_camera
 from fisheyedepth.cli import run_command
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.data.aria import CALIBRATION, POSES, aria_to_rig
+from fisheyedepth.data.aria import main as aria_main
 from fisheyedepth.data.body_mask import estimate_body_mask
 from fisheyedepth.data.body_mask import main as estimate_mask_main
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
@@ -123,6 +124,17 @@ def test_an_aria_export_converts(tmp_path):
         f"{t}.png" for t in STAMPS
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rig", "src"]  # no staging folder left
+
+
+def test_an_aria_export_without_its_vio_poses_is_named(tmp_path, capsys):
+    src = aria_export(tmp_path / "src")
+    (src / POSES).unlink()
+    assert aria_main([str(src), "--out", str(tmp_path / "rig")]) == 2
+    assert (
+        capsys.readouterr().err
+        == f"error: {src / POSES}: Aria's VIO poses not found (the export's odometry)\n"
+    )
+    assert not (tmp_path / "rig").exists()
 
 
 def test_aria_poses_of_another_unit_or_a_quaternion_not_of_norm_one_are_refused(tmp_path, capsys):

@@ -302,3 +302,12 @@ def test_the_multiview_command_stopped_by_a_signal_leaves_nothing(
     err = capsys.readouterr().err
     assert f"error: {said}; nothing was written to {out}" in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.glob(".out*"))  # no output, no staging, no lock
+
+
+def test_predict_refuses_an_image_too_small_to_hold_one_feature_of_the_network(tmp_path):
+    from fisheyedepth.inference import MIN_IMAGE_SIDE, check_aspect
+
+    square = PinholeCamera(width=64, height=64, fx=50.0, fy=50.0, cx=31.5, cy=31.5)
+    with pytest.raises(ValueError, match=rf"frame.png: image is 1x1; at least {MIN_IMAGE_SIDE} pixels"):
+        check_aspect(tmp_path / "frame.png", (1, 1), square, "cam.yaml")
+    check_aspect(tmp_path / "frame.png", (32, 32), square, "cam.yaml")  # the smallest it takes

@@ -199,9 +199,18 @@ class PredictionWriter:
             write_ply(self.out / f"{name}.ply", *point_cloud(distance.cpu(), camera, rgb, self.rays))
 
 
+MIN_IMAGE_SIDE = 32
+
+
 def check_aspect(frame_path: Path, size: tuple[int, int], camera: CameraModel, calibration) -> None:
-    """A calibration is resized to the images only when both have one aspect ratio."""
+    """A calibration is resized to the images only when both have one aspect ratio, and an image has at
+    least :data:`MIN_IMAGE_SIDE` pixels a side (the network's coarsest features are a 32nd of its input:
+    a smaller image holds less than one of them, and its distance would be the network's guess)."""
     (w, h), (cw, ch) = size, (camera.width, camera.height)
+    if min(w, h) < MIN_IMAGE_SIDE:
+        raise ValueError(
+            f"{frame_path}: image is {w}x{h}; at least {MIN_IMAGE_SIDE} pixels a side are needed"
+        )
     if abs(w * ch - h * cw) > 0.01 * w * ch:
         raise ValueError(
             f"{frame_path}: image is {w}x{h} but the calibration {calibration} is {cw}x{ch}, another "

@@ -127,6 +127,8 @@ def aria_to_rig(
     calib_path = src / CALIBRATION
     if not calib_path.is_file():
         raise FileNotFoundError(f"{calib_path}: Aria calibration not found")
+    if not (src / POSES).is_file():
+        raise FileNotFoundError(f"{src / POSES}: Aria's VIO poses not found (the export's odometry)")
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} is a file, not a folder for the rig layout")
     if (out / "rig.yaml").exists() and not overwrite:
