@@ -129,7 +129,7 @@ def test_an_aria_export_converts(tmp_path):
 def test_an_aria_export_without_its_vio_poses_is_named(tmp_path, capsys):
     src = aria_export(tmp_path / "src")
     (src / POSES).unlink()
-    assert aria_main([str(src), "--out", str(tmp_path / "rig")]) == 2
+    assert aria_main(["--src", str(src), "--out", str(tmp_path / "rig")]) == 2
     assert (
         capsys.readouterr().err
         == f"error: {src / POSES}: Aria's VIO poses not found (the export's odometry)\n"

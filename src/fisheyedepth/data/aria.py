@@ -127,8 +127,6 @@ def aria_to_rig(
     calib_path = src / CALIBRATION
     if not calib_path.is_file():
         raise FileNotFoundError(f"{calib_path}: Aria calibration not found")
-    if not (src / POSES).is_file():
-        raise FileNotFoundError(f"{src / POSES}: Aria's VIO poses not found (the export's odometry)")
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} is a file, not a folder for the rig layout")
     if (out / "rig.yaml").exists() and not overwrite:
@@ -143,6 +141,8 @@ def aria_to_rig(
         raise FileNotFoundError(f"{src}: no image folder named like a camera of {calib_path.name}")
     cameras = {name: aria_camera(calib_path, name, calibration[name]) for name in names}
     images = {name: image_files(src / name) for name in names}
+    if not (src / POSES).is_file():
+        raise FileNotFoundError(f"{src / POSES}: Aria's VIO poses not found (the export's odometry)")
     poses = read_aria_poses(src / POSES)
     targets = [Path("rig.yaml"), Path(sequence) / "poses.txt"]
     targets += [Path("calibration") / f"{name}.yaml" for name in names]
