@@ -311,3 +311,47 @@ def test_predict_refuses_an_image_too_small_to_hold_one_feature_of_the_network(t
     with pytest.raises(ValueError, match=rf"frame.png: image is 1x1; at least {MIN_IMAGE_SIDE} pixels"):
         check_aspect(tmp_path / "frame.png", (1, 1), square, "cam.yaml")
     check_aspect(tmp_path / "frame.png", (32, 32), square, "cam.yaml")  # the smallest it takes
+
+
+@pytest.mark.parametrize("signum, status", [(2, 130), (15, 143)])
+def test_an_importer_stopped_by_a_signal_writes_nothing(tmp_path, monkeypatch, capsys, signum, status):
+    import signal
+
+    from fisheyedepth.data import aria
+    from test_faults_inputs import aria_export
+
+    src = aria_export(tmp_path / "src")
+    calls = []
+    read = aria.read_aria_poses
+
+    def signalled(*args):  # the signal arrives while it converts
+        calls.append(1)
+        signal.raise_signal(signum)
+        return read(*args)
+
+    monkeypatch.setattr(aria, "read_aria_poses", signalled)
+    assert aria.main(["--src", str(src), "--out", str(tmp_path / "rig")]) == status
+    err = capsys.readouterr().err
+    assert calls and "nothing was written to" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]  # no output, no staging
+
+
+def test_predict_never_writes_into_its_input(tmp_path):
+    from fisheyedepth.plan import predict_plan
+
+    from conftest import load_cfg
+
+    images = tmp_path / "images"
+    images.mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    os.symlink(images, tmp_path / "elsewhere" / "lnk")
+    for output, how in (
+        (images, "is"),
+        (tmp_path / "elsewhere" / "lnk", "is"),
+        (images / "out", "lies inside"),
+    ):
+        cfg = load_cfg(
+            "predict", ckpt_path="run/last.ckpt", input=str(images), camera="c.yaml", output=str(output)
+        )
+        with pytest.raises(ValueError, match=rf"^output: {output} {how} the input {images}"):
+            predict_plan(cfg)

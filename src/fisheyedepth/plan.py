@@ -35,7 +35,7 @@ from .option_checks import check_options as check_table
 from .options import check_combinations, net_options
 from .runtimes import POST_PROCESSING, PRECISIONS, one_of
 from .synthetic.spec import check_render_memory
-from .utils import check_writable
+from .utils import check_apart, check_writable
 
 log = logging.getLogger("fisheyedepth")
 
@@ -386,6 +386,8 @@ def predict_plan(cfg: DictConfig) -> PredictPlan:
     named before any network is loaded), then the runtime."""
     option = "output" if cfg.get("output") else "paths.output_dir"
     output = check_writable(cfg.output if cfg.get("output") else cfg.paths.output_dir, option)
+    if cfg.input is not None and Path(str(cfg.input)).exists():  # a folder or a video, not a live camera
+        check_apart(output, option, {"the input": cfg.input})
     return PredictPlan(
         output=output,
         input=cfg.input,

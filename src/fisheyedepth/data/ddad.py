@@ -61,7 +61,16 @@ from tqdm import tqdm
 
 from ..cameras import CalibrationError, PinholeCamera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
-from ..utils import atomic_write_npy, check_apart, inside, move_into_place, path_name, staged_folder
+from ..utils import (
+    Terminated,
+    atomic_write_npy,
+    check_apart,
+    inside,
+    move_into_place,
+    path_name,
+    sigterm_raises,
+    staged_folder,
+)
 from .kitti360 import OCCLUSION, project_points
 from .layouts import RigLayout, quaternion_matrix, unit_quaternion
 
@@ -687,11 +696,16 @@ def main(argv=None) -> int:
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
     try:
-        masks = _named_paths(args.mask, "--mask")
-        check_apart(args.out, "--out", {"the DDAD scene": args.src})
-        summary = ddad_to_rig(
-            args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
-        )
+        with sigterm_raises():
+            masks = _named_paths(args.mask, "--mask")
+            check_apart(args.out, "--out", {"the DDAD scene": args.src})
+            summary = ddad_to_rig(
+                args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
+            )
+    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
+        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
     except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -42,7 +42,7 @@ from ..cameras import CameraModel, load_camera, load_yaml, save_camera
 from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
-from ..utils import check_apart, inside, move_into_place, path_name, staged_folder
+from ..utils import Terminated, check_apart, inside, move_into_place, path_name, sigterm_raises, staged_folder
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
 from .layouts import _transform as read_transform
 
@@ -609,19 +609,25 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
     try:
-        check_apart(args.out, "--out", {"the bag": args.bag})
-        extrinsics = {}
-        if args.extrinsics:
-            data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
-            if not isinstance(data, dict):
-                raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
-            extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
-        summary = import_rosbag(
-            args.bag, args.out, _pairs(args.camera, "--camera"), _pairs(args.camera_info, "--camera-info"),
-            _pairs(args.calibration, "--calibration"), extrinsics, args.odometry,
-            tuple(args.tf_poses) if args.tf_poses else None, args.body_frame, args.sequence, args.overwrite,
-            args.max_pose_gap, args.bit_depth, args.strict,
-        )  # fmt: skip
+        with sigterm_raises():
+            check_apart(args.out, "--out", {"the bag": args.bag})
+            extrinsics = {}
+            if args.extrinsics:
+                data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
+                if not isinstance(data, dict):
+                    raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
+                extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
+            summary = import_rosbag(
+                args.bag, args.out, _pairs(args.camera, "--camera"),
+                _pairs(args.camera_info, "--camera-info"), _pairs(args.calibration, "--calibration"),
+                extrinsics, args.odometry, tuple(args.tf_poses) if args.tf_poses else None,
+                args.body_frame, args.sequence, args.overwrite, args.max_pose_gap, args.bit_depth,
+                args.strict,
+            )  # fmt: skip
+    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
+        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
+        return 143 if isinstance(stop, Terminated) else 130
     except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
