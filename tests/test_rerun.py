@@ -3,6 +3,7 @@ what is in them, where the points land, and that a failed run leaves nothing beh
 
 from __future__ import annotations
 
+import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -182,6 +183,41 @@ def test_a_wrong_shape_is_named_and_rerun_missing_names_the_extra(tmp_path, monk
 
 
 # ------------------------------------------------------------------------------- predict and eval
+@pytest.mark.parametrize("when", ["mid-run", "closing"])
+def test_predict_whose_recording_cannot_be_written_keeps_its_frames_and_says_so(
+    kitti_data, checkpoint, tmp_path, monkeypatch, when
+):
+    from fisheyedepth.cli.predict import RecordingFailed, predict
+    from fisheyedepth.rerun3d import RigRecorder
+    from test_inference import frames_folder
+
+    def stopped(*args, **kwargs):  # what the SDK raises once the disk fills under its writer
+        raise RuntimeError("File-writer thread shut down prematurely")
+
+    if when == "mid-run":
+        monkeypatch.setattr(RigRecorder, "_log_view", stopped)
+    else:
+        original = RigRecorder.close
+
+        def close(self):
+            self.stream.flush = stopped
+            return original(self)
+
+        monkeypatch.setattr(RigRecorder, "close", close)
+    images = frames_folder(kitti_data, tmp_path / "in", corrupt=False)
+    out = tmp_path / "out"
+    cfg = load_cfg("predict", ckpt_path=checkpoint, input=images, camera=kitti_data / "calibration" /
+                   "image_02.yaml", output=out, rerun=True)  # fmt: skip
+    with pytest.raises(
+        RecordingFailed, match=r"recording.rrd: the recording could not be written .*frames predicted"
+    ):
+        predict(cfg)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["recording"] is None and "could not be written" in summary["recording_error"]
+    assert summary["frames"] == len(list(out.glob("*_distance.npy"))) >= 1
+    assert not (out / "recording.rrd").exists() and not list(out.glob(".recording.rrd*"))
+
+
 def test_predict_with_rerun_records_every_frame(kitti_data, checkpoint, tmp_path):
     from fisheyedepth.cli.predict import predict
     from test_inference import frames_folder

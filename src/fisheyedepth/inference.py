@@ -20,6 +20,7 @@ import torch
 from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
+from .rerun3d import RecordingError  # rerun itself is imported only when recording
 from .runtimes import TorchRuntime, as_runtime
 from .utils import atomic_write_bytes, atomic_write_npy, atomic_write_png
 from .viz import colourise
@@ -240,6 +241,7 @@ class FramePrediction:
         self.predictors: dict[tuple[int, int], DistancePredictor] = {}
         self.pending: list = []
         self.written = 0
+        self.recording_error: str | None = None  # why the recording stopped, if it did
 
     def predictor(self, frame) -> DistancePredictor:
         h, w = frame.bgr.shape[:2]
@@ -268,9 +270,13 @@ class FramePrediction:
         frames, self.pending = self.pending, []  # an interrupt while writing loses no frame twice
         for frame, d, colour in zip(frames, distance[:, 0], rgb, strict=True):
             self.writer.write(frame.name, d, colour, predictor.camera)
-            if self.recording is not None:
-                self.recording.add(frame.name, d.numpy(), colour, predictor.camera)
             self.written += 1
+            if self.recording is not None:
+                try:
+                    self.recording.add(frame.name, d.numpy(), colour, predictor.camera)
+                except RecordingError as err:  # a full disk: the frames go on, the recording stops
+                    self.recording_error, self.recording = str(err), None
+                    log.warning("%s; the frames go on without it", err)
 
 
 @contextlib.contextmanager

@@ -20,12 +20,21 @@ from ..inference import FramePrediction, PredictionWriter, frame_recording
 from ..option_checks import SWITCH
 from ..options import CONF_DIR
 from ..plan import predict_plan
+from ..rerun3d import RecordingError
 from ..runtimes import OnnxRuntime
 from ..utils import atomic_write_text
 from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
 RECORDING = "recording.rrd"  # rerun=true: the run's Rerun recording in the output folder
+
+
+class _Discarded(Exception):
+    """The recording stopped during the run: the block ends so that it is discarded."""
+
+
+class RecordingFailed(ValueError):
+    """``rerun=true``'s recording could not be written; the frames' outputs and summary.json are kept."""
 
 
 def predict(cfg: DictConfig) -> dict[str, Any]:
@@ -39,17 +48,32 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     rerun = cfg.get("rerun", False)
     SWITCH.check("rerun", rerun)
     recorded = out / RECORDING if rerun else None
-    with frame_recording(recorded, source, plan.overwrite) as frames_recorded:  # refused here if it exists
-        runtime = load_runtime(plan.runtime)
-        batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
-        run = FramePrediction(
-            runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
-        )
-        summary = predict_frames(source, run, runtime, plan)
+    summary, failed = None, None
+    try:
+        with frame_recording(recorded, source, plan.overwrite) as frames_recorded:  # refused if it exists
+            runtime = load_runtime(plan.runtime)
+            batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
+            run = FramePrediction(
+                runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
+            )
+            summary = predict_frames(source, run, runtime, plan)
+            if run.recording_error is not None:  # it stopped mid-run: discarded, not closed
+                raise _Discarded
+    except _Discarded:
+        failed = run.recording_error
+    except RecordingError as err:  # closing it: the frames' own outputs are whole, the recording is not
+        if summary is None:
+            raise
+        failed = str(err)
     if recorded is not None:
-        summary["recording"] = str(recorded)
+        summary["recording"] = None if failed else str(recorded)
+        summary["recording_error"] = failed
     summary_path = out / "summary.json" if plan.overwrite else free_path(out / "summary.json")
     atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
+    if failed:  # one line, exit 2: the frames predicted and their summary are kept, no recording
+        raise RecordingFailed(
+            f"{failed}; the {summary['frames']} frames predicted are in {out} ({summary_path.name})"
+        )
     unreadable, grey = summary["unreadable"], summary["grayscale"]
     Console(width=130).print(
         f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['fps']} fps), {len(unreadable)} "
