@@ -38,7 +38,7 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.stereo.recording import masks
-from fisheyedepth.utils import Terminated, check_apart, check_threads, sigterm_raises
+from fisheyedepth.utils import Terminated, check_apart, check_threads, sigterm_raises, stopped_by
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 
@@ -167,15 +167,15 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except (Terminated, KeyboardInterrupt) as stop:  # before the first instant: nothing recorded
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         print(f"error: {why} before any instant was finished; nothing recorded", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     if summary["stopped"] is not None:
         stop = summary["stopped"]
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         kept = f"; {args.out} keeps them" if not args.no_record else ""
         print(f"error: {why} after {summary['instants']} instants{kept}", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     print(
         f"{summary['instants']} instants in {summary['seconds']:.1f} s: {summary['fps']:.2f} instants/s"
         + (f"; recording {args.out}" if not args.no_record else "")

@@ -11,8 +11,8 @@ hyper-parameters lack the network's group or contradict each other (``net.min_di
 Checkpoints are written by :func:`write_checkpoint` (in training through
 :class:`~fisheyedepth.training.AtomicCheckpointIO`):
 beside their target under a hidden name with the writer's pid, flushed to disk, then renamed over the
-target, so a kill at any moment leaves the previous file whole; :func:`remove_stale_temporaries` removes
-what killed writers left.
+target, so a kill at any moment leaves the previous file whole;
+:func:`~fisheyedepth.utils.remove_stale_temporaries` removes what killed writers left.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from .migration import FLAT_KEYS, current_hparams, nested_hparams
 from .models.depth_net import check_network_memory
 from .option_checks import MODEL_OPTIONS, check_options
 from .options import check_combinations, net_options
-from .utils import atomic_target, pid_alive
+from .utils import atomic_target
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
@@ -318,10 +318,6 @@ def load_weights(model: torch.nn.Module, path: str | os.PathLike, state: Any) ->
 
 
 # ------------------------------------------------------------------ writing
-# write_checkpoint's temporaries (utils.temporary_beside: .NAME.<random>.<pid>.tmp)
-STALE = re.compile(r"\.(?P<name>.+\.ckpt)\.(?:\w+\.)?(?P<pid>\d+)\.tmp")
-
-
 def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
     """``torch.save`` into a temporary file beside ``path``, ``fsync``, then ``os.replace`` over it
     (:func:`~fisheyedepth.utils.atomic_target`): the previous file stays whole until the new one is.
@@ -337,17 +333,3 @@ def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Pat
         finally:
             os.close(folder)
     return path
-
-
-def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
-    """Remove the temporaries :func:`write_checkpoint` left in ``folder`` when its process was killed
-    (their pid no longer runs); a live writer's are kept. Returns the removed files."""
-    folder = Path(folder)
-    stale = [
-        p
-        for p in (sorted(folder.iterdir()) if folder.is_dir() else [])
-        if (m := STALE.fullmatch(p.name)) and not pid_alive(int(m["pid"]))
-    ]
-    for path in stale:
-        path.unlink(missing_ok=True)
-    return stale

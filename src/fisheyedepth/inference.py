@@ -275,6 +275,7 @@ class FramePrediction:
                 try:
                     self.recording.add(frame.name, d.numpy(), colour, predictor.camera)
                 except RecordingError as err:  # a full disk: the frames go on, the recording stops
+                    self.recording.recorder.discard()
                     self.recording_error, self.recording = str(err), None
                     log.warning("%s; the frames go on without it", err)
 

@@ -33,6 +33,7 @@ and image, drawn uniformly at random without replacement by a generator seeded o
 from __future__ import annotations
 
 import contextlib
+import glob
 import os
 import uuid
 from collections.abc import Mapping
@@ -115,7 +116,7 @@ class RigRecorder:
         if self.path.exists() and not overwrite:
             raise FileExistsError(f"{self.path} exists; pass overwrite=true to replace it")
         check_writable(self.path.parent, str(self.path))
-        remove_stale_temporaries(self.path)  # a killed writer's
+        remove_stale_temporaries(self.path.parent, glob.escape(self.path.name))  # a killed writer's
         self.rr = import_rerun()
         self.points_per_image, self.overwrite = int(points_per_image), overwrite
         self.colour_range: tuple[float, float] | None = None
@@ -169,14 +170,12 @@ class RigRecorder:
             camera: rigid_transform(rig[camera], f"cam_to_body[{camera!r}]") if camera in rig else np.eye(4)
             for camera in views
         }
-        try:
+        with self._writing():
             self.stream.set_time("time", duration=np.timedelta64(int(timestamp_ns), "ns"))
             self.stream.set_time("frame", sequence=int(index))
             self._log_body(body, int(index))
             for camera, view in views.items():
                 self._log_view(camera, view, body @ extrinsics[camera])
-        except RuntimeError as err:  # the SDK's file writer stopped: a full disk, a file-size limit
-            raise RecordingError(self.path, err) from None
 
     def _log_body(self, body: np.ndarray, index: int) -> None:
         rr = self.rr
@@ -261,11 +260,18 @@ class RigRecorder:
         self.tmp = None
 
     def _finish(self) -> None:
-        try:
+        with self._writing():
             self.stream.flush()
             self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
             self.stream.disconnect()
-        except RuntimeError as err:  # the SDK's file writer stopped: a full disk, a file-size limit
+
+    @contextlib.contextmanager
+    def _writing(self):
+        """The SDK's file writer stopping (a full disk, a file-size limit) as a :class:`RecordingError`,
+        the stream disconnected."""
+        try:
+            yield
+        except RuntimeError as err:
             with contextlib.suppress(Exception):
                 self.stream.disconnect()
             raise RecordingError(self.path, err) from None

@@ -377,19 +377,23 @@ def sigterm_raises() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
-def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
-    """Remove the temporaries :func:`temporary_beside` left beside ``path`` for writers that are no longer
-    alive (killed: SIGKILL, a power cut); a live writer's are kept. Returns those removed."""
-    path = Path(path)
+def stopped_by(stop: BaseException) -> tuple[str, int]:
+    """What stopped a command (:class:`Terminated` or ``KeyboardInterrupt``), in words, and the exit
+    status a shell gives a process ended by that signal (143, 130)."""
+    if isinstance(stop, Terminated):
+        return "terminated (SIGTERM)", 143
+    return "interrupted (SIGINT)", 130
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, target: str = "*") -> list[Path]:
+    """Remove the temporaries :func:`temporary_beside` left in ``folder`` (``.NAME.<random>.<pid>.tmp``)
+    for the targets whose name matches the glob ``target``, written by processes that no longer run
+    (killed: SIGKILL, a power cut); a live writer's are kept. Returns those removed, in order."""
+    folder = Path(folder)
     removed = []
-    for tmp in path.parent.glob(f".{glob_escape(path.name)}.*.tmp"):
+    for tmp in sorted(folder.glob(f".{target}.*.tmp")) if folder.is_dir() else []:
         pid = tmp.name[: -len(".tmp")].rsplit(".", 1)[-1]
         if pid.isdigit() and not pid_alive(int(pid)):
-            with contextlib.suppress(OSError):
-                tmp.unlink()
-                removed.append(tmp)
+            tmp.unlink(missing_ok=True)
+            removed.append(tmp)
     return removed
-
-
-def glob_escape(name: str) -> str:
-    return "".join(f"[{c}]" if c in "*?[" else c for c in name)

@@ -29,10 +29,6 @@ log = logging.getLogger("fisheyedepth")
 RECORDING = "recording.rrd"  # rerun=true: the run's Rerun recording in the output folder
 
 
-class _Discarded(Exception):
-    """The recording stopped during the run: the block ends so that it is discarded."""
-
-
 class RecordingFailed(ValueError):
     """``rerun=true``'s recording could not be written; the frames' outputs and summary.json are kept."""
 
@@ -57,10 +53,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
                 runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
             )
             summary = predict_frames(source, run, runtime, plan)
-            if run.recording_error is not None:  # it stopped mid-run: discarded, not closed
-                raise _Discarded
-    except _Discarded:
-        failed = run.recording_error
+        failed = run.recording_error  # it stopped mid-run (and was discarded there)
     except RecordingError as err:  # closing it: the frames' own outputs are whole, the recording is not
         if summary is None:
             raise

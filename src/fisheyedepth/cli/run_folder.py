@@ -23,7 +23,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ..checkpoints import remove_stale_temporaries
+from ..utils import remove_stale_temporaries
 
 log = logging.getLogger("fisheyedepth")
 
@@ -118,7 +118,7 @@ def claim_run_folder(folder: str | os.PathLike, ckpt_path: str | os.PathLike | N
     except BaseException:
         release(folder)
         raise
-    for stale in remove_stale_temporaries(Path(folder) / CHECKPOINTS):
+    for stale in remove_stale_temporaries(Path(folder) / CHECKPOINTS, "*.ckpt"):
         log.warning("removed %s, a checkpoint half-written by a process that no longer runs", stale)
     return True
 

@@ -34,7 +34,16 @@ from tqdm import tqdm
 
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
-from ..utils import Terminated, check_apart, inside, move_into_place, path_name, sigterm_raises, staged_folder
+from ..utils import (
+    Terminated,
+    check_apart,
+    inside,
+    move_into_place,
+    path_name,
+    sigterm_raises,
+    staged_folder,
+    stopped_by,
+)
 from .layouts import RigLayout, _transform, unit_quaternion
 
 CALIBRATION = "calib_slam_fisheye624.json"
@@ -234,9 +243,9 @@ def main(argv=None) -> int:
             check_apart(args.out, "--out", {"the Aria export": args.src})
             summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
     except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
         print(f"error: {err}", file=sys.stderr)
         return 2

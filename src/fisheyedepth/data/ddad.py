@@ -70,6 +70,7 @@ from ..utils import (
     path_name,
     sigterm_raises,
     staged_folder,
+    stopped_by,
 )
 from .kitti360 import OCCLUSION, project_points
 from .layouts import RigLayout, quaternion_matrix, unit_quaternion
@@ -703,9 +704,9 @@ def main(argv=None) -> int:
                 args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
             )
     except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -42,7 +42,16 @@ from ..cameras import CameraModel, load_camera, load_yaml, save_camera
 from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose
 from ..images import read_image
-from ..utils import Terminated, check_apart, inside, move_into_place, path_name, sigterm_raises, staged_folder
+from ..utils import (
+    Terminated,
+    check_apart,
+    inside,
+    move_into_place,
+    path_name,
+    sigterm_raises,
+    staged_folder,
+    stopped_by,
+)
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
 from .layouts import _transform as read_transform
 
@@ -625,9 +634,9 @@ def main(argv=None) -> int:
                 args.strict,
             )  # fmt: skip
     except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -158,12 +158,10 @@ def fuse(maps: Sequence[PixelMaps], min_confidence: float = 0.0) -> Fused:
         n = np.where(total > 0, n_group, 0)
         share = n / np.maximum(n_kept, 1)
     confidence = np.where(total > 0, (1 - 0.5**n) * share / (1 + fused_sigma / SIGMA_SCALE), 0)
+    kept_fused = fused  # the dense map takes every fused pixel, sure or not
     if min_confidence > 0:
         sure = confidence >= min_confidence
-        kept_fused = fused
         fused, confidence, n = (np.where(sure, x, 0) for x in (fused, confidence, n))
-    else:
-        kept_fused = fused
     dense = _dense(maps, left_out)
     whole = [np.zeros(shape, dtype).reshape(-1) for dtype in (np.float32, np.float32, np.float32, np.uint8)]
     for image, values in zip(whole, (kept_fused, fused, confidence, n), strict=True):

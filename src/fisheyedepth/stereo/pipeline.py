@@ -379,7 +379,6 @@ class RigStereo:
         threads: int = 1,
         masks: Mapping[str, np.ndarray] | None = None,
     ):
-        threads = check_threads(threads, "threads")
         for what, given in (("cameras", cameras), ("cam_to_body", cam_to_body), ("masks", masks or {})):
             if not isinstance(given, Mapping):
                 raise ValueError(
@@ -400,7 +399,7 @@ class RigStereo:
         if settings is not None and not isinstance(settings, StereoSettings):
             raise ValueError(f"settings: {type(settings).__name__}; a StereoSettings expected")
         self.settings = settings or StereoSettings()
-        self.threads = int(threads)
+        self.threads = check_threads(threads, "threads")
         self.masks = dict(masks or {})
         self._check("masks", self.masks, every=False)
         self.timer = Timer()
@@ -481,16 +480,16 @@ class RigStereo:
         left_out: dict[str, dict[str, str]] = defaultdict(dict)
         checks: dict[str, dict[str, dict]] = defaultdict(dict)
         described: dict[str, tuple[np.ndarray, Features]] = {}
-        moved_too_far = None
         if previous is not None:
             self._check("previous", previous, every=False)
             motion = rigid_transform(motion, "motion")
             travelled = float(np.linalg.norm(motion[:3, 3]))
-            if travelled > MAX_MOTION:
-                moved_too_far = (
+            if travelled > MAX_MOTION:  # not matched, and named for every camera
+                why = (
                     f"the body moved {travelled:.4g} m since the previous instant, over {MAX_MOTION:g} m: "
                     "odometry in metres expected (another unit?)"
                 )
+                left_out.update({name: {f"{name}@previous": why} for name in self.cameras})
                 previous = {}
             for name in self.cameras:
                 E = self.cam_to_body[name]
@@ -558,20 +557,17 @@ class RigStereo:
             return CameraResult(out, partners, why, dict(evidence))
 
         names = list(self.cameras)
-        if moved_too_far is not None:
-            for name in self.cameras:
-                left_out[name][f"{name}@previous"] = moved_too_far
-        if self.threads > 1:  # pairs side by side, each on one thread of OpenCV's and torch's; then images
-            with one_thread_each(), ThreadPoolExecutor(self.threads) as pool:
-                results = dict(zip(order, pool.map(run, [jobs[i] for i in order]), strict=True))
-                collect(results[i] for i in range(len(jobs)))
-                start = time.perf_counter()
-                out = dict(zip(names, pool.map(fused, names), strict=True))
-        else:
-            results = {i: run(jobs[i]) for i in order}
+        with contextlib.ExitStack() as stack:
+            mapped = map
+            if (
+                self.threads > 1
+            ):  # pairs side by side, each on one thread of OpenCV's and torch's; then images
+                stack.enter_context(one_thread_each())
+                mapped = stack.enter_context(ThreadPoolExecutor(self.threads)).map
+            results = dict(zip(order, mapped(run, [jobs[i] for i in order]), strict=True))
             collect(results[i] for i in range(len(jobs)))
             start = time.perf_counter()
-            out = {name: fused(name) for name in names}
+            out = dict(zip(names, mapped(fused, names), strict=True))
         if previous is not None:
             self._features = described  # this instant's features: the next call's previous ones
         self.timer.add("fuse", start)

@@ -66,6 +66,7 @@ from ..utils import (
     move_into_place,
     sigterm_raises,
     staged_folder,
+    stopped_by,
 )
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
@@ -771,9 +772,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     except (Terminated, KeyboardInterrupt) as stop:  # its staging folder and lock are gone with it
-        why = "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted (SIGINT)"
+        why, status = stopped_by(stop)
         print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return 143 if isinstance(stop, Terminated) else 130
+        return status
     except OSError as err:  # the disk filled, a folder turned read-only, or an input cannot be read
         if err.errno not in WRITE_ERRORS:
             raise
