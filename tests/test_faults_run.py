@@ -92,8 +92,9 @@ def data_dir(tiny_world, tmp_path_factory):
     return copy_tiny_world(tiny_world, tmp_path_factory.mktemp("faults_data"))
 
 
-def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_dir, tmp_path):
-    run_dir = tmp_path / "run"
+def stopped_training(data_dir, run_dir, signum) -> tuple[int, str, list[str]]:
+    """A tiny training run, as train.py, sent ``signum`` in its second epoch: its exit status, output
+    and Hydra arguments."""
     args = [f"paths.data_dir={data_dir}", f"hydra.run.dir={run_dir}", "trainer.limit_train_batches=3"]
     args += TINY_RUN
     proc = subprocess.Popen(
@@ -103,6 +104,7 @@ def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_di
         stderr=subprocess.STDOUT,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # as from a terminal
     )
     last = run_dir / "checkpoints" / "last.ckpt"
     deadline = time.monotonic() + 300
@@ -110,10 +112,26 @@ def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_di
         time.sleep(0.2)
     assert last.is_file(), proc.communicate()[0][-3000:]
     time.sleep(1.0)  # into the next epoch
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(signum)
     output = proc.communicate(timeout=120)[0]
-    assert proc.returncode == 143, output[-3000:]
-    assert "SIGTERM" in output and not (run_dir / "results.json").exists()
+    return proc.returncode, output, args
+
+
+def test_ctrl_c_exits_130_with_one_line_naming_the_checkpoint_to_resume(data_dir, tmp_path):
+    status, output, _ = stopped_training(data_dir, tmp_path / "run", signal.SIGINT)
+    assert status == 130, output[-3000:]  # not Lightning's 1, an error's status
+    last = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    assert "interrupted (SIGINT) at step" in output and f"Resume with ckpt_path={last}" in output
+    assert "Traceback" not in output and not (tmp_path / "run" / "results.json").exists()
+    check_resumable(last)
+
+
+def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_dir, tmp_path):
+    run_dir = tmp_path / "run"
+    status, output, args = stopped_training(data_dir, run_dir, signal.SIGTERM)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    assert status == 143, output[-3000:]
+    assert "terminated (SIGTERM) at step" in output and not (run_dir / "results.json").exists()
     check_resumable(last)  # the checkpoint is whole
     epoch = torch.load(last, map_location="cpu", weights_only=True)["epoch"]
     first_log = run_dir / "logs" / "version_0" / "metrics.csv"

@@ -313,6 +313,59 @@ def test_predict_refuses_an_image_too_small_to_hold_one_feature_of_the_network(t
     check_aspect(tmp_path / "frame.png", (32, 32), square, "cam.yaml")  # the smallest it takes
 
 
+SIGNALS = [(2, 130, "interrupted (SIGINT)"), (15, 143, "terminated (SIGTERM)")]
+
+
+@pytest.mark.parametrize("signum, status, said", SIGNALS)
+def test_train_eval_export_and_predict_stopped_by_a_signal_end_with_one_line_and_its_status(
+    capsys, signum, status, said
+):
+    """``run_command`` (train.py, eval.py, export.py, predict.py): the signal's status, one line, no
+    traceback, SIGTERM's handler as it was before."""
+    import signal
+
+    from fisheyedepth.cli import run_command
+
+    before = signal.getsignal(signal.SIGTERM)
+    done = []
+
+    def command(cfg):
+        signal.raise_signal(signum)
+        done.append(cfg)  # never reached: the signal ends it where it arrives
+
+    with pytest.raises(SystemExit) as stopped:
+        run_command(command, {"any": "config"})
+    assert stopped.value.code == status and not done
+    assert capsys.readouterr().err == f"error: {said}\n"
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.parametrize("signum, status, said", SIGNALS)
+def test_the_other_commands_stopped_by_a_signal_end_with_one_line_and_write_nothing(
+    tmp_path, monkeypatch, capsys, signum, status, said
+):
+    """``fisheyedepth-estimate-mask`` and ``scripts/tools`` (``utils.ends_on_signals``): stopped while it
+    reads the recording, the command returns the signal's status with one line and writes nothing."""
+    import signal
+
+    from fisheyedepth.data import body_mask
+    from test_faults_inputs import still_rig
+
+    still_rig(tmp_path / "rec")
+    opened = body_mask.open_layout
+
+    def signalled(*args):
+        signal.raise_signal(signum)
+        return opened(*args)
+
+    monkeypatch.setattr(body_mask, "open_layout", signalled)
+    before = signal.getsignal(signal.SIGTERM)
+    args = ["--root", str(tmp_path / "rec"), "--layout", "rig", "--sequence", "seq0", "--camera", "cam"]
+    assert body_mask.main(args) == status
+    assert capsys.readouterr().err == f"error: {said}\n"
+    assert not (tmp_path / "rec" / "masks").exists() and signal.getsignal(signal.SIGTERM) is before
+
+
 @pytest.mark.parametrize("signum, status", [(2, 130), (15, 143)])
 def test_an_importer_stopped_by_a_signal_writes_nothing(tmp_path, monkeypatch, capsys, signum, status):
     import signal

@@ -453,21 +453,23 @@ def test_a_live_camera_is_written_frame_by_frame_and_ctrl_c_keeps_them(
 
     camera.read = read
     calib = kitti_data / "calibration" / "image_02.yaml"
-    summary = predict(
-        load_cfg("predict", ckpt_path=checkpoint, input="0", camera=str(calib), output=tmp_path / "live",
-                 paths={"output_dir": "unused"})
-    )  # fmt: skip
+    with pytest.raises(SystemExit) as stopped:  # Ctrl-C: the status a shell gives it, the frames kept
+        predict(
+            load_cfg("predict", ckpt_path=checkpoint, input="0", camera=str(calib),
+                     output=tmp_path / "live", paths={"output_dir": "unused"})
+        )  # fmt: skip
+    assert stopped.value.code == 130
     assert camera.opened_with == 0  # the index, as OpenCV takes it
     assert written_before_next_read == [0, 1, 2, 3]
-    assert summary["frames"] == 3 and summary["interrupted"] is True
-    assert json.loads((tmp_path / "live" / "summary.json").read_text())["frames"] == 3
+    summary = json.loads((tmp_path / "live" / "summary.json").read_text())
+    assert summary["frames"] == 3 and summary["interrupted"] == "SIGINT"
     # max_frames ends a live run without Ctrl-C
     monkeypatch.setattr(cv2, "VideoCapture", FakeCamera(frames))
     summary = predict(
         load_cfg("predict", ckpt_path=checkpoint, input="0", camera=str(calib), output=tmp_path / "two",
                  max_frames=2, paths={"output_dir": "unused"})
     )  # fmt: skip
-    assert summary["frames"] == 2 and summary["interrupted"] is False
+    assert summary["frames"] == 2 and summary["interrupted"] is None
     with pytest.raises(ValueError, match="max_frames: 0"):
         FrameSource("0", max_frames=0)
 
@@ -544,11 +546,16 @@ def test_eval_runs_the_network_at_the_checkpoints_size_whatever_the_data_config_
     assert a["abs_rel"] == b["abs_rel"] and a["rmse"] == b["rmse"]
 
 
-def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summary(
-    checkpoint, kitti_data, tmp_path, monkeypatch
+@pytest.mark.parametrize("signum, status, name", [(2, 130, "SIGINT"), (15, 143, "SIGTERM")])
+def test_a_numbered_folder_is_a_folder_and_a_signal_while_writing_keeps_the_summary(
+    checkpoint, kitti_data, tmp_path, monkeypatch, capsys, signum, status, name
 ):
-    """A sequence folder named ``0001`` is read as images, not as camera 1; Ctrl-C while a batch is
-    being written keeps the frames written so far, writes none twice, and still writes summary.json."""
+    """A sequence folder named ``0001`` is read as images, not as camera 1; Ctrl-C or SIGTERM while a
+    batch is being written keeps the frames written so far, writes none twice, still writes
+    summary.json, and ends the command with one line and the signal's status."""
+    import signal
+
+    from fisheyedepth.cli import run_command
     from fisheyedepth.inference import PredictionWriter
 
     folder = tmp_path / "0001"
@@ -562,17 +569,27 @@ def test_a_numbered_folder_is_a_folder_and_ctrl_c_while_writing_keeps_the_summar
     def write(self, name, *args):
         calls.append(name)
         if len(calls) == 2:
-            raise KeyboardInterrupt
+            signal.raise_signal(signum)
         return original(self, name, *args)
 
     monkeypatch.setattr(PredictionWriter, "write", write)
     calib = kitti_data / "calibration" / "image_02.yaml"
-    summary = predict(
-        load_cfg("predict", ckpt_path=checkpoint, input=str(folder), camera=str(calib), batch_size=4,
-                 output=tmp_path / "out", paths={"output_dir": "unused"})
-    )  # fmt: skip
-    assert summary["interrupted"] is True and summary["frames"] == 1 and len(calls) == 2
-    assert json.loads((tmp_path / "out" / "summary.json").read_text())["frames"] == 1
+    cfg = load_cfg("predict", ckpt_path=checkpoint, input=str(folder), camera=str(calib), batch_size=4,
+                   output=tmp_path / "out", paths={"output_dir": "unused"})  # fmt: skip
+    with pytest.raises(SystemExit) as stopped:
+        run_command(predict, cfg)  # as predict.py runs it
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert stopped.value.code == status and summary["interrupted"] == name
+    assert summary["frames"] == 1 and len(calls) == 2
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(
+        [f"{calls[0]}_colour.png", f"{calls[0]}_distance.npy", f"{calls[0]}_distance.png", "summary.json"]
+    )  # the first frame whole, nothing of the second, no temporary
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (
+        f"error: {'interrupted' if signum == 2 else 'terminated'} ({name}) after 1 frames; "
+        f"their outputs and summary.json are in {tmp_path / 'out'}"
+    )
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # the handler put back
 
 
 def test_bench_gpu_step_times_its_variants_side_by_side():

@@ -50,7 +50,7 @@ from fisheyedepth.data.realframes import FRAME_SETS, RAYS, Missing, RealFrame, l
 from fisheyedepth.realscores import constant_map, protocols, score, scored_pixels
 from fisheyedepth.runtimes import POST_PROCESSING, OnnxRuntime, TorchRuntime, TrainedDepthNet
 from fisheyedepth.stereo.realscores import multiview_records_table, multiview_scores
-from fisheyedepth.utils import atomic_write_bytes, atomic_write_text
+from fisheyedepth.utils import atomic_write_bytes, atomic_write_text, ends_on_signals
 from fisheyedepth.viz import panel
 
 ROOT_VARIABLE = "FISHEYEDEPTH_REALDATA"  # the real data folder, when --root is not given
@@ -299,6 +299,7 @@ def score_models(
 
 
 # ------------------------------------------------------------------ the command
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -30,7 +30,7 @@ from fisheyedepth.checkpoints import (
     sha256,
 )
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_bytes, atomic_write_text
+from fisheyedepth.utils import atomic_write_bytes, atomic_write_text, ends_on_signals
 
 
 def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False) -> tuple[Path, str]:
@@ -51,6 +51,7 @@ def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False
     return target, digest
 
 
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -20,10 +20,11 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.inference import DistancePredictor, colour_bar
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_png
+from fisheyedepth.utils import atomic_write_png, ends_on_signals
 from fisheyedepth.viz import colourise
 
 
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

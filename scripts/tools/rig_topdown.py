@@ -22,7 +22,7 @@ import torch
 from fisheyedepth.cameras import RayCache
 from fisheyedepth.inference import point_cloud
 from fisheyedepth.stereo import RigStereo, StereoSettings
-from fisheyedepth.utils import atomic_write_png
+from fisheyedepth.utils import atomic_write_png, ends_on_signals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from live_rig import body_masks, instants, replay, rig_layout  # noqa: E402
@@ -71,6 +71,7 @@ def draw(
     return canvas
 
 
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

@@ -27,6 +27,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
 from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
+from fisheyedepth.utils import ends_on_signals  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
 from _compose import ROOT, build_datamodule, compose_config  # noqa: E402
@@ -34,6 +35,7 @@ from _compose import ROOT, build_datamodule, compose_config  # noqa: E402
 DATA_CONFIGS = sorted(p.stem for p in (ROOT / "conf" / "data").glob("*.yaml"))
 
 
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

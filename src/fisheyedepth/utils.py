@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import hashlib
 import io
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import unicodedata
@@ -346,11 +348,15 @@ def keep_freed_memory(top_pad: int = 1 << 29, trim_threshold: int = 1 << 30) -> 
 
 
 # ------------------------------------------------------------------ signals
+EXIT_SIGINT = 128 + int(signal.SIGINT)  # the status a shell gives a process ended by Ctrl-C: 130
+EXIT_SIGTERM = 128 + int(signal.SIGTERM)  # ... and by SIGTERM: 143
+
+
 class Terminated(SystemExit):
     """SIGTERM arrived while a command ran; exits with status 143 (128 + SIGTERM), as an untrapped one."""
 
     def __init__(self) -> None:
-        super().__init__(128 + int(signal.SIGTERM))
+        super().__init__(EXIT_SIGTERM)
 
 
 @contextlib.contextmanager
@@ -381,8 +387,51 @@ def stopped_by(stop: BaseException) -> tuple[str, int]:
     """What stopped a command (:class:`Terminated` or ``KeyboardInterrupt``), in words, and the exit
     status a shell gives a process ended by that signal (143, 130)."""
     if isinstance(stop, Terminated):
-        return "terminated (SIGTERM)", 143
-    return "interrupted (SIGINT)", 130
+        return "terminated (SIGTERM)", EXIT_SIGTERM
+    return "interrupted (SIGINT)", EXIT_SIGINT
+
+
+def signal_name(stop: BaseException | None) -> str | None:
+    """The signal behind ``stop`` (:class:`Terminated`: ``"SIGTERM"``, ``KeyboardInterrupt``:
+    ``"SIGINT"``), for a record; None for no stop."""
+    if stop is None:
+        return None
+    return "SIGTERM" if isinstance(stop, Terminated) else "SIGINT"
+
+
+def ends_on_signals(main):
+    """A command's ``main`` (returning its exit status) that SIGINT and SIGTERM end with one line,
+    ``error: interrupted (SIGINT)`` / ``error: terminated (SIGTERM)``, and the status a shell gives a
+    process ended by that signal (130 / 143), not a traceback. Every file a command writes goes through
+    :func:`atomic_target`, so a stopped command leaves no partial file; one that keeps work it finished
+    says so itself before this line would be printed."""
+
+    @functools.wraps(main)
+    def ended(*args, **kwargs):
+        try:
+            with sigterm_raises():
+                return main(*args, **kwargs)
+        except (Terminated, KeyboardInterrupt) as stop:
+            why, status = stopped_by(stop)
+            print(f"error: {why}", file=sys.stderr)
+            return status
+
+    return ended
+
+
+@contextlib.contextmanager
+def sigterm_left_alone() -> Iterator[None]:
+    """While the block runs, SIGTERM has its default action again, as if :func:`sigterm_raises` were not
+    around it: for a library that handles SIGTERM itself and would call a handler it finds (Lightning
+    stops training at a batch boundary). A no-op off the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def remove_stale_temporaries(folder: str | os.PathLike, target: str = "*") -> list[Path]:

@@ -18,11 +18,10 @@ from omegaconf import DictConfig
 from ..plan import DataPlan, RuntimePlan, thawed
 from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from ..synthetic import ensure_datasets
-from ..utils import WRITE_ERRORS, keep_freed_memory
+from ..utils import WRITE_ERRORS, Terminated, keep_freed_memory, sigterm_raises, stopped_by
 
 log = logging.getLogger("fisheyedepth")
 
-EXIT_SIGTERM = 128 + 15  # the shell's status for a process ended by SIGTERM
 EXIT_USAGE = 2
 # Errors about the user's input (files, options): one line naming the file or option, no traceback.
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
@@ -56,9 +55,16 @@ def prepare_process(keep_memory: bool) -> None:
 
 def run_command(command, cfg: DictConfig):
     """Run an entry point; an input error prints one line (``error: <file>: <what>``) and exits 2.
-    ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead."""
+    ``FISHEYEDEPTH_TRACEBACK=1`` shows the full traceback instead. SIGINT and SIGTERM end it with one
+    line and exit 130 / 143 (what it writes is atomic: nothing partial is left; ``train.py`` and
+    ``predict.py`` say what they keep)."""
     try:
-        return command(cfg)
+        with sigterm_raises():
+            return command(cfg)
+    except (Terminated, KeyboardInterrupt) as stop:
+        why, status = stopped_by(stop)
+        print(f"error: {why}", file=sys.stderr)
+        raise SystemExit(status) from None
     except (*INPUT_ERRORS, OSError) as exc:
         if os.environ.get("FISHEYEDEPTH_TRACEBACK") or not is_input_error(exc):
             raise

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import time
 from typing import Any
 
@@ -22,7 +23,7 @@ from ..options import CONF_DIR
 from ..plan import predict_plan
 from ..rerun3d import RecordingError
 from ..runtimes import OnnxRuntime
-from ..utils import atomic_write_text
+from ..utils import Terminated, atomic_write_text, signal_name, stopped_by
 from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
@@ -44,7 +45,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     rerun = cfg.get("rerun", False)
     SWITCH.check("rerun", rerun)
     recorded = out / RECORDING if rerun else None
-    summary, failed = None, None
+    summary, failed, stop = None, None, None
     try:
         with frame_recording(recorded, source, plan.overwrite) as frames_recorded:  # refused if it exists
             runtime = load_runtime(plan.runtime)
@@ -52,7 +53,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
             run = FramePrediction(
                 runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
             )
-            summary = predict_frames(source, run, runtime, plan)
+            summary, stop = predict_frames(source, run, runtime, plan)
         failed = run.recording_error  # it stopped mid-run (and was discarded there)
     except RecordingError as err:  # closing it: the frames' own outputs are whole, the recording is not
         if summary is None:
@@ -67,6 +68,11 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
         raise RecordingFailed(
             f"{failed}; the {summary['frames']} frames predicted are in {out} ({summary_path.name})"
         )
+    if stop is not None:  # one line, exit 130 / 143: what was predicted is kept
+        why, status = stopped_by(stop)
+        kept = f"{summary['frames']} frames; their outputs and {summary_path.name} are in {out}"
+        print(f"error: {why} after {kept}", file=sys.stderr)
+        raise SystemExit(status)
     unreadable, grey = summary["unreadable"], summary["grayscale"]
     Console(width=130).print(
         f"{summary['frames']} frames in {summary['seconds']:.1f} s ({summary['fps']} fps), {len(unreadable)} "
@@ -77,13 +83,15 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     return summary
 
 
-def predict_frames(source: FrameSource, run: FramePrediction, runtime, plan) -> dict[str, Any]:
-    """Every frame of ``source`` through ``run``; the summary of what was done."""
+def predict_frames(
+    source: FrameSource, run: FramePrediction, runtime, plan
+) -> tuple[dict, BaseException | None]:
+    """Every frame of ``source`` through ``run``: the summary, and the signal that stopped it or None."""
     out = plan.output
     unreadable: list[str] = []
     grayscale: list[str] = []
     t0 = time.perf_counter()
-    interrupted = False
+    interrupted: BaseException | None = None
     try:
         for frame in tqdm(source, total=len(source) or None, desc="predicting", unit="frame"):
             if frame.bgr is None:
@@ -97,9 +105,8 @@ def predict_frames(source: FrameSource, run: FramePrediction, runtime, plan) -> 
                         "%s: grayscale image, replicated to 3 channels (and any others: summary)", frame.path
                     )
             run.add(frame)
-    except KeyboardInterrupt:  # a live camera ends with Ctrl-C: what was predicted is kept and summarised
-        interrupted = True
-        log.warning("interrupted: %d frames written", run.written)
+    except (KeyboardInterrupt, Terminated) as stop:  # a live camera ends with Ctrl-C: what was
+        interrupted = stop  # predicted is kept and summarised, then the command exits 130 / 143
     run.flush()
     done, seconds = run.written, time.perf_counter() - t0
     summary = {
@@ -111,15 +118,17 @@ def predict_frames(source: FrameSource, run: FramePrediction, runtime, plan) -> 
         "runtime": runtime_name(runtime),
         "input_size": list(runtime.input_size) if runtime.input_size else None,
         "post_process": runtime.post_process,
-        "interrupted": interrupted,
+        "interrupted": signal_name(interrupted),  # the signal that stopped it, or null
         "seconds": round(seconds, 3),
         "fps": round(done / seconds, 2) if seconds > 0 else None,
         "output": str(out),
         "png_scale": f"uint16 = metres * {int(1000 if plan.png_scale == 'mm' else 256)}, 0 = no ray",
     }
+    if done == 0 and interrupted is not None:
+        raise interrupted  # before any frame: nothing to keep (run_command's one line)
     if done == 0:
         raise ValueError(f"{source.source}: no frame could be read ({len(unreadable)} unreadable)")
-    return summary
+    return summary, interrupted
 
 
 def runtime_name(runtime) -> str:
@@ -132,8 +141,6 @@ def main() -> None:
     """Console script ``fisheyedepth-predict`` (the same as ``python predict.py``, from a source checkout:
     the configs live in its ``conf/``, found by absolute path since a relative one would be read as a
     Python module's)."""
-    import sys
-
     import hydra
 
     sys.argv = model_file_alias(sys.argv)  # model=FILE.onnx (runtime=onnx)

@@ -14,7 +14,8 @@ from omegaconf import DictConfig
 from ..checkpoints import CheckpointError, weights_mismatch
 from ..config import named_option, resolve_base_focal
 from ..plan import ModelPlan, TrainPlan, check_select, describe_accelerator, train_plan
-from . import EXIT_SIGTERM, INPUT_ERRORS, prepare_data, prepare_process
+from ..utils import EXIT_SIGINT, EXIT_SIGTERM, sigterm_left_alone
+from . import INPUT_ERRORS, prepare_data, prepare_process
 from .run_folder import run_folder
 
 log = logging.getLogger("fisheyedepth")
@@ -97,17 +98,19 @@ def fit_and_test(plan: TrainPlan) -> dict[str, Any] | None:
     )
     try:
         try:
-            trainer.fit(module, datamodule=datamodule, ckpt_path=plan.resume)
+            with sigterm_left_alone():  # Lightning's own handler stops at a batch boundary
+                trainer.fit(module, datamodule=datamodule, ckpt_path=plan.resume)
         except SIGTERMException:
             # Lightning stops at a batch boundary and raises SystemExit(None), i.e. exit 0: a job
             # scheduler, make or a shell script would take the run for finished.
-            last = plan.output_dir / "checkpoints" / "last.ckpt"
-            log.error(
-                "terminated by SIGTERM at step %d; no results.json. Resume with ckpt_path=%s",
-                trainer.global_step,
-                last if last.is_file() else "<a checkpoint of this run>",
-            )
+            stopped(trainer, plan, "terminated (SIGTERM)")
             raise SystemExit(EXIT_SIGTERM) from None
+        except SystemExit as exit_:
+            if not (trainer.interrupted and exit_.code == 1):
+                raise
+            # Ctrl-C: Lightning tears the run down and exits with status 1, as it would on an error
+            stopped(trainer, plan, "interrupted (SIGINT)")
+            raise SystemExit(EXIT_SIGINT) from None
         record = None
         if plan.test and trainer.is_global_zero and not trainer.fast_dev_run:
             ckpt = selected_checkpoint(checkpointers, plan.select)
@@ -132,3 +135,14 @@ def fit_and_test(plan: TrainPlan) -> dict[str, Any] | None:
             import wandb
 
             wandb.finish()  # one wandb run per job, also inside a multirun sweep
+
+
+def stopped(trainer, plan: TrainPlan, why: str) -> None:
+    """The one line of a training run stopped by a signal: where, and the checkpoint to resume from."""
+    last = plan.output_dir / "checkpoints" / "last.ckpt"
+    log.error(
+        "%s at step %d; no results.json. Resume with ckpt_path=%s",
+        why,
+        trainer.global_step,
+        last if last.is_file() else "<a checkpoint of this run>",
+    )

@@ -34,7 +34,7 @@ import torch
 from tqdm import tqdm
 
 from ..cameras import CameraModel, compute_rays
-from ..utils import atomic_write_bytes, path_name
+from ..utils import atomic_write_bytes, ends_on_signals, path_name
 from .dataset import read_checked
 from .kitti360 import Kitti360Layout
 from .layouts import RigLayout
@@ -259,6 +259,7 @@ def open_layout(kind: str, root: Path, camera: str) -> Layout:
     return layout(root, cameras=[camera], expect_masks=False)
 
 
+@ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``fisheyedepth-estimate-mask``."""
     parser = argparse.ArgumentParser(

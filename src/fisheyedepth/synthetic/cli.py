@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from ..option_checks import check_options
+from ..utils import Terminated, stopped_by
 from .folder import is_empty_dir, made_by_generator
-from .pool import Terminated
 from .rig import RIGS
 from .sensor import EFFECTS
 from .spec import GENERATE_OPTIONS, SPEC_FIELDS, WorldSpec
@@ -89,10 +89,10 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:  # a full disk: folder.NoSpaceLeft, naming the folder
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except (Terminated, KeyboardInterrupt) as exc:
-        why = "terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted"
+    except (Terminated, KeyboardInterrupt) as stop:
+        why, status = stopped_by(stop)
         print(f"error: {why}; the workers were stopped and the partial dataset removed", file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return status
     print(f"wrote {out}")
     return 0
 
