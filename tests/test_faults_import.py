@@ -264,6 +264,52 @@ def test_an_odometry_quaternion_not_of_norm_one_is_refused_naming_bag_topic_and_
     assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
 
 
+def test_an_odometry_pose_that_is_not_finite_is_refused_naming_bag_topic_and_stamp(tmp_path):
+    from fisheyedepth.data.rosbag import RosbagError
+
+    stamps = odometry_30hz(0.3)
+    bag = Bag()
+    bag.info()
+    for i in range(4):
+        bag.image(T0 + i * 100 * MS, grey(i))
+    bag.odometry([s for s in stamps if s != stamps[3]])
+    bag.odometry([stamps[3]], shift=float("nan"))  # a position the odometry lost
+    bag.write(tmp_path / "bag")
+    where = re.escape(str(tmp_path / "bag"))
+    with pytest.raises(RosbagError, match=rf"^{where}: /odom: the pose at {stamps[3]} ns: not a rigid transform: it holds a value that is not finite"):  # fmt: skip  # noqa: E501
+        run(tmp_path / "bag", tmp_path / "rig")
+    assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
+
+
+@pytest.mark.parametrize(
+    "scale, said",
+    [
+        (float("nan"), r"/tf_static base_link -> cam_right: not a rigid transform: it holds a value that is not finite"),  # noqa: E501
+        (1000.0, r"cameras 'left' and 'right' lie 1\d{3}(\.\d+)? m apart; .* \(extrinsics are in metres: millimetres\?\)"),  # noqa: E501
+    ],
+)  # fmt: skip
+def test_static_transforms_must_be_rigid_and_in_metres(tmp_path, monkeypatch, kitti_data, scale, said):
+    """/tf_static goes through the one rigid-transform check (a translation that is not finite named by
+    its edge); a rig whose transforms are in millimetres is refused by the rig layout's bound before
+    anything is written."""
+    import cv2
+
+    from fisheyedepth.data.rosbag import RosbagError, import_rosbag
+
+    import test_rosbag
+    from conftest import TRAIN_SEQ
+
+    right = test_rosbag.T_BODY_RIGHT.copy()
+    right[:3, 3] *= scale
+    monkeypatch.setattr(test_rosbag, "T_BODY_RIGHT", right)
+    src = sorted((kitti_data / "data_2d_raw" / TRAIN_SEQ / "image_02" / "data_rgb").glob("*.png"))[:6]
+    test_rosbag.write_bag(tmp_path / "run", "ros2-sqlite3", [cv2.imread(str(p)) for p in src])
+    with pytest.raises(RosbagError, match=said):
+        cameras = {"left": "/left/image_raw", "right": "/right/image_raw/compressed"}
+        import_rosbag(tmp_path / "run", tmp_path / "rig", cameras, odometry="/odom")
+    assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
+
+
 @pytest.mark.parametrize("kind", ["Image", "CompressedImage"])
 def test_camera_info_of_another_size_is_refused_naming_bag_topic_and_both_sizes(tmp_path, kind):
     """Same aspect ratio, twice the size: every image would be refused by the dataset's size check."""

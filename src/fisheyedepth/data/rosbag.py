@@ -40,7 +40,7 @@ from tqdm import tqdm
 
 from ..cameras import CameraModel, load_camera, load_yaml, save_camera
 from ..cameras.opencv import ROS_MODELS
-from ..geometry import make_pose
+from ..geometry import make_pose, rigid_transform
 from ..images import read_image
 from ..utils import (
     Terminated,
@@ -215,11 +215,21 @@ def camera_from_info(msg, topic: str) -> CameraModel:
         raise RosbagError(f"{topic}: CameraInfo {shape}, distortion {model!r}, K {K}, D {D}: {err}") from None
 
 
-def _transform(t) -> np.ndarray:
-    """4x4 of a ``geometry_msgs/Transform`` (parent <- child)."""
-    q = np.array([t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w], float)
-    R = quaternion_matrix(q / np.linalg.norm(q))
-    return make_pose(R, np.array([t.translation.x, t.translation.y, t.translation.z], float)).numpy()
+def _transform(t, where: str) -> np.ndarray:
+    """4x4 of a ``geometry_msgs/Transform`` (parent <- child), refused naming ``where`` unless rigid."""
+    r, tr = t.rotation, t.translation
+    return rigid_pose([tr.x, tr.y, tr.z, r.x, r.y, r.z, r.w], where)
+
+
+def rigid_pose(values, where: str) -> np.ndarray:
+    """``tx ty tz qx qy qz qw`` as a 4x4 rigid transform: a unit quaternion and finite numbers
+    (:func:`~fisheyedepth.geometry.rigid_transform`), else a :class:`RosbagError` naming ``where``."""
+    values = np.asarray(values, dtype=float)
+    try:
+        q = unit_quaternion(values[3:], where)
+        return rigid_transform(make_pose(quaternion_matrix(q), values[:3]), where)
+    except ValueError as err:
+        raise RosbagError(str(err)) from None
 
 
 def chain(edges: dict[tuple[str, str], np.ndarray], parent: str, child: str) -> np.ndarray | None:
@@ -388,12 +398,7 @@ def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics
                 for t in msg.transforms:
                     edge = (t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/"))
                     if topic == "/tf_static":
-                        r = t.transform.rotation
-                        try:
-                            unit_quaternion([r.x, r.y, r.z, r.w], f"{bag}: /tf_static {edge[0]} -> {edge[1]}")
-                        except ValueError as err:
-                            raise RosbagError(str(err)) from None
-                        static[edge] = _transform(t.transform)
+                        static[edge] = _transform(t.transform, f"{bag}: /tf_static {edge[0]} -> {edge[1]}")
                     elif tf_poses and edge == (tf_poses[0].lstrip("/"), tf_poses[1].lstrip("/")):
                         r, tr = t.transform.rotation, t.transform.translation
                         values = [tr.x, tr.y, tr.z, r.x, r.y, r.z, r.w]
@@ -413,10 +418,7 @@ def _import(bag: Path, out: Path, cameras, info_topics, calibrations, extrinsics
         )
     poses = [p for i, p in enumerate(poses) if i == 0 or p[0] != poses[i - 1][0]]  # exact repeats: one
     for stamp, values in poses:
-        try:
-            unit_quaternion(values[3:], f"{bag}: {source}: the pose at {stamp} ns")
-        except ValueError as err:
-            raise RosbagError(str(err)) from None
+        rigid_pose(values, f"{bag}: {source}: the pose at {stamp} ns")
     if len(poses) < 2:
         raise RosbagError(f"{bag}: {source}: fewer than two poses")
     times = np.array([p[0] for p in poses], np.int64)
