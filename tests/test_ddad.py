@@ -453,7 +453,7 @@ def test_the_real_scene_imports_with_its_lidar_in_every_camera(real):
 def test_the_multiview_command_scores_the_real_scene_against_its_lidar(real, tmp_path):
     """``fisheyedepth-multiview --sources rig`` on the imported scene's first instant: its three cameras
     matched with each other, each scored against the imported LiDAR where a partner matched it."""
-    from fisheyedepth.stereo.recording import main
+    from fisheyedepth.cli.multiview import main
 
     _, root, _ = real
     out = tmp_path / "multiview"

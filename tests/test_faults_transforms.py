@@ -17,6 +17,7 @@ import torch
 import yaml
 
 from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.cli import multiview
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.geometry import MAX_MOTION, rigid_transform
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, make_pose
@@ -164,7 +165,7 @@ def test_concurrent_calls_leave_the_process_thread_counts_as_they_were():
 def test_the_sweep_refuses_zero_hypotheses(tmp_path, capsys):
     rec = small_rig(tmp_path.parent / "small_rig")
     assert (
-        recording.main([str(rec), "--out", str(tmp_path / "out"), "--matcher", "sweep", "--hypotheses", "0"])
+        multiview.main([str(rec), "--out", str(tmp_path / "out"), "--matcher", "sweep", "--hypotheses", "0"])
         == 2
     )
     assert "hypotheses: 0; at least 3" in capsys.readouterr().err
@@ -193,9 +194,9 @@ def test_the_commands_never_write_into_what_they_read_through_a_link(tmp_path, c
     (tmp_path / "out").mkdir()
     os.symlink(rec, tmp_path / "out" / "lnk")
     for out in (tmp_path / "out" / "lnk", tmp_path / "out" / "lnk" / "mv"):
-        assert recording.main([str(rec), "--out", str(out), "--overwrite"]) == 2
+        assert multiview.main([str(rec), "--out", str(out), "--overwrite"]) == 2
         assert "the recording" in capsys.readouterr().err
-    assert recording.main([str(tmp_path / "out" / "lnk"), "--out", str(rec / "mv")]) == 2  # ROOT via a link
+    assert multiview.main([str(tmp_path / "out" / "lnk"), "--out", str(rec / "mv")]) == 2  # ROOT via a link
     assert "lies inside the recording" in capsys.readouterr().err
     live_rig = load_script("tools/live_rig")
     assert live_rig.main([str(rec), "--out", str(rec / "rig.yaml"), "--overwrite"]) == 2
@@ -298,7 +299,7 @@ def test_the_multiview_command_stopped_by_a_signal_leaves_nothing(
         return fuse(*args, **kwargs)
 
     monkeypatch.setattr(recording, "fuse", signalled_on_the_second)
-    assert recording.main([str(rec), "--out", str(out)]) == status
+    assert multiview.main([str(rec), "--out", str(out)]) == status
     err = capsys.readouterr().err
     assert f"error: {said}; nothing was written to {out}" in err and "Traceback" not in err
     assert not out.exists() and not list(tmp_path.glob(".out*"))  # no output, no staging, no lock

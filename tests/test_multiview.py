@@ -119,7 +119,8 @@ def test_the_multiview_command_on_a_rig_recording(tmp_path, capsys):
     """The rectified pipeline by default: every image with the rig's other camera and its own camera's
     previous and next images, each pair matched once, the partners fused; the seconds of each image and
     of each stage in the summary."""
-    from fisheyedepth.stereo.recording import NO_PARTNER, main
+    from fisheyedepth.cli.multiview import main
+    from fisheyedepth.stereo.pairing import NO_PARTNER
 
     rig = write_room_rig(tmp_path / "rec", size=192)
     out = tmp_path / "out"
@@ -178,6 +179,7 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     """--out may not be the recording, lie inside it or hold it; a file of the run's outputs that exists
     already is named and kept; a second run into one --out is refused while the first holds it; a run
     that fails halfway leaves nothing in --out."""
+    from fisheyedepth.cli import multiview
     from fisheyedepth.stereo import recording
 
     rec = tmp_path / "rec"
@@ -186,7 +188,7 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     common = ["--min-distance", "0.3", "--max-distance", "20", "--quiet"]
     for out, what in ((rec, "is the recording"), (rec / "seq" / "out", "lies inside the recording"),
                       (tmp_path, "holds the recording")):  # fmt: skip
-        assert recording.main([str(rec), "--out", str(out), *common]) == 2
+        assert multiview.main([str(rec), "--out", str(out), *common]) == 2
         assert f"error: --out: {out} {what} {rec}" in capsys.readouterr().err
     assert sorted(p.name for p in (rec / "seq").iterdir()) == ["distance", "images", "poses.txt"]  # untouched
 
@@ -194,12 +196,12 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     mine = out / "seq" / "distance" / "left" / f"{t0}.npy"
     mine.parent.mkdir(parents=True)
     mine.write_text("mine")
-    assert recording.main([str(rec), "--out", str(out), *common]) == 2
+    assert multiview.main([str(rec), "--out", str(out), *common]) == 2
     assert f"error: {mine} exists; pass --overwrite" in capsys.readouterr().err
     assert mine.read_text() == "mine" and sorted(out.rglob("*.*")) == [mine]  # nothing else written
 
     with recording.sole_writer(out):  # another run holds --out
-        assert recording.main([str(rec), "--out", str(out), "--overwrite", *common]) == 2
+        assert multiview.main([str(rec), "--out", str(out), "--overwrite", *common]) == 2
         assert (
             f"error: --out: {out}: another fisheyedepth-multiview writes into it" in capsys.readouterr().err
         )
@@ -214,11 +216,11 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
 
     monkeypatch.setattr(recording, "fuse", fails_on_the_third)
     fresh = tmp_path / "fresh"
-    assert recording.main([str(rec), "--out", str(fresh), *common]) == 2
+    assert multiview.main([str(rec), "--out", str(fresh), *common]) == 2
     assert "maps: a failure halfway" in capsys.readouterr().err
     assert not fresh.exists() and not list(tmp_path.glob(".fresh*"))  # no output, no staging, no lock left
     monkeypatch.undo()
-    assert recording.main([str(rec), "--out", str(out), "--overwrite", *common]) == 0
+    assert multiview.main([str(rec), "--out", str(out), "--overwrite", *common]) == 0
     assert np.load(mine).shape == (128, 128) and (out / "summary.json").is_file()
 
 
@@ -293,7 +295,7 @@ def test_bad_inputs_are_named_before_any_work(tmp_path, capsys, case):
     """Every image the run reads and every ground-truth file is checked before the first output (a bad
     one of the second instant is named with nothing written), and so are the rig's names, the poses and
     a recording that leaves nothing to match: one line, exit 2, no --out."""
-    from fisheyedepth.stereo.recording import main
+    from fisheyedepth.cli.multiview import main
 
     how, options, message = REFUSED[case]
     rec, out = spoilt(tmp_path, how), tmp_path / "out"
@@ -308,6 +310,7 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
 ):
     import errno
 
+    from fisheyedepth.cli import multiview
     from fisheyedepth.stereo import recording
 
     def full(path, array):
@@ -315,7 +318,7 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
 
     monkeypatch.setattr(recording, "atomic_write_npy", full)
     rec, out = spoilt(tmp_path, lambda r: None), tmp_path / "out"
-    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 2
+    assert multiview.main([str(rec), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: --out: ") and "cannot be written (No space left on device)" in err
     assert err.count("\n") == 1 and not out.exists() and not list(tmp_path.glob(".out*"))
@@ -325,14 +328,14 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
         raise PermissionError(errno.EACCES, "Permission denied", str(image))
 
     monkeypatch.setattr(recording, "layout_image", unreadable)  # an input, not --out: named as read
-    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 2
+    assert multiview.main([str(rec), "--out", str(out), "--quiet"]) == 2
     assert capsys.readouterr().err == f"error: {image}: cannot be read (Permission denied)\n"
     stale = tmp_path / ".out.multiview-killed"  # what a SIGKILLed run leaves (no clean-up runs)
     other = tmp_path / ".outs.multiview-running"  # another --out's, with a name this one begins
     (stale / "seq").mkdir(parents=True)
     other.mkdir()
     monkeypatch.undo()
-    assert recording.main([str(rec), "--out", str(out), "--quiet"]) == 0
+    assert multiview.main([str(rec), "--out", str(out), "--quiet"]) == 0
     assert not stale.exists() and other.is_dir() and (out / "summary.json").is_file()
 
 
@@ -341,15 +344,16 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     names that are no timestamp are named as left out, never read as another image; 12-bit data in 16-bit
     PNGs is read by its range; a run that would need more memory than the machine has is refused naming
     the camera and both numbers, and so is a sweep of too many hypotheses."""
+    from fisheyedepth.cli import multiview
     from fisheyedepth.images import read_image
-    from fisheyedepth.stereo import recording
+    from fisheyedepth.stereo import pairing
 
     def grey(r):
         for path in (r / "seq" / "images").rglob("*.png"):
             cv2.imwrite(str(path), np.full((128, 128), 128, np.uint8))
 
     rec = spoilt(tmp_path / "grey", grey)
-    assert recording.main([str(rec), "--out", str(tmp_path / "o1"), "--quiet"]) == 1
+    assert multiview.main([str(rec), "--out", str(tmp_path / "o1"), "--quiet"]) == 1
     assert "error: " in capsys.readouterr().err
     summary = json.loads((tmp_path / "o1" / "summary.json").read_text())
     assert {r["flat"] for r in summary["images"]} == {1.0} and all(r["kept"] == 0 for r in summary["images"])
@@ -359,7 +363,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
         tmp_path / "zero", lambda r: rewrite_rig(r, lambda c: c[1].update(cam_to_body=c[0]["cam_to_body"]))
     )
     assert (
-        recording.main([str(same_centre), "--out", str(tmp_path / "o2"), "--sources", "rig", "--quiet"]) == 1
+        multiview.main([str(same_centre), "--out", str(tmp_path / "o2"), "--sources", "rig", "--quiet"]) == 1
     )
     assert "the two camera centres coincide" in capsys.readouterr().err
     summary = json.loads((tmp_path / "o2" / "summary.json").read_text())
@@ -377,12 +381,12 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
             cv2.imwrite(str(path), cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.uint16) * 16)
 
     rec = spoilt(tmp_path / "names", renamed)
-    assert recording.main([str(rec), "--out", str(tmp_path / "o3"), "--quiet"]) == 0
+    assert multiview.main([str(rec), "--out", str(tmp_path / "o3"), "--quiet"]) == 0
     summary = json.loads((tmp_path / "o3" / "summary.json").read_text())
     not_understood = "name not understood (<timestamp_ns>.png)"
     assert summary["images_left_out"] == {
         f"seq/left/000{T1}.png": not_understood, "seq/left/frame_x.png": not_understood,
-        f"seq/lonely/{T0 + 50_000_000}": recording.NO_PARTNER}  # fmt: skip
+        f"seq/lonely/{T0 + 50_000_000}": pairing.NO_PARTNER}  # fmt: skip
     right = next(r for r in summary["images"] if r["image"] == f"seq/right/{T0}")
     assert right["kept"] > 0.2 and right["checked"]["abs_rel"] < 0.1 and right["flat"] < 0.01, right
     twelve_bit = cv2.imread(str(rec / f"seq/images/right/{T0}.png"), cv2.IMREAD_UNCHANGED)
@@ -391,7 +395,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     assert np.abs(eight_bit.astype(int) - twelve_bit // 16).max() <= 1  # the 8 bits it was made from
 
     monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**20)
-    assert recording.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
+    assert multiview.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err == (
         f"error: {rec / 'rig.yaml'}: camera 'left': '128x128' needs 72 MiB of memory (64 MiB + 512 bytes a "
@@ -408,7 +412,7 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
         "100000",
         "--quiet",
     ]
-    assert recording.main(args) == 2
+    assert multiview.main(args) == 2
     assert capsys.readouterr().err == (
         "error: --hypotheses: 100000 needs 30.5 GiB of memory (20 bytes x hypotheses x camera 'left''s "
         "128x128 pixels); this machine has 1 GiB\n"
@@ -454,8 +458,9 @@ def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_pa
     the second): a pair is matched in the directions its images ask for, and nothing is left held when
     every image has taken its maps."""
     from fisheyedepth.data.layouts import RigLayout
+    from fisheyedepth.stereo.pairing import pairings
     from fisheyedepth.stereo.pipeline import StereoSettings, Timer
-    from fisheyedepth.stereo.recording import PairStore, pairings
+    from fisheyedepth.stereo.recording import PairStore
 
     stamps = (1_000_000_000, 1_100_000_000, 1_200_000_000)
     write_room_rig(tmp_path / "rec", size=256, stamps=stamps)
@@ -478,7 +483,7 @@ def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_pa
 
 def test_the_sweep_stays_as_a_matcher(tmp_path):
     """``--matcher sweep``: the sweep over every partner of an image at once, the same outputs."""
-    from fisheyedepth.stereo.recording import main
+    from fisheyedepth.cli.multiview import main
 
     write_room_rig(tmp_path / "rec", size=64, stamps=(1_000_000_000, 1_100_000_000))
     out = tmp_path / "out"
@@ -505,8 +510,8 @@ def test_refine_writes_the_rig_its_images_say(tmp_path, degrees):
     images say is recovered to 0.05 degrees, written to OUT/rig.yaml (the recording untouched) and swept
     with; a correct rig is left as it is (the refinement's drop of the epipolar error is within the
     matches' noise). The camera with no same-instant partner is named."""
+    from fisheyedepth.cli.multiview import main
     from fisheyedepth.data.layouts import RigLayout
-    from fisheyedepth.stereo.recording import main
 
     true_right = pose(10.0, (0.1, 0.0, 0.0))
     rec, out = tmp_path / "rec", tmp_path / "out"

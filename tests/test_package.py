@@ -41,7 +41,7 @@ def test_configs_become_objects_only_in_the_commands():
     )
     assert users and all(u.startswith("cli/") for u in users), users
     commands = sorted(p.stem for p in (package / "cli").glob("*.py"))
-    assert commands == ["__init__", "evaluate", "export", "predict", "run_folder", "train"]
+    assert commands == ["__init__", "evaluate", "export", "multiview", "predict", "run_folder", "train"]
     small = [p for p in (package / "cli").glob("*.py") if p.stem != "run_folder"]  # the commands
     assert max(len(p.read_text().splitlines()) for p in small) < 150
     scripts = (ROOT / "pyproject.toml").read_text()

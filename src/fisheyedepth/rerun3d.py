@@ -39,6 +39,7 @@ import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -49,6 +50,11 @@ from .geometry import rigid_transform
 from .outputs import place_new
 from .utils import check_writable, is_number, is_whole, remove_stale_temporaries, temporary_beside
 from .viz import colourise
+
+if TYPE_CHECKING:  # the multi-view run's types, for InstantRecorder's signatures
+    from .data.layouts import Frame, RigLayout
+    from .stereo.fuse import Fused
+    from .stereo.pairing import Pairing
 
 TRUTH_COLOUR = (255, 0, 255)  # ground-truth points: magenta, apart from any image's colours
 JPEG_QUALITY = 90
@@ -329,3 +335,55 @@ def colour_range(distance: np.ndarray) -> tuple[float, float]:
         return 0.5, 80.0
     near, far = np.percentile(values, [2, 98])
     return float(near), float(max(far, near * 1.01))
+
+
+class InstantRecorder:
+    """A multi-view run's 3-D recording (``fisheyedepth-multiview --rerun``): the images of one instant (its
+    cameras' images within ``same_instant_ns`` of the first) logged together, each with its ``kept`` and
+    ``filled`` maps, its ground truth and abs_rel where the recording has them; the body's pose from the
+    odometry; the recorded rig, and the refined one beside it."""
+
+    def __init__(self, path: Path, layout: RigLayout, recorded: dict, refinement: dict | None,
+                 same_instant_ns: int = 1_000_000):  # fmt: skip
+        self.layout, self.same_instant_ns = layout, same_instant_ns
+        self.recorder = RigRecorder(path, "fisheyedepth-multiview")
+        self.recorder.rig(recorded, name="rig")
+        self.rig = {name: spec.cam_to_body for name, spec in layout.cameras.items()}
+        if refinement is not None:
+            self.recorder.rig(self.rig, name="refined")
+        self.views: dict = {}
+        self.at: tuple[str, Frame] | None = None
+        self.index = 0
+
+    def add(self, pairing: Pairing, image: np.ndarray, fused: Fused, truth, record: dict) -> None:
+        if self.at is not None and (
+            self.at[0] != pairing.sequence
+            or pairing.frame.key - self.at[1].key > self.same_instant_ns
+            or pairing.camera in self.views  # a camera's second image within the window: its own instant
+        ):
+            self.flush()
+        if self.at is None:
+            self.at = (pairing.sequence, pairing.frame)
+        checked = (record.get("checked") or {}).get("abs_rel")
+        self.views[pairing.camera] = CameraView(
+            self.layout.cameras[pairing.camera].camera, image[..., ::-1],
+            {"kept": fused.distance, "filled": fused.dense}, truth,
+            {"abs_rel": checked} if isinstance(checked, float) else {},
+        )  # fmt: skip
+
+    def flush(self) -> None:
+        if self.at is not None:
+            frame = self.at[1]
+            self.recorder.instant(frame.key, self.index, self.views, frame.pose, self.rig)
+            self.index += 1
+        self.views, self.at = {}, None
+
+    def __enter__(self) -> InstantRecorder:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.flush()
+            self.recorder.close()
+        else:
+            self.recorder.discard()

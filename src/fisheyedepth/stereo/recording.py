@@ -1,51 +1,21 @@
-"""``fisheyedepth-multiview ROOT --out OUT [--refine] [--sources rig,time] [--matcher sgbm|sweep]``: metric
-distance from geometry over a recording in the rig layout (docs/data-format.md, "Robot rig layout"):
-every image paired with the rig's other cameras at the same instant (``rig``) and with its own camera's
-previous and next images that moved far enough (``time``, the odometry's motion), metric because the
-calibration and the odometry are.
-
-The matcher: ``sgbm`` (default) rectifies each pair on the sphere and matches it with OpenCV's
-semi-global block matcher (:mod:`.pipeline`): every pair once, both of its images answered, every
-partner of an image fused; ``sweep`` sweeps distance hypotheses over all partners at once
-(:mod:`.sweep`, on CUDA where there is one: a hundred times slower on a CPU).
-
-For each image it can pair it writes, under ``OUT/<sequence>/``:
-- ``distance/<camera>/<timestamp_ns>.npy``: float32 H x W metres along the ray, 0 where no partner's
-  checks keep the pixel;
-- ``dense/<camera>/<timestamp_ns>.npy``: the filled map (every pixel a partner could match);
-- ``confidence/<camera>/<timestamp_ns>.npy``: float32 in [0, 1] of the kept pixels;
-- ``panels/<camera>/<timestamp_ns>.png``: image | checked | filled [| ground truth];
-with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
-changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
-its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
-<timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels, and the
-share of its pixels too flat to match (``flat``); the seconds of each stage; every image left out, by
-name, with why (no partner, outside the poses, in a gap of the poses, a file name that is no timestamp);
-the pairs left out (no overlap within the range, too short a baseline, one centre), by name; and the
-images that kept no pixel. ``OUT`` is checked before any work (a folder of its own, writable, none of
-these files there unless ``--overwrite``, no other run writing into it), and so is every input the run
-reads (images, ground truth) and the memory its largest image needs; the files are written beside ``OUT``
-and moved into place when the run completes. Exit status: 0, 2 for a refused input (one ``error:`` line),
-1 when the run completed but no image kept a pixel.
-"""
+"""The multi-view run behind ``fisheyedepth-multiview`` (:mod:`fisheyedepth.cli.multiview`, which says what
+it writes): every image of a recording matched with its partners (:mod:`.pairing`), its maps fused and
+written into a staging folder beside ``--out``, moved into place when the run completes; the inputs,
+``--out`` and the memory the run needs checked before any work."""
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import fcntl
 import json
 import logging
 import math
 import os
-import sys
 import time
 from collections import defaultdict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 from tqdm import tqdm
@@ -54,23 +24,20 @@ from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
 from ..outputs import same_file
+from ..rerun3d import InstantRecorder
 from ..utils import (
-    WRITE_ERRORS,
-    Terminated,
     atomic_write_npy,
     atomic_write_png,
     atomic_write_text,
     check_apart,
-    check_threads,
     check_writable,
     move_into_place,
-    sigterm_raises,
     staged_folder,
-    stopped_by,
 )
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
 from .match import MatcherSettings, off_the_rim, textured
+from .pairing import NO_PARTNER, SOURCES, Pairing, check_sources, images_left_out, nothing_to_match, pairings
 from .pipeline import StereoSettings, Timer, grey, match_pair, nothing, pair_step, partner_pair
 from .rectify import RAYS, Rectification, RectificationCache
 from .refine import (
@@ -88,77 +55,7 @@ from .static import StaticFinder, usable
 from .sweep import SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
-SOURCES = ("rig", "time")
 MATCHERS = ("sgbm", "sweep")
-
-
-@dataclass(frozen=True)
-class Partner:
-    camera: str
-    frame: Frame
-
-
-@dataclass(frozen=True)
-class Pairing:
-    sequence: str
-    camera: str
-    frame: Frame
-    partners: tuple[Partner, ...]
-
-    @property
-    def name(self) -> str:
-        return f"{self.sequence}/{self.camera}/{self.frame.key}"
-
-
-def check_sources(sources: tuple[str, ...]) -> tuple[str, ...]:
-    if not sources or set(sources) - set(SOURCES):
-        raise ValueError(f"--sources: {','.join(sources)!r}; choose from {','.join(SOURCES)}")
-    return sources
-
-
-def _centre(layout: RigLayout, camera: str, frame: Frame) -> np.ndarray:
-    return (frame.pose @ layout.cameras[camera].cam_to_body)[:3, 3]
-
-
-def pairings(
-    layout: RigLayout,
-    sources: tuple[str, ...] = SOURCES,
-    same_instant_ns: int = 1_000_000,
-    min_baseline: float = 0.05,
-    max_frames_apart: int = 5,
-) -> list[Pairing]:
-    """Every image of the recording with its partners: each other camera's image within
-    ``same_instant_ns`` (``rig``); and of its own camera the nearest earlier and the nearest later image,
-    within ``max_frames_apart``, whose centre is ``min_baseline`` metres or more from its own (``time``)."""
-    check_sources(sources)
-    out = []
-    for sequence in layout.sequences():
-        frames = {camera: layout.frames(sequence, camera) for camera in layout.cameras}
-        for camera, own in frames.items():
-            for i, frame in enumerate(own):
-                partners: list[Partner] = []
-                if "rig" in sources:
-                    for other, theirs in frames.items():
-                        if other == camera or not theirs:
-                            continue
-                        nearest = min(theirs, key=lambda f: abs(f.key - frame.key))
-                        if abs(nearest.key - frame.key) <= same_instant_ns:
-                            partners.append(Partner(other, nearest))
-                if "time" in sources:
-                    here = _centre(layout, camera, frame)
-                    earlier = own[max(0, i - max_frames_apart) : i][::-1]
-                    later = own[i + 1 : i + 1 + max_frames_apart]
-                    for side in (earlier, later):
-                        moved = (
-                            f
-                            for f in side
-                            if np.linalg.norm(_centre(layout, camera, f) - here) >= min_baseline
-                        )
-                        found = next(moved, None)
-                        if found is not None:
-                            partners.append(Partner(camera, found))
-                out.append(Pairing(sequence, camera, frame, tuple(partners)))
-    return out
 
 
 def _truth(layout: RigLayout, pairing: Pairing) -> np.ndarray | None:
@@ -345,33 +242,6 @@ def check_out(root: Path, out: Path) -> None:
     check_apart(out, "--out", {"the recording": root})
 
 
-NO_PARTNER = "no partner at its instant or among its camera's neighbours"
-
-
-def images_left_out(layout: RigLayout, planned: list[Pairing]) -> dict[str, str]:
-    """Every image of the recording the run does not match, by name, with why: no partner, outside the
-    poses' time range, in a gap of the poses, or a file name that is not a timestamp."""
-    out = {p.name: NO_PARTNER for p in planned if not p.partners}
-    for (sequence, camera), stamps in layout.outside.items():
-        out.update({f"{sequence}/{camera}/{t}": "outside the poses' time range" for t in stamps})
-    for (sequence, camera), stamps in layout.in_gaps.items():
-        out.update({f"{sequence}/{camera}/{t}": "in a gap of the poses (max_pose_gap)" for t in stamps})
-    for (sequence, camera), names in layout.not_understood.items():
-        out.update({f"{sequence}/{camera}/{n}": "name not understood (<timestamp_ns>.png)" for n in names})
-    return out
-
-
-def nothing_to_match(layout: RigLayout, sources: tuple[str, ...], left_out: dict[str, str]) -> str:
-    """Why a recording gives the run no image to match, in one line."""
-    reasons: dict[str, int] = defaultdict(int)
-    for why in left_out.values():
-        reasons[why] += 1
-    said = "; ".join(f"{n} {why}" for why, n in reasons.items()) or "no images"
-    if sources == ("rig",) and len(layout.cameras) < 2:
-        said += " (--sources rig pairs the rig's cameras, and it has one)"
-    return said
-
-
 # Peak memory of matching one pair: a fixed part and a part per pixel of its larger image at the cameras'
 # own resolution (the rays, the rectification's tables, both rectified images, SGBM's buffers and the
 # maps back). Measured 44 MiB at 256 px, 148-172 MiB at 512, 509-518 at 1024 and about 1.9 GiB at 2048
@@ -539,62 +409,6 @@ def remove_stale_staging(out: Path) -> None:
 RECORDING = "recording.rrd"
 
 
-class InstantRecorder:
-    """The run's 3-D recording (:mod:`fisheyedepth.rerun3d`, ``--rerun``): the images of one instant (its
-    cameras' images within ``same_instant_ns`` of the first) logged together, each with its ``kept`` and
-    ``filled`` maps, its ground truth and abs_rel where the recording has them; the body's pose from the
-    odometry; the recorded rig, and the refined one beside it."""
-
-    def __init__(self, path: Path, layout: RigLayout, recorded: dict, refinement: dict | None,
-                 same_instant_ns: int = 1_000_000):  # fmt: skip
-        from ..rerun3d import RigRecorder
-
-        self.layout, self.same_instant_ns = layout, same_instant_ns
-        self.recorder = RigRecorder(path, "fisheyedepth-multiview")
-        self.recorder.rig(recorded, name="rig")
-        self.rig = {name: spec.cam_to_body for name, spec in layout.cameras.items()}
-        if refinement is not None:
-            self.recorder.rig(self.rig, name="refined")
-        self.views: dict = {}
-        self.at: tuple[str, Frame] | None = None
-        self.index = 0
-
-    def add(self, pairing: Pairing, image: np.ndarray, fused: Fused, truth, record: dict) -> None:
-        from ..rerun3d import CameraView
-
-        if self.at is not None and (
-            self.at[0] != pairing.sequence
-            or pairing.frame.key - self.at[1].key > self.same_instant_ns
-            or pairing.camera in self.views  # a camera's second image within the window: its own instant
-        ):
-            self.flush()
-        if self.at is None:
-            self.at = (pairing.sequence, pairing.frame)
-        checked = (record.get("checked") or {}).get("abs_rel")
-        self.views[pairing.camera] = CameraView(
-            self.layout.cameras[pairing.camera].camera, image[..., ::-1],
-            {"kept": fused.distance, "filled": fused.dense}, truth,
-            {"abs_rel": checked} if isinstance(checked, float) else {},
-        )  # fmt: skip
-
-    def flush(self) -> None:
-        if self.at is not None:
-            frame = self.at[1]
-            self.recorder.instant(frame.key, self.index, self.views, frame.pose, self.rig)
-            self.index += 1
-        self.views, self.at = {}, None
-
-    def __enter__(self) -> InstantRecorder:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.flush()
-            self.recorder.close()
-        else:
-            self.recorder.discard()
-
-
 def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rerun=False) -> dict[str, Any]:
     """The matching itself: every output of ``paired`` written into ``out`` (with ``rerun``, the 3-D
     recording too: :class:`InstantRecorder`); the summary, returned."""
@@ -703,98 +517,3 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
     if recorder is not None:
         recorder.add(pairing, image, fused, truth, record)
     return record
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="fisheyedepth-multiview", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    parser.add_argument("root", type=Path, help="a recording in the rig layout")
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--sources", default="rig,time", help="rig, time, or both (default)")
-    parser.add_argument("--matcher", choices=MATCHERS, default="sgbm")
-    parser.add_argument("--min-distance", type=float, default=0.3, help="metres (default 0.3)")
-    parser.add_argument("--max-distance", type=float, default=80.0, help="metres (default 80)")
-    parser.add_argument("--resolution", type=float, default=None,
-                        help="degrees per rectified pixel (default: each pair's coarser camera)")  # fmt: skip
-    parser.add_argument("--min-confidence", type=float, default=None,
-                        help="--matcher sgbm: the least confidence a kept pixel needs (default 0: every "
-                        "pixel the checks keep; docs/inference.md says what each level keeps)")  # fmt: skip
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: all)")
-    parser.add_argument("--hypotheses", type=int, default=None, help="--matcher sweep: distances (128)")
-    parser.add_argument("--cost", choices=("zncc", "census"), default=None, help="--matcher sweep (zncc)")
-    parser.add_argument("--max-images", type=int, default=None)
-    refine_help = "refine the rig's extrinsics from its images first (rotation, the default, or pose: also "
-    refine_help += "the translation's direction); writes OUT/rig.yaml"
-    parser.add_argument("--refine", nargs="?", const="rotation", choices=REFINE, help=refine_help)
-    parser.add_argument("--rerun", action="store_true",
-                        help=f"also write OUT/{RECORDING}, a 3-D recording for the Rerun viewer")  # fmt: skip
-    parser.add_argument("--overwrite", action="store_true")
-    parser.add_argument("--quiet", action="store_true")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
-    try:
-        if args.threads is not None:
-            check_threads(args.threads, "--threads")
-            torch.set_num_threads(args.threads)
-            cv2.setNumThreads(args.threads)
-        if args.max_images is not None and args.max_images < 1:
-            raise ValueError(f"--max-images: {args.max_images}; at least 1 (or leave it out: every image)")
-        only = {"sweep": ("hypotheses", "cost"), "sgbm": ("resolution", "min_confidence")}
-        for matcher, options in only.items():
-            given = [f"--{o.replace('_', '-')}" for o in options if getattr(args, o) is not None]
-            if given and args.matcher != matcher:
-                raise ValueError(f"{', '.join(given)}: an option of --matcher {matcher}, not {args.matcher}")
-        if args.matcher == "sweep":
-            matcher = SweepStereo(
-                128 if args.hypotheses is None else args.hypotheses,
-                args.min_distance,
-                args.max_distance,
-                args.cost or "zncc",
-            )
-        else:
-            resolution = None if args.resolution is None else math.radians(args.resolution)
-            matcher = StereoSettings(args.min_distance, args.max_distance, resolution,
-                                     min_confidence=args.min_confidence or 0.0)  # fmt: skip
-        sources = tuple(args.sources.split(","))
-        with sigterm_raises():
-            summary = run(
-                args.root,
-                args.out,
-                matcher,
-                sources,
-                args.overwrite,
-                not args.quiet,
-                args.max_images,
-                args.refine,
-                args.rerun,
-            )
-    except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, ImportError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder and lock are gone with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except OSError as err:  # the disk filled, a folder turned read-only, or an input cannot be read
-        if err.errno not in WRITE_ERRORS:
-            raise
-        where = os.path.abspath(err.filename or args.out)
-        written = where.startswith(os.path.abspath(args.out)) or where.startswith(
-            os.path.abspath(args.out.parent / f".{args.out.name}.")
-        )  # --out, or its staging folder or lock beside it
-        what = f"--out: {where}: cannot be written" if written else f"{where}: cannot be read"
-        print(f"error: {what} ({err.strerror})", file=sys.stderr)
-        return 2
-    seconds = summary["seconds"]["per_image"]
-    left = len(summary["images_left_out"])
-    print(f"{len(summary['images'])} images matched ({seconds:.2f} s each), {left} left out "
-          f"(summary.json says why); {args.out}")  # fmt: skip
-    if len(summary["kept_nothing"]) == len(summary["images"]):  # nothing done: no exit 0 for it
-        why = sorted(set(summary["pairs_left_out"].values()))
-        flat = [r["image"] for r in summary["images"] if r["flat"] > 0.5]
-        if flat:
-            why.append(f"{len(flat)} of the images are flat (no contrast to match) over half their pixels")
-        why = "; ".join(why) or "no pixel passed the checks"
-        print(f"error: {args.out}: no image kept a pixel ({why})", file=sys.stderr)
-        return 1
-    return 0
