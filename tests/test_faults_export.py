@@ -21,7 +21,6 @@ import pytest
 from omegaconf import OmegaConf
 
 import fisheyedepth.cli.export as export_module
-import fisheyedepth.outputs as outputs_module
 import fisheyedepth.utils as utils_module
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
@@ -149,15 +148,17 @@ def hold_during_export(monkeypatch, during):
 def second_export_waiting(monkeypatch, cfg) -> tuple[threading.Thread, dict]:
     """Another export.py of ``cfg`` in a thread, started and left waiting at the output's lock; the
     dict gets its record or its error."""
+    import fcntl
+
     waiting, result = threading.Event(), {}
-    flock = outputs_module.fcntl.flock
+    flock = fcntl.flock
 
     def noting_flock(fd, operation):
         if threading.current_thread() is not threading.main_thread():
             waiting.set()
         return flock(fd, operation)
 
-    monkeypatch.setattr(outputs_module.fcntl, "flock", noting_flock)
+    monkeypatch.setattr(fcntl, "flock", noting_flock)  # the writers' lock (utils.take_lock)
 
     def run():
         try:

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import fcntl
 import os
 from pathlib import Path
 
-from .utils import WRITE_ERRORS, temporary_beside
+from .utils import WRITE_ERRORS, drop_lock, take_lock, temporary_beside
 
 
 def record_path(path: Path) -> Path:
@@ -36,26 +35,11 @@ def output_lock(path: Path):
     lock = path.parent / f".{path.name}.lock"
     with writable(path):  # before the export's work: a folder it cannot write fails at once
         path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        with writable(path):
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        if same_file(fd, lock):  # not a lock file its holder removed while this one waited for it
-            break
-        os.close(fd)
+        fd = take_lock(lock, wait=True)
     try:
         yield
     finally:
-        if same_file(fd, lock):
-            lock.unlink()
-        os.close(fd)
-
-
-def same_file(fd: int, path: Path) -> bool:
-    try:
-        return os.fstat(fd).st_ino == os.stat(path).st_ino
-    except FileNotFoundError:
-        return False
+        drop_lock(fd, lock)
 
 
 def place(path: Path, data: bytes, record: str, overwrite: bool) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import functools
 import hashlib
 import io
@@ -297,6 +298,50 @@ def move_into_place(staging: Path, out: Path, parts: list[Path], overwrite: bool
             with contextlib.suppress(OSError):
                 folder.rmdir()
         raise
+
+
+# ------------------------------------------------------------------ locks
+def same_file(fd: int, path: str | os.PathLike) -> bool:
+    """Whether the open descriptor ``fd`` is the file at ``path`` now (not one removed meanwhile)."""
+    try:
+        return os.fstat(fd).st_ino == os.stat(path).st_ino
+    except FileNotFoundError:
+        return False
+
+
+def take_lock(lock: str | os.PathLike, wait: bool = False) -> int:
+    """The one lock of the package's writers: the lock file ``lock`` opened (created) and held with
+    ``flock``, its descriptor returned. ``wait``: wait for a holder to let it go; otherwise a holder is a
+    ``BlockingIOError``. The kernel lets a lock go when its process ends, however it ends, so a killed
+    writer's lock file is taken over, never waited on; a lock file its holder removed while this one
+    waited is not held but opened again. Released with :func:`drop_lock`."""
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise
+        if same_file(fd, lock):
+            return fd
+        os.close(fd)
+
+
+def drop_lock(fd: int, lock: str | os.PathLike) -> None:
+    """Let go of a lock :func:`take_lock` took: its file removed (while still the one held), then closed."""
+    if same_file(fd, lock):
+        Path(lock).unlink()
+    os.close(fd)
+
+
+@contextlib.contextmanager
+def locked(lock: str | os.PathLike, wait: bool = False) -> Iterator[int]:
+    """:func:`take_lock` for the duration of a ``with`` block, :func:`drop_lock` at its end."""
+    fd = take_lock(lock, wait)
+    try:
+        yield fd
+    finally:
+        drop_lock(fd, lock)
 
 
 def pid_alive(pid: int) -> bool:

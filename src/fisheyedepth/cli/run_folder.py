@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import fcntl
 import logging
 import os
 import socket
@@ -23,7 +22,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ..utils import remove_stale_temporaries
+from ..utils import drop_lock, remove_stale_temporaries, take_lock
 
 log = logging.getLogger("fisheyedepth")
 
@@ -39,13 +38,6 @@ def other_rank() -> bool:
     return int(rank) != 0 or int(os.environ.get("NODE_RANK") or 0) != 0
 
 
-def _same_file(fd: int, path: Path) -> bool:
-    try:
-        return os.fstat(fd).st_ino == os.stat(path).st_ino
-    except FileNotFoundError:
-        return False
-
-
 def acquire(folder: str | os.PathLike) -> bool:
     """Lock ``folder`` for this process; False when this process holds it already. Another live process
     holding it is a :class:`FileExistsError` naming it."""
@@ -53,20 +45,14 @@ def acquire(folder: str | os.PathLike) -> bool:
     if path in _held:
         return False
     path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            holder = path.read_text(errors="replace").strip() or "?"
-            os.close(fd)
-            raise FileExistsError(
-                f"{shown}: another training run (process {holder}) is writing into this folder; "
-                "wait for it to end, or choose another hydra.run.dir"
-            ) from None
-        if _same_file(fd, path):  # not a file its owner removed while this one waited for it
-            break
-        os.close(fd)
+    try:
+        fd = take_lock(path)
+    except BlockingIOError:
+        holder = path.read_text(errors="replace").strip() or "?"
+        raise FileExistsError(
+            f"{shown}: another training run (process {holder}) is writing into this folder; "
+            "wait for it to end, or choose another hydra.run.dir"
+        ) from None
     left = os.read(fd, 200).decode(errors="replace").strip()
     if left:
         log.warning("%s: taking over the lock of process %s, which ended without removing it", shown, left)
@@ -80,11 +66,8 @@ def release(folder: str | os.PathLike) -> None:
     """Remove this process's lock of ``folder`` (nothing when it holds none)."""
     path = Path(folder).resolve() / LOCK
     fd = _held.pop(path, None)
-    if fd is None:
-        return
-    if _same_file(fd, path):
-        path.unlink()
-    os.close(fd)
+    if fd is not None:
+        drop_lock(fd, path)
 
 
 @atexit.register

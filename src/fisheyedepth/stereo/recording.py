@@ -6,7 +6,6 @@ written into a staging folder beside ``--out``, moved into place when the run co
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import logging
 import math
@@ -23,7 +22,6 @@ from tqdm import tqdm
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
-from ..outputs import same_file
 from ..rerun3d import InstantRecorder
 from ..utils import (
     atomic_write_npy,
@@ -31,8 +29,10 @@ from ..utils import (
     atomic_write_text,
     check_apart,
     check_writable,
+    drop_lock,
     move_into_place,
     staged_folder,
+    take_lock,
 )
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
@@ -312,22 +312,16 @@ def sole_writer(out: Path):
     ``out`` is refused by name, not interleaved."""
     lock = out.parent / f".{out.name}.multiview.lock"
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            if not same_file(fd, lock):  # its holder removed it meanwhile: a new run may hold a new one
-                raise BlockingIOError
-        except BlockingIOError:
-            raise FileExistsError(
-                f"--out: {out}: another fisheyedepth-multiview writes into it ({lock})"
-            ) from None
-        try:
-            yield
-        finally:
-            lock.unlink(missing_ok=True)
+        fd = take_lock(lock)
+    except BlockingIOError:
+        raise FileExistsError(
+            f"--out: {out}: another fisheyedepth-multiview writes into it ({lock})"
+        ) from None
+    try:
+        yield
     finally:
-        os.close(fd)
+        drop_lock(fd, lock)
 
 
 def run(
