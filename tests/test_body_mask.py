@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import yaml
 
+from fisheyedepth.cli.estimate_mask import main
 from fisheyedepth.data import Kitti360Layout
-from fisheyedepth.data.body_mask import estimate_body_mask, main, ray_elevation, sample_evenly
+from fisheyedepth.data.body_mask import estimate_body_mask, ray_elevation, sample_evenly
 from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.data.kitti360.presets import KITTI360_CAM_TO_POSE
 from fisheyedepth.geometry import pose_from_3x4

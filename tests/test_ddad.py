@@ -17,6 +17,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from fisheyedepth.cameras import PinholeCamera, RayCache
+from fisheyedepth.cli import import_ddad
 from fisheyedepth.data import ddad
 from fisheyedepth.data.layouts import RigLayout
 
@@ -251,10 +252,8 @@ def test_a_body_mask_keeps_the_ground_truth_off_the_body(tmp_path, synthetic):
     mask[24:, :] = 0  # the lower half: the hood
     cv2.imwrite(str(tmp_path / "hood.png"), mask)
     out = tmp_path / "rig"
-    assert (
-        ddad.main(["--src", str(folder), "--out", str(out), "--mask", f"CAMERA_01={tmp_path / 'hood.png'}"])
-        == 0
-    )
+    hood = f"CAMERA_01={tmp_path / 'hood.png'}"
+    assert import_ddad.main(["--src", str(folder), "--out", str(out), "--mask", hood]) == 0
     layout = RigLayout(out)
     assert layout.cameras["CAMERA_01"].mask == out / "masks" / "CAMERA_01.png"
     assert layout.cameras["CAMERA_05"].mask is None
@@ -268,15 +267,15 @@ def test_an_existing_rig_is_kept_without_overwrite_and_replaced_whole_with_it(tm
     folder, _, _ = synthetic
     out = tmp_path / "rig"
     args = ["--src", str(folder), "--out", str(out)]
-    assert ddad.main(args) == 0
+    assert import_ddad.main(args) == 0
     stale = out / "seq0" / "images" / "CAMERA_01" / "7.png"
     stale.write_bytes(b"an image of an earlier import")
     capsys.readouterr()
-    assert ddad.main(args) == 2
+    assert import_ddad.main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: {out / 'rig.yaml'} exists; pass overwrite=True (--overwrite) to replace it"]
     assert stale.is_file()
-    assert ddad.main([*args, "--overwrite"]) == 0
+    assert import_ddad.main([*args, "--overwrite"]) == 0
     assert not stale.exists() and len(RigLayout(out).frames("seq0", "CAMERA_01")) == 3
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
 
@@ -287,7 +286,7 @@ def refused(tmp_path, capsys, edit, match: str, **kw) -> str:
     folder = write_scene(tmp_path / "scene", edit=edit, **kw)
     out = tmp_path / "rig"
     capsys.readouterr()
-    assert ddad.main(["--src", str(folder), "--out", str(out)]) == 2
+    assert import_ddad.main(["--src", str(folder), "--out", str(out)]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line and not line.startswith("ddad -> ")]
     assert len(err) == 1 and err[0].startswith("error: "), err  # beside the progress bar, one line
     assert re.search(match, err[0]), err[0]
@@ -378,7 +377,7 @@ def test_a_mask_of_another_size_and_an_unknown_camera_are_refused(tmp_path, synt
         ("CAMERA_05", "--mask: expected CAMERA=FILE, got 'CAMERA_05'"),
     ):
         capsys.readouterr()
-        assert ddad.main(["--src", str(folder), "--out", str(out), "--mask", mask]) == 2
+        assert import_ddad.main(["--src", str(folder), "--out", str(out), "--mask", mask]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
         assert not out.exists()

@@ -431,7 +431,7 @@ def test_aria_and_real_world_json_refuse_a_deep_file(tmp_path):
 
 
 def test_rosbag_extrinsics_refuse_a_deep_file(tmp_path, capsys):
-    from fisheyedepth.data.rosbag import main
+    from fisheyedepth.cli.import_rosbag import main
 
     path = write(tmp_path / "extrinsics.yaml", DEEP_YAML_BLOCK)
     argv = [str(tmp_path / "no.bag"), "--out", str(tmp_path / "out"), "--camera", "front=/front/image_raw"]

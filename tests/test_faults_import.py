@@ -124,7 +124,7 @@ def run(bag, out, **options):
 
 
 def cli(bag, out, topic, *options) -> int:
-    from fisheyedepth.data.rosbag import main
+    from fisheyedepth.cli.import_rosbag import main
 
     extrinsics = bag.parent / "extrinsics.yaml"
     extrinsics.write_text(yaml.safe_dump({"cam": np.eye(4).tolist()}))

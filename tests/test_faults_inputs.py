@@ -24,14 +24,14 @@ import yaml
 
 from fisheyedepth.cameras import CalibrationError, save_camera
 from fisheyedepth.cli import run_command
+from fisheyedepth.cli.estimate_mask import main as estimate_mask_main
+from fisheyedepth.cli.import_aria import main as aria_main
 from fisheyedepth.cli.predict import predict
+from fisheyedepth.cli.synthetic import main as synthetic_main
 from fisheyedepth.data.aria import CALIBRATION, POSES, aria_to_rig
-from fisheyedepth.data.aria import main as aria_main
 from fisheyedepth.data.body_mask import estimate_body_mask
-from fisheyedepth.data.body_mask import main as estimate_mask_main
 from fisheyedepth.images import MAX_PIXELS_VARIABLE, FrameSource, ImageError, read_image
 from fisheyedepth.synthetic import WorldSpec, generate
-from fisheyedepth.synthetic.cli import main as synthetic_main
 from fisheyedepth.synthetic.folder import NoSpaceLeft
 
 from conftest import aria_fisheye624, bare_module, kitti02
@@ -140,7 +140,7 @@ def test_an_aria_export_without_its_vio_poses_is_named(tmp_path, capsys):
 def test_aria_poses_of_another_unit_or_a_quaternion_not_of_norm_one_are_refused(tmp_path, capsys):
     """A VIO CSV in nanoseconds (no image within the poses' time range once read as microseconds) and a
     quaternion of norm 2 or 1e-6 are refused naming the file (and the line), and nothing is written."""
-    from fisheyedepth.data.aria import main
+    from fisheyedepth.cli.import_aria import main
 
     src, out = aria_export(tmp_path / "src"), tmp_path / "rig"
     rows = (src / POSES).read_text().splitlines()
@@ -175,7 +175,7 @@ def test_two_aria_frames_with_one_capture_time_are_an_error(tmp_path, capsys):
     with pytest.raises(ValueError, match="one image would replace the other"):
         aria_to_rig(src, out, overwrite=True)  # where one image silently replaced the other
     assert not out.exists()
-    from fisheyedepth.data.aria import main
+    from fisheyedepth.cli.import_aria import main
 
     assert main(["--src", str(src), "--out", str(out)]) == 2
     assert capsys.readouterr().err.strip() == f"error: {info.value}"

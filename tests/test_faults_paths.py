@@ -86,7 +86,7 @@ def bag(tmp_path) -> Path:
 
 
 def import_main(bag: Path, out: Path, *options: str) -> int:
-    from fisheyedepth.data.rosbag import main
+    from fisheyedepth.cli.import_rosbag import main
 
     return main([str(bag), "--out", str(out), "--odometry", "/odom", *options])
 
@@ -294,7 +294,7 @@ def test_an_aria_camera_or_sequence_named_like_a_path_is_refused_and_nothing_is_
 
 @pytest.mark.parametrize("option, value", [("--camera", "../cam"), ("--sequence", "../drive")])
 def test_the_body_mask_command_refuses_a_camera_or_sequence_named_like_a_path(rig, capsys, option, value):
-    from fisheyedepth.data.body_mask import main
+    from fisheyedepth.cli.estimate_mask import main
 
     args = {"--camera": "cam", "--sequence": "drive", option: value}
     argv = ["--root", str(rig), "--layout", "rig", *(x for kv in args.items() for x in kv)]

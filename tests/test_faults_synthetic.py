@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+from fisheyedepth.cli.synthetic import main as cli_main
 from fisheyedepth.synthetic import (
     MARKER,
     DatasetMismatch,
@@ -28,7 +29,6 @@ from fisheyedepth.synthetic import (
     is_complete,
     made_by_generator,
 )
-from fisheyedepth.synthetic.cli import main as cli_main
 from fisheyedepth.synthetic.folder import OWNER
 from fisheyedepth.synthetic.frames import FrameRenderer
 from fisheyedepth.synthetic.sensor import check_effects
@@ -329,7 +329,7 @@ def render_in_python(out: Path) -> subprocess.Popen:
 @linux_only
 def test_sigterm_of_make_synthetic_stops_the_workers_and_removes_the_partial_folder(tmp_path):
     out = tmp_path / "d"
-    cmd = [sys.executable, "-m", "fisheyedepth.synthetic.cli", "--out", str(out)]
+    cmd = [sys.executable, "-m", "fisheyedepth.cli.synthetic", "--out", str(out)]
     cmd += [f"--{k}={v}" for k, v in SLOW.items()] + ["--workers=2", "--no-lidar", "--quiet"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE)
     workers = wait_mid_render(proc, out)

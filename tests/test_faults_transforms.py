@@ -349,6 +349,7 @@ def test_the_other_commands_stopped_by_a_signal_end_with_one_line_and_write_noth
     reads the recording, the command returns the signal's status with one line and writes nothing."""
     import signal
 
+    from fisheyedepth.cli import estimate_mask
     from fisheyedepth.data import body_mask
     from test_faults_inputs import still_rig
 
@@ -362,7 +363,7 @@ def test_the_other_commands_stopped_by_a_signal_end_with_one_line_and_write_noth
     monkeypatch.setattr(body_mask, "open_layout", signalled)
     before = signal.getsignal(signal.SIGTERM)
     args = ["--root", str(tmp_path / "rec"), "--layout", "rig", "--sequence", "seq0", "--camera", "cam"]
-    assert body_mask.main(args) == status
+    assert estimate_mask.main(args) == status
     assert capsys.readouterr().err == f"error: {said}\n"
     assert not (tmp_path / "rec" / "masks").exists() and signal.getsignal(signal.SIGTERM) is before
 
@@ -371,6 +372,7 @@ def test_the_other_commands_stopped_by_a_signal_end_with_one_line_and_write_noth
 def test_an_importer_stopped_by_a_signal_writes_nothing(tmp_path, monkeypatch, capsys, signum, status):
     import signal
 
+    from fisheyedepth.cli import import_aria
     from fisheyedepth.data import aria
     from test_faults_inputs import aria_export
 
@@ -384,7 +386,7 @@ def test_an_importer_stopped_by_a_signal_writes_nothing(tmp_path, monkeypatch, c
         return read(*args)
 
     monkeypatch.setattr(aria, "read_aria_poses", signalled)
-    assert aria.main(["--src", str(src), "--out", str(tmp_path / "rig")]) == status
+    assert import_aria.main(["--src", str(src), "--out", str(tmp_path / "rig")]) == status
     err = capsys.readouterr().err
     assert calls and "nothing was written to" in err and "Traceback" not in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["src"]  # no output, no staging

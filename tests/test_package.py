@@ -41,7 +41,10 @@ def test_configs_become_objects_only_in_the_commands():
     )
     assert users and all(u.startswith("cli/") for u in users), users
     commands = sorted(p.stem for p in (package / "cli").glob("*.py"))
-    assert commands == ["__init__", "evaluate", "export", "multiview", "predict", "run_folder", "train"]
+    assert commands == [
+        "__init__", "estimate_mask", "evaluate", "export", "import_aria", "import_ddad", "import_rosbag",
+        "multiview", "predict", "run_folder", "synthetic", "train",
+    ]  # fmt: skip
     small = [p for p in (package / "cli").glob("*.py") if p.stem != "run_folder"]  # the commands
     assert max(len(p.read_text().splitlines()) for p in small) < 150
     scripts = (ROOT / "pyproject.toml").read_text()
@@ -64,7 +67,7 @@ def test_commands_that_train_nothing_start_without_lightning():
     about 3 s of each such process's start on 2 cores."""
     code = (
         "import sys\n"
-        "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.synthetic.cli\n"
+        "import fisheyedepth.cli.predict, fisheyedepth.cli.export, fisheyedepth.cli.synthetic\n"
         "import fisheyedepth.cli.train\n"
         "from fisheyedepth.runtimes import TrainedDepthNet\n"
         "print(sorted(m for m in sys.modules if m.split('.')[0] in ('lightning', 'pytorch_lightning')))\n"

@@ -281,7 +281,8 @@ def test_camera_info_distortion_models(ros):
 
 
 def test_unsupported_input_is_named(frames, tmp_path):
-    from fisheyedepth.data.rosbag import RosbagError, import_rosbag, main
+    from fisheyedepth.cli.import_rosbag import main
+    from fisheyedepth.data.rosbag import RosbagError, import_rosbag
 
     bag = tmp_path / "run"
     write_bag(bag, "ros2-sqlite3", frames)
@@ -321,7 +322,7 @@ def test_given_calibration_and_extrinsics_replace_the_bags(frames, tmp_path):
     import yaml
 
     from fisheyedepth.cameras import save_camera
-    from fisheyedepth.data.rosbag import main
+    from fisheyedepth.cli.import_rosbag import main
 
     bag = tmp_path / "run.bag"
     write_bag(bag, "ros1", frames)

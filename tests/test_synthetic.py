@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from fisheyedepth.cameras import RayCache, load_camera
+from fisheyedepth.cli.synthetic import main as cli_main
 from fisheyedepth.data.kitti360 import (
     KITTI360_CAM_TO_POSE,
     kitti360_camera,
@@ -22,7 +23,6 @@ from fisheyedepth.data.kitti360 import (
 )
 from fisheyedepth.geometry import relative_pose, sample, warp_to_source
 from fisheyedepth.synthetic import WorldSpec, generate, is_complete, make_trajectory, make_world
-from fisheyedepth.synthetic.cli import main as cli_main
 from fisheyedepth.synthetic.frames import FrameRenderer
 from fisheyedepth.synthetic.raycast import first_per_ray
 from fisheyedepth.synthetic.scene import split_frames

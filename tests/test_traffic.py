@@ -334,7 +334,7 @@ def test_outliers_leave_the_worst_pixels_of_each_image_out_of_the_loss():
 
 
 def test_the_command_line_takes_traffic_and_effects_and_refuses_bad_ones(tmp_path, capsys):
-    from fisheyedepth.synthetic.cli import main
+    from fisheyedepth.cli.synthetic import main
 
     out = tmp_path / "d"
     assert main(["--out", str(out), "--traffic", "-1", "--quiet"]) == 2

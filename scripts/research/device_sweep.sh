@@ -27,7 +27,7 @@ mkdir -p "$RUNS" "$OUT"
 
 render() {  # seed frames workers
   local dir=data/synthetic_${RIG}_256_seed$1_f$2
-  [ -d "$dir" ] || $PY -m fisheyedepth.synthetic.cli --out "$dir" --rig "$RIG" --frames "$2" \
+  [ -d "$dir" ] || $PY -m fisheyedepth.cli.synthetic --out "$dir" --rig "$RIG" --frames "$2" \
     --size 256 --seed "$1" --supersample 2 --workers "$3" --quiet
 }
 # the training world first, on every core; the held-out worlds while the variants train (scoring

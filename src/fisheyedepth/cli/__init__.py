@@ -27,6 +27,20 @@ EXIT_USAGE = 2
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
 
 
+def named_values(values: list[str] | None, option: str, form: str = "NAME=VALUE") -> dict[str, str]:
+    """Repeated ``NAME=VALUE`` options (``--camera front=/front/image_raw``) as a mapping; a value without
+    its name or its ``=``, or a name given twice (the last would win unseen), refused naming ``option``."""
+    out: dict[str, str] = {}
+    for value in values or []:
+        name, sep, rest = value.partition("=")
+        if not sep or not name or not rest:
+            raise ValueError(f"{option}: expected {form}, got {value!r}")
+        if name in out:
+            raise ValueError(f"{option}: {name} given twice ({name}={out[name]} and {value})")
+        out[name] = rest
+    return out
+
+
 def model_file_alias(argv: list[str]) -> list[str]:
     """``model=FILE.onnx`` on the command line of ``predict.py`` and ``eval.py``, which choose no model
     config group: Hydra reads ``model=`` as a choice from ``conf/model/`` wherever that group exists, so

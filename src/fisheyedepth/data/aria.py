@@ -35,16 +35,12 @@ from tqdm import tqdm
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
 from ..utils import (
-    Terminated,
-    check_apart,
     inside,
     move_into_place,
     path_name,
-    sigterm_raises,
     staged_folder,
-    stopped_by,
 )
-from .layouts import RigLayout, _transform, unit_quaternion
+from .layouts import RigLayout, read_transform, unit_quaternion
 
 CALIBRATION = "calib_slam_fisheye624.json"
 POSES = "vio_high_frequency_T_odometry_device.csv"
@@ -94,7 +90,7 @@ def aria_camera(calib_path: Path, name: str, entry: dict) -> tuple[Fisheye624Cam
     T = entry.get("T_device_camera")
     if T is None or np.asarray(T, dtype=object).shape != (4, 4):
         raise CalibrationError(calib_path, f"{name}.T_device_camera", f"expected a 4x4 matrix, got {T!r}")
-    _transform(T, calib_path, f"{name}.T_device_camera")  # the rig layout's check: rigid, finite
+    read_transform(T, calib_path, f"{name}.T_device_camera")  # the rig layout's check: rigid, finite
     return camera, np.asarray(T, dtype=float)
 
 
@@ -209,49 +205,3 @@ def aria_to_rig(
         "poses": len(poses),
         "out": str(out),
     }
-
-
-def main(argv=None) -> int:
-    """Convert a Project Aria export (Fisheye624 calibration JSON, VIO poses CSV, one image folder per
-    camera) into the robot-rig layout that ``train.py data=rig`` reads.
-
-        fisheyedepth-import-aria --src ../shared/realdata/aria_gen2_rig --out data/aria_gen2_rig
-            [--overwrite]
-        RIG_ROOT=data/aria_gen2_rig python train.py data=rig ...
-
-    An export the rig layout would refuse once converted (a camera whose model gives no pixel a ray, a size
-    that is not whole pixels, two images with one capture time, ...) is refused with one line naming the
-    file, and nothing is written.
-    """
-    import argparse
-    import inspect
-    import json
-    import sys
-
-    parser = argparse.ArgumentParser(
-        prog="fisheyedepth-import-aria",
-        description=inspect.cleandoc(main.__doc__ or ""),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("--src", type=Path, required=True)
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--sequence", default="seq0")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    try:
-        with sigterm_raises():
-            check_apart(args.out, "--out", {"the Aria export": args.src})
-            summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -62,15 +62,11 @@ from tqdm import tqdm
 from ..cameras import CalibrationError, PinholeCamera, camera_from_mapping, load_json, save_camera
 from ..images import ImageError, read_image
 from ..utils import (
-    Terminated,
     atomic_write_npy,
-    check_apart,
     inside,
     move_into_place,
     path_name,
-    sigterm_raises,
     staged_folder,
-    stopped_by,
 )
 from .kitti360 import OCCLUSION, project_points
 from .layouts import RigLayout, quaternion_matrix, unit_quaternion
@@ -651,68 +647,3 @@ def ddad_to_rig(
         "time_origin": origin.stamp_text,
         "out": str(out),
     }
-
-
-def _named_paths(values: list[str] | None, option: str) -> dict[str, Path]:
-    out: dict[str, Path] = {}
-    for value in values or []:
-        name, sep, path = value.partition("=")
-        if not sep or not name or not path:
-            raise ValueError(f"{option}: expected CAMERA=FILE, got {value!r}")
-        if name in out:
-            raise ValueError(f"{option}: {name} given twice")
-        out[name] = Path(path)
-    return out
-
-
-def main(argv=None) -> int:
-    """Convert a DDAD scene (TRI's dgp scene format: scene_*.json, calibration/*.json, the images and the
-    LiDAR sweeps) into the robot-rig layout that ``train.py data=rig`` reads, each sweep projected into
-    each camera as ground-truth distance.
-
-        fisheyedepth-import-ddad --src ../shared/realdata/ddad_scene01 --out data/ddad_scene01
-            [--cameras CAMERA_01 CAMERA_05] [--lidar LIDAR] [--mask CAMERA_05=mask05.png] [--overwrite]
-        RIG_ROOT=data/ddad_scene01 python train.py data=rig ...
-
-    A scene the rig layout would refuse once converted (a quaternion that is not a unit one, names and
-    intrinsics of different counts, an image of another size than its datum says, ...) is refused with one
-    line naming the file and the field, and nothing is written.
-    """
-    import argparse
-    import inspect
-    import json
-    import sys
-
-    parser = argparse.ArgumentParser(
-        prog="fisheyedepth-import-ddad",
-        description=inspect.cleandoc(main.__doc__ or ""),
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("--src", type=Path, required=True, help="a DDAD scene folder or its scene_*.json")
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--sequence", default="seq0")
-    parser.add_argument("--cameras", nargs="+", help="default: every camera of the scene")
-    parser.add_argument("--lidar", help="the point cloud of the ground truth (default: the scene's only one)")
-    parser.add_argument("--mask", action="append", metavar="CAMERA=FILE", help="a body mask, 255 = usable")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    try:
-        with sigterm_raises():
-            masks = _named_paths(args.mask, "--mask")
-            check_apart(args.out, "--out", {"the DDAD scene": args.src})
-            summary = ddad_to_rig(
-                args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
-            )
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

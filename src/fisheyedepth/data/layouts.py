@@ -136,7 +136,7 @@ class RigLayout:
                     "missing (or give 'calibration: FILE', or a top-level 'calibration: CAMCHAIN')",
                 )
             if "cam_to_body" in entry:
-                extrinsic = _transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
+                extrinsic = read_transform(entry["cam_to_body"], rig_file, f"{where}.cam_to_body")
             elif calibrated_as is not None:
                 extrinsic = calibration_to_body @ calibrated_as.cam_to_body
             else:
@@ -178,7 +178,7 @@ class RigLayout:
         cameras = read_calibration(existing(self.root / rig["calibration"], "calibration file"))
         to_body = np.eye(4)
         if "calibration_to_body" in rig:
-            to_body = _transform(rig["calibration_to_body"], rig_file, "calibration_to_body")
+            to_body = read_transform(rig["calibration_to_body"], rig_file, "calibration_to_body")
         return cameras, to_body
 
     def sequences(self) -> list[str]:
@@ -393,7 +393,7 @@ def interpolate_pose(times: np.ndarray, trans: np.ndarray, quats: np.ndarray, t:
     return make_pose(R, (1 - u) * trans[i] + u * trans[i + 1]).numpy()
 
 
-def _transform(value, path: Path, key: str) -> np.ndarray:
+def read_transform(value, path: Path, key: str) -> np.ndarray:
     """A 4x4 / 3x4 matrix (nested lists) or ``{translation: [3], quaternion_xyzw: [4]}``."""
     if isinstance(value, dict) and "quaternion_xyzw" in value:
         try:

@@ -38,22 +38,17 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from ..cameras import CameraModel, load_camera, load_yaml, save_camera
+from ..cameras import CameraModel, load_camera, save_camera
 from ..cameras.opencv import ROS_MODELS
 from ..geometry import make_pose, rigid_transform
 from ..images import read_image
 from ..utils import (
-    Terminated,
-    check_apart,
     inside,
     move_into_place,
     path_name,
-    sigterm_raises,
     staged_folder,
-    stopped_by,
 )
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
-from .layouts import _transform as read_transform
 
 log = logging.getLogger(__name__)
 
@@ -566,81 +561,3 @@ def _check_loads(bag: Path, out: Path, sequence: str, counts: dict[str, int]) ->
                                  f"{camera.width}x{camera.height}")  # fmt: skip
     except (ValueError, FileNotFoundError) as err:
         raise RosbagError(f"{bag}: the import would not load for training: {err}") from None
-
-
-def _pairs(values: list[str], what: str) -> dict[str, str]:
-    """``NAME=VALUE`` options as a mapping; a name given twice is refused (the last would win unseen)."""
-    out = {}
-    for value in values or []:
-        if "=" not in value:
-            raise ValueError(f"{what}: expected NAME=VALUE, got {value!r}")
-        name, _, rest = value.partition("=")
-        if name in out:
-            raise ValueError(f"{what}: {name} given twice ({name}={out[name]} and {value})")
-        out[name] = rest
-    return out
-
-
-def main(argv=None) -> int:
-    """Console script ``fisheyedepth-import-rosbag``."""
-    import argparse
-    import json
-    import sys
-
-    parser = argparse.ArgumentParser(
-        description="Import a ROS 1 or ROS 2 bag into the rig layout (docs/data-format.md).",
-        epilog="example: fisheyedepth-import-rosbag run.bag --out data/my_rig "
-        "--camera front=/front/image_raw --camera left=/left/image_raw/compressed --odometry /odom",
-    )
-    parser.add_argument("bag", type=Path, help="a ROS 1 .bag, or a ROS 2 bag folder (.db3 or .mcap)")
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--camera", action="append", required=True, metavar="NAME=IMAGE_TOPIC")
-    parser.add_argument(
-        "--camera-info", action="append", metavar="NAME=TOPIC", help="default: <ns>/camera_info"
-    )
-    parser.add_argument("--calibration", action="append", metavar="NAME=FILE", help="instead of CameraInfo")
-    parser.add_argument(
-        "--extrinsics", type=Path, help="YAML {NAME: 4x4 camera->body}, instead of /tf_static"
-    )
-    poses = parser.add_mutually_exclusive_group(required=True)
-    poses.add_argument("--odometry", metavar="TOPIC", help="nav_msgs/Odometry poses of the body")
-    poses.add_argument("--tf-poses", nargs=2, metavar=("WORLD", "BODY"), help="body poses from /tf")
-    parser.add_argument("--body-frame", help="default: the odometry's child_frame_id (or BODY)")
-    parser.add_argument("--sequence", default="seq0")
-    parser.add_argument("--overwrite", action="store_true")
-    parser.add_argument(
-        "--max-pose-gap", type=float, metavar="SECONDS",
-        help="drop images in a longer gap of the poses (default: 5 median pose intervals)",
-    )  # fmt: skip
-    parser.add_argument(
-        "--bit-depth", type=int, metavar="BITS",
-        help="bits of data in 16-bit images, scaled to the full range (default: detected per topic)",
-    )  # fmt: skip
-    parser.add_argument("--strict", action="store_true", help="refuse a corrupt image instead of skipping it")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
-    try:
-        with sigterm_raises():
-            check_apart(args.out, "--out", {"the bag": args.bag})
-            extrinsics = {}
-            if args.extrinsics:
-                data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
-                if not isinstance(data, dict):
-                    raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
-                extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
-            summary = import_rosbag(
-                args.bag, args.out, _pairs(args.camera, "--camera"),
-                _pairs(args.camera_info, "--camera-info"), _pairs(args.calibration, "--calibration"),
-                extrinsics, args.odometry, tuple(args.tf_poses) if args.tf_poses else None,
-                args.body_frame, args.sequence, args.overwrite, args.max_pose_gap, args.bit_depth,
-                args.strict,
-            )  # fmt: skip
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0

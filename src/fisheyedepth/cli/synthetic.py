@@ -1,4 +1,4 @@
-"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.synthetic.cli``): render a synthetic fisheye
+"""``fisheyedepth-synthetic`` (``python -m fisheyedepth.cli.synthetic``): render a synthetic fisheye
 dataset."""
 
 from __future__ import annotations
@@ -8,14 +8,14 @@ import sys
 from pathlib import Path
 
 from ..option_checks import check_options
+from ..synthetic.folder import is_empty_dir, made_by_generator
+from ..synthetic.rig import RIGS
+from ..synthetic.sensor import EFFECTS
+from ..synthetic.spec import GENERATE_OPTIONS, SPEC_FIELDS, WorldSpec
+from ..synthetic.traffic import MAX_TRAFFIC
+from ..synthetic.world import SCENES
+from ..synthetic.writer import generate
 from ..utils import Terminated, stopped_by
-from .folder import is_empty_dir, made_by_generator
-from .rig import RIGS
-from .sensor import EFFECTS
-from .spec import GENERATE_OPTIONS, SPEC_FIELDS, WorldSpec
-from .traffic import MAX_TRAFFIC
-from .world import SCENES
-from .writer import generate
 
 
 def flag(option: str) -> str:
