@@ -14,7 +14,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from fisheyedepth.cli.train import train
-from fisheyedepth.config import check_options as check_config
+from fisheyedepth.config import check_config
 from fisheyedepth.option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Group, Number, check_options
 from fisheyedepth.synthetic import GENERATE_OPTIONS
 
@@ -185,7 +185,7 @@ def test_the_multiview_network_without_sources_is_refused(tmp_path, capsys):
 
 
 def check_training_of(cfg) -> None:
-    """What train.py's plan checks beyond config.check_options: the trainer, options that contradict each
+    """What train.py's plan checks beyond config.check_config: the trainer, options that contradict each
     other, memory."""
     from fisheyedepth.config import rig_offsets, source_offsets
     from fisheyedepth.plan import check_training, data_plan, model_plan

@@ -126,6 +126,35 @@ def test_ctrl_c_exits_130_with_one_line_naming_the_checkpoint_to_resume(data_dir
     check_resumable(last)
 
 
+@pytest.mark.parametrize("signum, stop", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, SystemExit)])
+def test_a_signal_while_a_checkpoint_is_written_stops_only_once_it_is_whole(
+    tmp_path, monkeypatch, signum, stop
+):
+    """Ctrl-C inside ``torch.save`` cuts its zip writer (a RuntimeError and a traceback, not the stop
+    asked for): the signal is held until the checkpoint is in place, then given to the handlers that
+    were there (here KeyboardInterrupt, and utils.sigterm_raises' Terminated)."""
+    from fisheyedepth.checkpoints import write_checkpoint
+    from fisheyedepth.utils import Terminated, sigterm_raises
+
+    save, calls = torch.save, []
+
+    def signalled_halfway(obj, handle):
+        calls.append(1)
+        signal.raise_signal(signum)  # as the signal arriving while the zip is written
+        return save(obj, handle)
+
+    monkeypatch.setattr(torch, "save", signalled_halfway)
+    path = tmp_path / "last.ckpt"
+    checkpoint = {"state_dict": {"w": torch.arange(1000.0)}, "epoch": 3}
+    with pytest.raises(stop) as stopped, sigterm_raises():
+        write_checkpoint(checkpoint, path)
+    assert calls == [1] and (signum == signal.SIGINT or isinstance(stopped.value, Terminated))
+    written = torch.load(path, map_location="cpu", weights_only=True)
+    assert written["epoch"] == 3 and torch.equal(written["state_dict"]["w"], torch.arange(1000.0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.ckpt"]  # whole, no temporary
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 def test_sigterm_exits_143_and_resuming_in_the_same_folder_keeps_history(data_dir, tmp_path):
     run_dir = tmp_path / "run"
     status, output, args = stopped_training(data_dir, run_dir, signal.SIGTERM)

@@ -33,7 +33,7 @@ from .migration import FLAT_KEYS, current_hparams, nested_hparams
 from .models.depth_net import check_network_memory
 from .option_checks import MODEL_OPTIONS, check_options
 from .options import check_combinations, net_options
-from .utils import atomic_target
+from .utils import atomic_target, signals_deferred
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
@@ -324,8 +324,8 @@ def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Pat
     Never through the system temp folder, which may be another filesystem (where a move becomes a copy
     that truncates the target first)."""
     path = Path(path)
-    with atomic_target(path, sync=True) as tmp, open(tmp, "wb") as handle:
-        torch.save(checkpoint, handle)
+    with signals_deferred(), atomic_target(path, sync=True) as tmp, open(tmp, "wb") as handle:
+        torch.save(checkpoint, handle)  # Ctrl-C or SIGTERM stop the run once the file is whole
     with contextlib.suppress(OSError):  # the rename itself, on filesystems that sync folders
         folder = os.open(path.parent, os.O_RDONLY)
         try:

@@ -1,7 +1,7 @@
 """What a training config leaves to be worked out: ``auto`` values (``model.net.base_focal``,
 ``trainer.precision``), keys that two groups must agree on (the source offsets the model warps and the data
 loads; ``${mul:...}``, the resolver of the cosine schedule), and checks of options: against the network
-(its input sizes, a resumed checkpoint's network) and by kind and range (:func:`check_options`). One
+(its input sizes, a resumed checkpoint's network) and by kind and range (:func:`check_config`). One
 place, so that every command and test resolves a config the same way; nothing here builds an object from
 a config (that happens in :mod:`fisheyedepth.cli`)."""
 
@@ -17,8 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .migration import nested_hparams
 from .models.depth_net import check_input_size
-from .option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Kind
-from .option_checks import check_options as check_table
+from .option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Kind, check_options
 from .synthetic import GENERATE_OPTIONS
 
 log = logging.getLogger("fisheyedepth")
@@ -100,16 +99,20 @@ def _configured(node: DictConfig | None, table: dict[str, Kind]) -> dict[str, An
     }
 
 
-def check_options(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig) -> None:
     """The sizes (:func:`check_sizes`), then every switch and number of the model (``model.*``), the data
     module (``data.datamodule.*``) and the synthetic renderer (``data.generate.*``) of its kind and range
     (:mod:`fisheyedepth.option_checks`), named as configured: refused before anything is rendered or
     trained, where a wrong kind would otherwise be taken for another (``automask=maybe`` as true,
     ``truth_weight=nan`` as 0)."""
     check_sizes(cfg)
-    check_table(_configured(cfg.model, MODEL_OPTIONS), MODEL_OPTIONS, "model.")
-    check_table(_configured(cfg.data.datamodule, DATAMODULE_OPTIONS), DATAMODULE_OPTIONS, "data.datamodule.")
-    check_table(_configured(cfg.data.get("generate"), GENERATE_OPTIONS), GENERATE_OPTIONS, "data.generate.")
+    groups = (
+        (cfg.model, MODEL_OPTIONS, "model."),
+        (cfg.data.datamodule, DATAMODULE_OPTIONS, "data.datamodule."),
+        (cfg.data.get("generate"), GENERATE_OPTIONS, "data.generate."),
+    )
+    for node, table, prefix in groups:
+        check_options(_configured(node, table), table, prefix)
 
 
 def model_arguments(cfg: DictConfig) -> tuple[str, dict[str, Any]]:

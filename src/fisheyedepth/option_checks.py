@@ -8,7 +8,7 @@ infinite one makes every loss non-finite (each step was skipped, then an untrain
 scored), and a string met a number deep in the loss as a TypeError. So each is refused where its
 group is read, before any work, with one line naming the option as the user typed it:
 ``model.objective.automask: 'maybe' is not a boolean (true or false)``. The entry points check the
-configured groups up front (:func:`fisheyedepth.config.check_options`) with the prefix of their
+configured groups up front (:func:`fisheyedepth.config.check_config`) with the prefix of their
 config (``model.``, ``data.datamodule.``); the classes that read them check again with their own
 names (``objective.truth_weight``), for a caller without a config.
 
@@ -308,8 +308,8 @@ DATAMODULE_OPTIONS: dict[str, Kind] = {  # fisheyedepth.data.FisheyeDataModule
 
 # ------------------------------------------------------------------------------------------ the trainer
 # Lightning's precisions (trainer.precision; auto: fisheyedepth.config.resolve_precision)
-PRECISIONS = ("auto", "32-true", "32", "bf16-mixed", "bf16-true", "bf16", "16-mixed", "16-true", "16")
-PRECISIONS += ("64-true", "64", "transformer-engine", "transformer-engine-float16")
+TRAINING_PRECISIONS = ("auto", "32-true", "32", "bf16-mixed", "bf16-true", "bf16", "16-mixed", "16-true")
+TRAINING_PRECISIONS += ("16", "64-true", "64", "transformer-engine", "transformer-engine-float16")
 ACCELERATORS = ("auto", "cpu", "cuda", "gpu", "mps")  # auto: CUDA where torch sees a GPU, else the CPU
 BATCHES = Either(  # Lightning's limit_*_batches and val_check_interval: a fraction, or a count
     (Number(0.0, 1.0, above=True), Number(low=1, whole=True)),
@@ -332,7 +332,7 @@ TRAINER_OPTIONS: dict[str, Kind] = {  # lightning.Trainer, as conf/trainer sets 
     "gradient_clip_val": Number(low=0.0, optional=True, note="null or 0: no clipping"),
     "gradient_clip_algorithm": Choice(("norm", "value"), optional=True),
     "log_every_n_steps": Number(low=1, whole=True),
-    "precision": Choice(PRECISIONS),
+    "precision": Choice(TRAINING_PRECISIONS),
     "accelerator": Choice(ACCELERATORS),
     "devices": Either(
         (Number(low=1, whole=True, also=(-1,), words=("auto",)), ListOf(Number(low=0, whole=True))),

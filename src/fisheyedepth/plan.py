@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from .checkpoints import check_resumable, released_checkpoint
 from .config import (
-    check_options,
+    check_config,
     configured_options,
     model_arguments,
     resolve_precision,
@@ -30,10 +30,9 @@ from .config import (
     source_offsets,
 )
 from .models.depth_net import check_input_size, check_network_memory
-from .option_checks import TRAINER_OPTIONS
-from .option_checks import check_options as check_table
+from .option_checks import TRAINER_OPTIONS, check_options
 from .options import check_combinations, net_options
-from .runtimes import POST_PROCESSING, PRECISIONS, one_of
+from .runtimes import POST_PROCESSING, RUNTIME_PRECISIONS, one_of
 from .synthetic.spec import check_render_memory
 from .utils import check_apart, check_writable
 
@@ -215,13 +214,13 @@ def describe_accelerator(accelerator: Any) -> str:
 
 
 def check_training(cfg: DictConfig, model: ModelPlan, data: DataPlan) -> None:
-    """What :func:`~fisheyedepth.config.check_options` leaves to the training plan: the trainer's options
+    """What :func:`~fisheyedepth.config.check_config` leaves to the training plan: the trainer's options
     by kind and range (:data:`~fisheyedepth.option_checks.TRAINER_OPTIONS`), the model's options that
     contradict each other (:func:`~fisheyedepth.options.check_combinations`), and the memory the
     rendering (:func:`~fisheyedepth.synthetic.spec.check_render_memory`) and the network's training step
     (:func:`~fisheyedepth.models.depth_net.check_network_memory`) need, against this machine's."""
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)
-    check_table({k: v for k, v in trainer.items() if k in TRAINER_OPTIONS}, TRAINER_OPTIONS, "trainer.")
+    check_options({k: v for k, v in trainer.items() if k in TRAINER_OPTIONS}, TRAINER_OPTIONS, "trainer.")
     options = thawed(model.options)
     check_combinations(options, "model.")
     if data.generate is not None:
@@ -240,7 +239,7 @@ def train_plan(cfg: DictConfig) -> TrainPlan:
     ``select`` that is not one of :data:`SELECT`, and a checkpoint that cannot be resumed with this model
     (read here; the model's class, and Lightning with it, is imported only for one that can be)."""
     output_dir = Path(cfg.paths.output_dir)
-    check_options(cfg)
+    check_config(cfg)
     data = data_plan(cfg, source_offsets(cfg), rig_offsets(cfg))
     select = check_select(cfg.get("select", "last"))
     model = model_plan(cfg)
@@ -319,7 +318,7 @@ def runtime_plan(cfg: DictConfig) -> RuntimePlan:
         raise ValueError(f"runtime: {kind!r} is not one of torch, onnx")
     if cfg.get("model_file"):
         raise ValueError("model: a file is for runtime=onnx (runtime=onnx model=FILE.onnx)")
-    precision = one_of("precision", str(cfg.get("precision", "fp32")), PRECISIONS)
+    precision = one_of("precision", str(cfg.get("precision", "fp32")), RUNTIME_PRECISIONS)
     one_of("post_process", post_process, POST_PROCESSING)
     size = check_input_size(size, "size") if size else None
     return RuntimePlan(

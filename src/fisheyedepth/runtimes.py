@@ -39,7 +39,7 @@ from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
 from .options import check_numbers, model_options, unknown_options
 
-PRECISIONS = ("fp32", "bf16")
+RUNTIME_PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
 # Nodes quantized to int8 (see quantize_int8): the encoder, the decoder, the channel attention and the
 # logits' 3x3 convolution with the clamp on its output. The bin expectation after it (exp, a 1x1
@@ -199,7 +199,7 @@ class TorchRuntime:
         device="cpu",
         post_process: str = "none",
     ):
-        self.precision = one_of("precision", precision, PRECISIONS)
+        self.precision = one_of("precision", precision, RUNTIME_PRECISIONS)
         self.post_process = one_of("post_process", post_process, POST_PROCESSING)
         self.module = module.eval().to(device)
         self.device = torch.device(device)

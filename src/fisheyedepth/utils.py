@@ -479,6 +479,27 @@ def sigterm_left_alone() -> Iterator[None]:
         signal.signal(signal.SIGTERM, previous)
 
 
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM arriving while the block runs are held until it ends, then given to the
+    handlers that were there before: a write that must finish (a checkpoint: ``torch.save`` cut by
+    Ctrl-C fails with a zip error, not ``KeyboardInterrupt``) is never cut in half, and the stop it
+    asked for comes right after. A no-op off the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+    wanted = (signal.SIGINT, signal.SIGTERM)
+    previous = {s: signal.signal(s, lambda signum, frame: arrived.append(signum)) for s in wanted}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        for signum in dict.fromkeys(arrived):  # each once, in the order they came
+            signal.raise_signal(signum)
+
+
 def remove_stale_temporaries(folder: str | os.PathLike, target: str = "*") -> list[Path]:
     """Remove the temporaries :func:`temporary_beside` left in ``folder`` (``.NAME.<random>.<pid>.tmp``)
     for the targets whose name matches the glob ``target``, written by processes that no longer run
