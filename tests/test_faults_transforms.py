@@ -139,6 +139,8 @@ def test_the_live_api_names_values_it_cannot_use():
         mask = np.ones((60, 80), np.float32)
         mask[3, 4] = np.nan
         RigStereo(cameras, extrinsics, masks={"a": mask})
+    with pytest.raises(ValueError, match=r"^masks\['b'\]: no pixel is usable \(all zero\)"):
+        RigStereo(cameras, extrinsics, masks={"b": np.zeros((60, 80), bool)})  # kept nothing, unsaid
     rig = RigStereo(cameras, extrinsics)
     images = {n: np.full((60, 80), 100.0, np.float32) for n in cameras}
     with pytest.raises(ValueError, match=r"^images: a mapping of camera name -> image expected, got list"):

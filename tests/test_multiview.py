@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import shutil
 from pathlib import Path
 
 import cv2
@@ -199,6 +200,13 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     assert multiview.main([str(rec), "--out", str(out), *common]) == 2
     assert f"error: {mine} exists; pass --overwrite" in capsys.readouterr().err
     assert mine.read_text() == "mine" and sorted(out.rglob("*.*")) == [mine]  # nothing else written
+    held = out / "summary.json" / "keep.txt"  # a folder at an output's path: never replaced, even with
+    held.parent.mkdir()  # --overwrite (it would go with all it holds)
+    held.write_text("kept")
+    assert multiview.main([str(rec), "--out", str(out), "--overwrite", *common]) == 2
+    said = f"error: --out: {held.parent} is a folder where the run writes a file; move it away\n"
+    assert capsys.readouterr().err == said and held.read_text() == "kept"
+    shutil.rmtree(held.parent)
 
     with recording.sole_writer(out):  # another run holds --out
         assert multiview.main([str(rec), "--out", str(out), "--overwrite", *common]) == 2

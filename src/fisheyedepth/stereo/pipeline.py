@@ -402,6 +402,9 @@ class RigStereo:
         self.threads = check_threads(threads, "threads")
         self.masks = dict(masks or {})
         self._check("masks", self.masks, every=False)
+        for name, mask in self.masks.items():
+            if not np.asarray(mask).any():  # every pixel body: nothing of the camera could be matched
+                raise ValueError(f"masks[{name!r}]: no pixel is usable (all zero); leave the camera out")
         self.timer = Timer()
         self._motion_cache = RectificationCache(max_entries=2 * len(self.cameras))
         self._features: dict[str, tuple[np.ndarray, Features]] = {}  # the last images' SIFT, by camera

@@ -375,6 +375,9 @@ def run(
         except ImportError as err:
             raise ValueError(f"--rerun: {err}") from None
     taken = next((out / part for part in parts if os.path.lexists(out / part)), None)
+    folder = next((out / p for p in parts if (out / p).is_dir() and not (out / p).is_symlink()), None)
+    if folder is not None:  # --overwrite replaces the run's files, never a folder and what it holds
+        raise FileExistsError(f"--out: {folder} is a folder where the run writes a file; move it away")
     if taken is not None and not overwrite:
         raise FileExistsError(f"{taken} exists; pass --overwrite to replace the outputs")
     check_inputs(layout, paired, progress)
