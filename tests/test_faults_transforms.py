@@ -316,6 +316,29 @@ def test_predict_refuses_an_image_too_small_to_hold_one_feature_of_the_network(t
     check_aspect(tmp_path / "frame.png", (32, 32), square, "cam.yaml")  # the smallest it takes
 
 
+def test_an_option_of_the_wrong_kind_is_one_line_in_every_console_script(tmp_path, capsys):
+    """argparse's refusals (a value of the wrong type, a missing option) as one ``error:`` line and exit
+    2, like every other refused input, not its usage block (``cli.CommandParser``)."""
+    from fisheyedepth.cli import estimate_mask, import_aria, import_ddad, import_rosbag, synthetic
+
+    cases = [
+        (multiview.main, [str(tmp_path), "--out", str(tmp_path / "o"), "--threads", "2.5"],
+         "error: argument --threads: invalid int value: '2.5' (see fisheyedepth-multiview --help)"),
+        (import_aria.main, ["--src", str(tmp_path)], "error: the following arguments are required: --out"),
+        (import_ddad.main, ["--out", str(tmp_path)], "error: the following arguments are required: --src"),
+        (import_rosbag.main, [str(tmp_path), "--out", "o", "--camera", "a=/a"], "one of the arguments"),
+        (estimate_mask.main, ["--root", str(tmp_path), "--sequence", "s", "--camera", "c", "--frames", "x"],
+         "error: argument --frames: invalid int value: 'x'"),
+        (synthetic.main, ["--out", str(tmp_path / "w"), "--frames", "many"], "invalid int value: 'many'"),
+    ]  # fmt: skip
+    for main, args, said in cases:
+        with pytest.raises(SystemExit) as stopped:
+            main(args)
+        err = capsys.readouterr().err
+        assert stopped.value.code == 2 and said in err and err.startswith("error: "), err
+        assert len(err.strip().splitlines()) == 1 and "usage:" not in err
+
+
 SIGNALS = [(2, 130, "interrupted (SIGINT)"), (15, 143, "terminated (SIGTERM)")]
 
 

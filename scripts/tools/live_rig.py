@@ -34,6 +34,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
@@ -138,9 +139,7 @@ def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("rig", type=Path)
     parser.add_argument("--out", type=Path, default=Path("recording.rrd"), help="default: %(default)s")
     parser.add_argument("--sequence", default=None, help="default: the first")

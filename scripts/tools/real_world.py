@@ -46,6 +46,7 @@ import torch
 from torch import Tensor
 
 from fisheyedepth.cameras import load_json
+from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.realframes import FRAME_SETS, RAYS, Missing, RealFrame, load_frames
 from fisheyedepth.realscores import constant_map, protocols, score, scored_pixels
 from fisheyedepth.runtimes import POST_PROCESSING, OnnxRuntime, TorchRuntime, TrainedDepthNet
@@ -301,9 +302,7 @@ def score_models(
 # ------------------------------------------------------------------ the command
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("models", nargs="+", type=Path, help="checkpoints (.ckpt) or exported files (.onnx)")
     parser.add_argument("--root", type=Path, help=f"real data folder (default: ${ROOT_VARIABLE})")
     parser.add_argument("--frames", nargs="+", choices=FRAME_SETS, default=list(FRAME_SETS))

@@ -29,6 +29,7 @@ from fisheyedepth.checkpoints import (
     release_checkpoint,
     sha256,
 )
+from fisheyedepth.cli import CommandParser
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.utils import atomic_write_bytes, atomic_write_text, ends_on_signals
 
@@ -53,9 +54,7 @@ def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False
 
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("ckpt", type=Path, help="a training checkpoint (RUN/checkpoints/last.ckpt)")
     parser.add_argument("--out", type=Path, default=WEIGHTS_DIR, help="folder (%(default)s)")
     parser.add_argument("--name", default=RELEASED, help="file name (%(default)s)")

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import torch
 
+from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.inference import DistancePredictor, colour_bar
@@ -26,9 +27,7 @@ from fisheyedepth.viz import colourise
 
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", required=True)
     parser.add_argument("--rig", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from fisheyedepth.cameras import RayCache
+from fisheyedepth.cli import CommandParser
 from fisheyedepth.inference import point_cloud
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.utils import atomic_write_png, ends_on_signals
@@ -73,9 +74,7 @@ def draw(
 
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("rig", type=Path)
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--size", type=int, default=480)

@@ -25,6 +25,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from fisheyedepth.cli import CommandParser  # noqa: E402
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
 from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
 from fisheyedepth.utils import ends_on_signals  # noqa: E402
@@ -37,9 +38,7 @@ DATA_CONFIGS = sorted(p.stem for p in (ROOT / "conf" / "data").glob("*.yaml"))
 
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+    parser = CommandParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ckpt", action="append", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument(

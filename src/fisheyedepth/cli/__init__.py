@@ -7,6 +7,7 @@ paths that never replace an earlier run's file."""
 
 from __future__ import annotations
 
+import argparse
 import logging
 import os
 import sys
@@ -25,6 +26,16 @@ log = logging.getLogger("fisheyedepth")
 EXIT_USAGE = 2
 # Errors about the user's input (files, options): one line naming the file or option, no traceback.
 INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, KeyError)
+
+
+class CommandParser(argparse.ArgumentParser):
+    """The console scripts' argument parser: a wrong option is one line, ``error: <what argparse
+    says> (<prog> --help)``, and exit status 2, as every other refused input (not argparse's usage
+    block)."""
+
+    def error(self, message: str):
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(EXIT_USAGE)
 
 
 def named_values(values: list[str] | None, option: str, form: str = "NAME=VALUE") -> dict[str, str]:
@@ -57,12 +68,19 @@ QUIET_WARNINGS = (
 )
 
 
+# Lightning's note on SIGTERM (``Received SIGTERM: 15``), beside the one line train.py ends with when a
+# signal stops it. Its ``Detected KeyboardInterrupt`` shares the logger of all its notes and stays.
+QUIET_LOGGERS = ("lightning.pytorch.trainer.connectors.signal_connector",)
+
+
 def prepare_process(keep_memory: bool) -> None:
     """Process-wide settings, before any work: :data:`QUIET_WARNINGS` silenced, with ``keep_memory``
     glibc keeping the memory of freed tensors for reuse instead of unmapping it
     (:func:`fisheyedepth.utils.keep_freed_memory`)."""
     for message in QUIET_WARNINGS:
         warnings.filterwarnings("ignore", message=message)
+    for name in QUIET_LOGGERS:
+        logging.getLogger(name).setLevel(logging.WARNING)
     if keep_memory:
         log.info("keep_freed_memory: %s", "on" if keep_freed_memory() else "not glibc, nothing changed")
 

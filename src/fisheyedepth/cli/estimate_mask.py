@@ -3,19 +3,19 @@ from a recording (:mod:`fisheyedepth.data.body_mask`)."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from ..data import body_mask
 from ..utils import ends_on_signals, path_name
+from . import CommandParser
 
 
 @ends_on_signals  # SIGINT / SIGTERM: one line, exit 130 / 143
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``fisheyedepth-estimate-mask``."""
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         description="Estimate a camera's vehicle-body mask from a recording: still pixels with a ray "
         "below the horizon are body. Writes a PNG (255 = usable, 0 = body) where the layout reads it.",
         epilog="example: fisheyedepth-estimate-mask --root data/kitti360 "

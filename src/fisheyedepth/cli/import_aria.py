@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ..data.aria import aria_to_rig
 from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
+from . import CommandParser
 
 
 def main(argv=None) -> int:
@@ -25,7 +26,7 @@ def main(argv=None) -> int:
     that is not whole pixels, two images with one capture time, ...) is refused with one line naming the
     file, and nothing is written.
     """
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="fisheyedepth-import-aria",
         description=inspect.cleandoc(main.__doc__ or ""),
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from ..data.ddad import ddad_to_rig
 from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
-from . import named_values
+from . import CommandParser, named_values
 
 
 def main(argv=None) -> int:
@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     intrinsics of different counts, an image of another size than its datum says, ...) is refused with one
     line naming the file and the field, and nothing is written.
     """
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="fisheyedepth-import-ddad",
         description=inspect.cleandoc(main.__doc__ or ""),
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -3,7 +3,6 @@ bag into the rig layout, all or nothing (:mod:`fisheyedepth.data.rosbag`)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
@@ -15,12 +14,12 @@ from ..cameras import load_yaml
 from ..data.layouts import read_transform
 from ..data.rosbag import RosbagError, import_rosbag
 from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
-from . import named_values
+from . import CommandParser, named_values
 
 
 def main(argv=None) -> int:
     """Console script ``fisheyedepth-import-rosbag``."""
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         description="Import a ROS 1 or ROS 2 bag into the rig layout (docs/data-format.md).",
         epilog="example: fisheyedepth-import-rosbag run.bag --out data/my_rig "
         "--camera front=/front/image_raw --camera left=/left/image_raw/compressed --odometry /odom",

@@ -46,10 +46,11 @@ from ..stereo.recording import MATCHERS, RECORDING, run
 from ..stereo.refine import REFINE
 from ..stereo.sweep import SweepStereo
 from ..utils import WRITE_ERRORS, Terminated, check_threads, sigterm_raises, stopped_by
+from . import CommandParser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="fisheyedepth-multiview", description=__doc__,
+    parser = CommandParser(prog="fisheyedepth-multiview", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
     parser.add_argument("root", type=Path, help="a recording in the rig layout")
     parser.add_argument("--out", type=Path, required=True)

@@ -16,6 +16,7 @@ from ..synthetic.traffic import MAX_TRAFFIC
 from ..synthetic.world import SCENES
 from ..synthetic.writer import generate
 from ..utils import Terminated, stopped_by
+from . import CommandParser
 
 
 def flag(option: str) -> str:
@@ -44,9 +45,7 @@ def _announce_replacement(out: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
-        description="Render a synthetic multi-camera fisheye dataset in the KITTI-360 layout."
-    )
+    p = CommandParser(description="Render a synthetic multi-camera fisheye dataset in the KITTI-360 layout.")
     p.add_argument("--out", required=True, help="output folder (must be absent or empty unless --overwrite)")
     p.add_argument("--rig", default="kitti360", choices=RIGS)
     p.add_argument("--frames", type=int, default=200, help="frames per camera over train/val/test together")

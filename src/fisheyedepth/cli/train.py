@@ -5,6 +5,7 @@ self-supervised validation loss (``select=best``). Neither uses ground truth."""
 from __future__ import annotations
 
 import logging
+import sys
 from typing import Any
 
 from hydra.errors import InstantiationException
@@ -140,9 +141,6 @@ def fit_and_test(plan: TrainPlan) -> dict[str, Any] | None:
 def stopped(trainer, plan: TrainPlan, why: str) -> None:
     """The one line of a training run stopped by a signal: where, and the checkpoint to resume from."""
     last = plan.output_dir / "checkpoints" / "last.ckpt"
-    log.error(
-        "%s at step %d; no results.json. Resume with ckpt_path=%s",
-        why,
-        trainer.global_step,
-        last if last.is_file() else "<a checkpoint of this run>",
-    )
+    resume = last if last.is_file() else "<a checkpoint of this run>"
+    print(f"error: {why} at step {trainer.global_step}; no results.json. Resume with ckpt_path={resume}",
+          file=sys.stderr)  # fmt: skip
