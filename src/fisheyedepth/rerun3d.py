@@ -64,6 +64,9 @@ AXIS_LENGTH = 0.05  # metres: each camera's axes (x red, y green, z blue) at its
 
 def import_rerun():
     """The ``rerun`` module, or an ImportError that names the extra to install."""
+    # the SDK's own log lines about a writer that stopped (colour-coded, before the command's error
+    # line, which names the cause): off unless the user's RUST_LOG asks for them
+    os.environ.setdefault("RUST_LOG", "off")
     try:
         import rerun
     except ImportError as err:
@@ -87,13 +90,31 @@ class CameraView:
 
 
 class RecordingError(ValueError):
-    """A recording that could not be written (the disk filled, a file-size limit): named by its path;
-    nothing is left at it."""
+    """A recording that could not be written (the disk filled, a file-size limit): named by its path,
+    with the cause where the folder's free space or the process's file-size limit tells it; nothing is
+    left at it. ``why``: the cause alone, to name another path (a staging folder's final place)."""
 
-    def __init__(self, path: Path, err: Exception) -> None:
-        super().__init__(
-            f"{path}: the recording could not be written ({err}); a full disk or a file-size limit?"
-        )
+    def __init__(self, path: Path, why: Exception | str) -> None:
+        self.path, self.why = Path(path), why if isinstance(why, str) else write_failure(path, why)
+        super().__init__(f"{path}: the recording could not be written ({self.why})")
+
+
+def write_failure(path: Path, err: Exception) -> str:
+    """Why the SDK's file writer stopped (it reports only that it did): no space left in the folder, or
+    the process's file-size limit (``ulimit -f``); else its own words and both guesses."""
+    import resource
+
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    try:
+        free = os.statvfs(Path(path).parent)
+        full = free.f_bavail * free.f_frsize < 1 << 20  # under a megabyte left for a non-root writer
+    except OSError:
+        full = False
+    if full:
+        return f"no space left on device in {Path(path).parent}"
+    if limit != resource.RLIM_INFINITY:
+        return f"the file-size limit of this process, {limit} bytes (ulimit -f)"
+    return f"{err}; a full disk or a file-size limit?"
 
 
 class RigRecorder:

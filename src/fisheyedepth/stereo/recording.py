@@ -22,7 +22,7 @@ from tqdm import tqdm
 from ..data.dataset import binary_mask, read_distance
 from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
-from ..rerun3d import InstantRecorder
+from ..rerun3d import InstantRecorder, RecordingError
 from ..utils import (
     atomic_write_npy,
     atomic_write_png,
@@ -384,7 +384,10 @@ def run(
     with sole_writer(out):
         remove_stale_staging(out)
         with staged_folder(out, "multiview") as staging:
-            summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress, rerun)
+            try:
+                summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress, rerun)
+            except RecordingError as err:  # named where it was to be, not in the staging folder
+                raise RecordingError(out / RECORDING, err.why) from None
             summary["root"] = str(root)
             atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
             move_into_place(staging, out, parts, overwrite)
