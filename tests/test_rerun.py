@@ -277,6 +277,26 @@ def test_eval_with_rerun_records_the_scored_frames_with_their_ground_truth(kitti
 
 
 # --------------------------------------------------------------------------------- the live rig
+def test_a_killed_live_rigs_aria_conversion_is_removed_by_the_next_run(tmp_path, monkeypatch):
+    """A live rig run killed outright leaves its converted Aria export in the temporary folder; the next
+    run removes it (a live run's, with a running pid in its name, is kept)."""
+    import os
+    import tempfile
+
+    from test_multiview import write_room_rig
+
+    live_rig = load_script("tools/live_rig")
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    dead = tmp_path / "tmp" / f"{live_rig.CONVERSION}999999999-abc"  # no process has this pid
+    alive = tmp_path / "tmp" / f"{live_rig.CONVERSION}{os.getpid()}-def"
+    for folder in (dead, alive):
+        (folder / "rig" / "seq0").mkdir(parents=True)
+    write_room_rig(tmp_path / "rec", size=64, stamps=(1_000_000_000, 1_100_000_000))
+    with live_rig.rig_layout(tmp_path / "rec") as layout:
+        assert {"left", "right"} <= set(layout.cameras)
+    assert not dead.exists() and alive.is_dir()
+
+
 def test_the_live_rig_replays_a_recording_into_rerun(tmp_path, capsys):
     from test_multiview import write_room_rig
 

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
+import shutil
 import sys
 import tempfile
 import time
@@ -39,7 +41,7 @@ from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, StereoSettings
 from fisheyedepth.stereo.recording import masks
-from fisheyedepth.utils import Terminated, check_apart, check_threads, sigterm_raises, stopped_by
+from fisheyedepth.utils import Terminated, check_apart, check_threads, pid_alive, sigterm_raises, stopped_by
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 
@@ -51,15 +53,32 @@ class Instant(NamedTuple):
     images: dict[str, Path]  # camera -> image file
 
 
+CONVERSION = "fisheyedepth-live-rig-"  # + <pid>-<random>: an Aria export converted, in the temp folder
+
+
+def remove_stale_conversions() -> list[Path]:
+    """The conversions that runs killed outright (SIGKILL) left in the temporary folder, removed: a live
+    run's are kept (its pid is in the name)."""
+    removed = []
+    for folder in sorted(Path(tempfile.gettempdir()).glob(f"{CONVERSION}*")):
+        pid = folder.name[len(CONVERSION) :].split("-")[0]
+        if folder.is_dir() and pid.isdigit() and not pid_alive(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+    return removed
+
+
 @contextlib.contextmanager
 def rig_layout(path: Path) -> Iterator[RigLayout]:
-    """``path`` as a :class:`RigLayout`; a Project Aria export is converted into one first (removed after)."""
+    """``path`` as a :class:`RigLayout`; a Project Aria export is converted into one first (removed after,
+    and by the next run where a kill left it)."""
+    remove_stale_conversions()
     if (path / "rig.yaml").is_file():
         yield RigLayout(path)
         return
     from fisheyedepth.data.aria import aria_to_rig
 
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(prefix=f"{CONVERSION}{os.getpid()}-") as tmp:
         aria_to_rig(path, Path(tmp) / "rig")
         yield RigLayout(Path(tmp) / "rig")
 
