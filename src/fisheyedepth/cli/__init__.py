@@ -29,9 +29,8 @@ INPUT_ERRORS = (FileNotFoundError, FileExistsError, NotADirectoryError, ValueErr
 
 
 class CommandParser(argparse.ArgumentParser):
-    """The console scripts' argument parser: a wrong option is one line, ``error: <what argparse
-    says> (<prog> --help)``, and exit status 2, as every other refused input (not argparse's usage
-    block)."""
+    """The console scripts' parser: a wrong option is one line, ``error: <what argparse says> (see
+    <prog> --help)``, exit 2, as every other refused input (not argparse's usage block)."""
 
     def error(self, message: str):
         print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
@@ -68,8 +67,7 @@ QUIET_WARNINGS = (
 )
 
 
-# Lightning's note on SIGTERM (``Received SIGTERM: 15``), beside the one line train.py ends with when a
-# signal stops it. Its ``Detected KeyboardInterrupt`` shares the logger of all its notes and stays.
+# Lightning's note on SIGTERM, beside train.py's one line (its Ctrl-C note shares its every note's logger)
 QUIET_LOGGERS = ("lightning.pytorch.trainer.connectors.signal_connector",)
 
 
