@@ -239,11 +239,11 @@ import resource, sys
 import numpy as np
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
-resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
 camera = PinholeCamera(width=320, height=240, fx=200.0, fy=200.0, cx=159.5, cy=119.5)
 rng = np.random.default_rng(0)
 try:
-    with RigRecorder({str(tmp_path / "rec.rrd")!r}) as recorder:
+    with RigRecorder({str(tmp_path / "rec.rrd")!r}) as recorder:  # rerun imported and started first
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
         for i in range(40):  # noise: about 100 kB an instant as JPEG
             image = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
             recorder.instant(i, i, {{"a": CameraView(camera, image, {{}})}})
