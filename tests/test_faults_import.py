@@ -245,7 +245,16 @@ def test_repeated_odometry_stamps_with_two_poses_are_refused_naming_bag_topic_an
     assert len(RigLayout(tmp_path / "rig").frames("seq0", "cam")) == 4
 
 
-def test_an_odometry_quaternion_not_of_norm_one_is_refused_naming_bag_topic_and_stamp(tmp_path):
+@pytest.mark.parametrize(
+    "index, wrong, said",
+    [
+        (5, {"norm": 2.0}, "quaternion of norm 2;"),  # a column gone wrong, not a rotation
+        (3, {"shift": float("nan")}, "not a rigid transform: it holds a value that is not finite"),  # lost
+    ],
+)
+def test_an_odometry_pose_that_is_no_rigid_motion_is_refused_naming_bag_topic_and_stamp(
+    tmp_path, index, wrong, said
+):
     from fisheyedepth.data.rosbag import RosbagError
 
     stamps = odometry_30hz(0.3)
@@ -253,30 +262,11 @@ def test_an_odometry_quaternion_not_of_norm_one_is_refused_naming_bag_topic_and_
     bag.info()
     for i in range(4):
         bag.image(T0 + i * 100 * MS, grey(i))
-    bag.odometry([s for s in stamps if s != stamps[5]])
-    bag.odometry([stamps[5]], norm=2.0)  # a column gone wrong, not a rotation
+    bag.odometry([s for s in stamps if s != stamps[index]])
+    bag.odometry([stamps[index]], **wrong)
     bag.write(tmp_path / "bag")
     where = re.escape(str(tmp_path / "bag"))
-    with pytest.raises(
-        RosbagError, match=rf"^{where}: /odom: the pose at {stamps[5]} ns: quaternion of norm 2;"
-    ):
-        run(tmp_path / "bag", tmp_path / "rig")
-    assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
-
-
-def test_an_odometry_pose_that_is_not_finite_is_refused_naming_bag_topic_and_stamp(tmp_path):
-    from fisheyedepth.data.rosbag import RosbagError
-
-    stamps = odometry_30hz(0.3)
-    bag = Bag()
-    bag.info()
-    for i in range(4):
-        bag.image(T0 + i * 100 * MS, grey(i))
-    bag.odometry([s for s in stamps if s != stamps[3]])
-    bag.odometry([stamps[3]], shift=float("nan"))  # a position the odometry lost
-    bag.write(tmp_path / "bag")
-    where = re.escape(str(tmp_path / "bag"))
-    with pytest.raises(RosbagError, match=rf"^{where}: /odom: the pose at {stamps[3]} ns: not a rigid transform: it holds a value that is not finite"):  # fmt: skip  # noqa: E501
+    with pytest.raises(RosbagError, match=rf"^{where}: /odom: the pose at {stamps[index]} ns: {said}"):
         run(tmp_path / "bag", tmp_path / "rig")
     assert not (tmp_path / "rig").exists() and leftovers(tmp_path / "rig") == []
 

@@ -8,6 +8,7 @@ import fcntl
 import functools
 import hashlib
 import io
+import json
 import os
 import shutil
 import signal
@@ -462,6 +463,24 @@ def ends_on_signals(main):
             return status
 
     return ended
+
+
+def run_import(convert, out, errors=(OSError, ValueError)) -> int:
+    """An importer's run: ``convert()`` (its staging folder removed however it ends) under
+    :func:`~fisheyedepth.utils.sigterm_raises`; a signal or an input error (``errors``) one line, exit
+    130 / 143 or 2; else its summary printed as JSON, exit 0."""
+    try:
+        with sigterm_raises():
+            summary = convert()
+    except (Terminated, KeyboardInterrupt) as stop:
+        why, status = stopped_by(stop)
+        print(f"error: {why}; nothing was written to {out}", file=sys.stderr)
+        return status
+    except errors as err:  # CalibrationError and ImageError are ValueErrors
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary, indent=2))
+    return 0
 
 
 @contextlib.contextmanager

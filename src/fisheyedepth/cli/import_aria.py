@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import json
-import sys
 from pathlib import Path
 
 from ..data.aria import aria_to_rig
-from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
+from ..utils import check_apart, run_import
 from . import CommandParser
 
 
@@ -36,16 +34,9 @@ def main(argv=None) -> int:
     parser.add_argument("--sequence", default="seq0")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    try:
-        with sigterm_raises():
-            check_apart(args.out, "--out", {"the Aria export": args.src})
-            summary = aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0
+
+    def convert():
+        check_apart(args.out, "--out", {"the Aria export": args.src})
+        return aria_to_rig(args.src, args.out, args.sequence, args.overwrite)
+
+    return run_import(convert, args.out)

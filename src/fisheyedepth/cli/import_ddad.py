@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import argparse
 import inspect
-import json
-import sys
 from pathlib import Path
 
 from ..data.ddad import ddad_to_rig
-from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
+from ..utils import check_apart, run_import
 from . import CommandParser, named_values
 
 
@@ -40,19 +38,10 @@ def main(argv=None) -> int:
     parser.add_argument("--mask", action="append", metavar="CAMERA=FILE", help="a body mask, 255 = usable")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    try:
-        with sigterm_raises():
-            masks = {k: Path(v) for k, v in named_values(args.mask, "--mask", "CAMERA=FILE").items()}
-            check_apart(args.out, "--out", {"the DDAD scene": args.src})
-            summary = ddad_to_rig(
-                args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite
-            )
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (OSError, ValueError) as err:  # CalibrationError and ImageError are ValueErrors
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0
+
+    def convert():
+        masks = {k: Path(v) for k, v in named_values(args.mask, "--mask", "CAMERA=FILE").items()}
+        check_apart(args.out, "--out", {"the DDAD scene": args.src})
+        return ddad_to_rig(args.src, args.out, args.sequence, args.cameras, args.lidar, masks, args.overwrite)
+
+    return run_import(convert, args.out)

@@ -3,9 +3,7 @@ bag into the rig layout, all or nothing (:mod:`fisheyedepth.data.rosbag`)."""
 
 from __future__ import annotations
 
-import json
 import logging
-import sys
 from pathlib import Path
 
 import yaml
@@ -13,7 +11,7 @@ import yaml
 from ..cameras import load_yaml
 from ..data.layouts import read_transform
 from ..data.rosbag import RosbagError, import_rosbag
-from ..utils import Terminated, check_apart, sigterm_raises, stopped_by
+from ..utils import check_apart, run_import
 from . import CommandParser, named_values
 
 
@@ -51,29 +49,23 @@ def main(argv=None) -> int:
     parser.add_argument("--strict", action="store_true", help="refuse a corrupt image instead of skipping it")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s: %(message)s")
-    try:
-        with sigterm_raises():
-            check_apart(args.out, "--out", {"the bag": args.bag})
-            extrinsics = {}
-            if args.extrinsics:
-                data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
-                if not isinstance(data, dict):
-                    raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
-                extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
-            summary = import_rosbag(
-                args.bag, args.out, named_values(args.camera, "--camera"),
-                named_values(args.camera_info, "--camera-info"),
-                named_values(args.calibration, "--calibration"),
-                extrinsics, args.odometry, tuple(args.tf_poses) if args.tf_poses else None,
-                args.body_frame, args.sequence, args.overwrite, args.max_pose_gap, args.bit_depth,
-                args.strict,
-            )  # fmt: skip
-    except (Terminated, KeyboardInterrupt) as stop:  # its staging folder is removed with it
-        why, status = stopped_by(stop)
-        print(f"error: {why}; nothing was written to {args.out}", file=sys.stderr)
-        return status
-    except (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(json.dumps(summary, indent=2))
-    return 0
+
+    def convert():
+        check_apart(args.out, "--out", {"the bag": args.bag})
+        extrinsics = {}
+        if args.extrinsics:
+            data = load_yaml(args.extrinsics.read_text(), args.extrinsics)  # safe, and names the file
+            if not isinstance(data, dict):
+                raise ValueError(f"{args.extrinsics}: expected a mapping NAME: 4x4 camera -> body")
+            extrinsics = {k: read_transform(v, args.extrinsics, k) for k, v in data.items()}
+        return import_rosbag(
+            args.bag, args.out, named_values(args.camera, "--camera"),
+            named_values(args.camera_info, "--camera-info"),
+            named_values(args.calibration, "--calibration"),
+            extrinsics, args.odometry, tuple(args.tf_poses) if args.tf_poses else None,
+            args.body_frame, args.sequence, args.overwrite, args.max_pose_gap, args.bit_depth,
+            args.strict,
+        )  # fmt: skip
+
+    errors = (RosbagError, FileExistsError, FileNotFoundError, ValueError, yaml.YAMLError)
+    return run_import(convert, args.out, errors)
