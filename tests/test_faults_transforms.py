@@ -21,7 +21,7 @@ from fisheyedepth.cli import multiview
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.geometry import MAX_MOTION, rigid_transform
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, make_pose
-from fisheyedepth.stereo import RigStereo, StereoSettings, recording
+from fisheyedepth.stereo import RigStereo, SgbmSettings, sgbm
 from fisheyedepth.utils import check_apart, cores
 from test_multiview import small_rig
 
@@ -134,7 +134,7 @@ def test_the_live_api_names_values_it_cannot_use():
         ):
             RigStereo(cameras, extrinsics, threads=threads)
     with pytest.raises(ValueError, match=r"^min_distance: '0.5'; a number expected"):
-        StereoSettings(min_distance="0.5")
+        SgbmSettings(min_distance="0.5")
     with pytest.raises(ValueError, match=r"^masks\['a'\]: 1 values are not finite"):
         mask = np.ones((60, 80), np.float32)
         mask[3, 4] = np.nan
@@ -292,7 +292,7 @@ def test_the_multiview_command_stopped_by_a_signal_leaves_nothing(
     rec = small_rig(tmp_path.parent / "small_rig")
     out = tmp_path / "out"
     calls = []
-    fuse = recording.fuse
+    fuse = sgbm.fuse
 
     def signalled_on_the_second(*args, **kwargs):  # the signal arrives halfway through the run
         calls.append(1)
@@ -300,7 +300,7 @@ def test_the_multiview_command_stopped_by_a_signal_leaves_nothing(
             signal.raise_signal(signum)
         return fuse(*args, **kwargs)
 
-    monkeypatch.setattr(recording, "fuse", signalled_on_the_second)
+    monkeypatch.setattr(sgbm, "fuse", signalled_on_the_second)
     assert multiview.main([str(rec), "--out", str(out)]) == status
     err = capsys.readouterr().err
     assert f"error: {said}; nothing was written to {out}" in err and "Traceback" not in err

@@ -19,7 +19,7 @@ import yaml
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
-from fisheyedepth.stereo import SweepStereo, View
+from fisheyedepth.stereo import SweepMatcher, SweepSettings, View
 from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
 from stereo_world import pose, render, scores, texture_volume
 
@@ -181,7 +181,7 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
     already is named and kept; a second run into one --out is refused while the first holds it; a run
     that fails halfway leaves nothing in --out."""
     from fisheyedepth.cli import multiview
-    from fisheyedepth.stereo import recording
+    from fisheyedepth.stereo import recording, sgbm
 
     rec = tmp_path / "rec"
     rig = write_room_rig(rec, size=128, stamps=(1_000_000_000, 1_100_000_000), half_baseline=0.3)
@@ -214,15 +214,15 @@ def test_the_outputs_are_refused_before_any_work_and_put_in_place_whole(tmp_path
             f"error: --out: {out}: another fisheyedepth-multiview writes into it" in capsys.readouterr().err
         )
 
-    calls = []
+    calls, fuse = [], sgbm.fuse
 
     def fails_on_the_third(maps, min_confidence=0.0):
         calls.append(1)
         if len(calls) == 3:
             raise ValueError("maps: a failure halfway")
-        return recording.fuse(maps, min_confidence)
+        return fuse(maps, min_confidence)
 
-    monkeypatch.setattr(recording, "fuse", fails_on_the_third)
+    monkeypatch.setattr(sgbm, "fuse", fails_on_the_third)
     fresh = tmp_path / "fresh"
     assert multiview.main([str(rec), "--out", str(fresh), *common]) == 2
     assert "maps: a failure halfway" in capsys.readouterr().err
@@ -428,12 +428,12 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
 
 
 def test_the_memory_bound_holds_for_a_pair(tmp_path):
-    """The bound the command refuses by (:data:`recording.MEMORY_PER_PIXEL`) covers a pair's measured
+    """The bound the command refuses by (:data:`sgbm.MEMORY_PER_PIXEL`) covers a pair's measured
     peak: two 512 px fisheyes matched in a fresh process, against the same process without the match."""
     import subprocess
     import sys
 
-    from fisheyedepth.stereo.recording import pair_memory
+    from fisheyedepth.stereo.sgbm import pair_memory
 
     tests = str(Path(__file__).parent)
     code = f"""
@@ -441,7 +441,7 @@ import sys
 import numpy as np
 sys.path.insert(0, {tests!r})
 from conftest import kitti02
-from fisheyedepth.stereo.pipeline import RigStereo
+from fisheyedepth.stereo import RigStereo
 
 camera = kitti02().resize(512, 512)
 moved = np.eye(4); moved[0, 3] = 0.3
@@ -467,8 +467,8 @@ def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_pa
     every image has taken its maps."""
     from fisheyedepth.data.layouts import RigLayout
     from fisheyedepth.stereo.pairing import pairings
-    from fisheyedepth.stereo.pipeline import StereoSettings, Timer
-    from fisheyedepth.stereo.recording import PairStore
+    from fisheyedepth.stereo.pipeline import SgbmSettings, Timer
+    from fisheyedepth.stereo.sgbm import SgbmRecording
 
     stamps = (1_000_000_000, 1_100_000_000, 1_200_000_000)
     write_room_rig(tmp_path / "rec", size=256, stamps=stamps)
@@ -479,7 +479,7 @@ def test_each_pair_is_matched_once_for_the_images_that_ask_and_then_freed(tmp_pa
     planned = [p for p in pairings(layout, ("time",)) if p.partners and p.camera == "left"]
     partners = {p.frame.key: [q.frame.key for q in p.partners] for p in planned}
     assert partners == {stamps[0]: [stamps[1]], stamps[1]: [stamps[0]], stamps[2]: [stamps[0]]}
-    store = PairStore(layout, StereoSettings(min_distance=0.2, max_distance=20.0), Timer(), planned)
+    store = SgbmRecording(layout, SgbmSettings(min_distance=0.2, max_distance=20.0), Timer(), planned)
     for pairing in planned:
         for partner in pairing.partners:
             maps = store.get(
@@ -570,7 +570,7 @@ def test_middlebury_motorcycle_a_real_pair_swept():
     source = View(*crop(pair.partner_image, pair.partner_camera, 0, y0, pair.partner_camera.width, height),
                   pair.T.float())  # fmt: skip
     truth = pair.distance[y0 : y0 + height, x0 : x0 + width][None]
-    result = SweepStereo(hypotheses=96, min_distance=1.5, max_distance=10.0, cost="census")(
+    result = SweepMatcher(SweepSettings(hypotheses=96, min_distance=1.5, max_distance=10.0, cost="census"))(
         reference, [source]
     )
     checked = scores(result.distance, truth)
@@ -599,9 +599,9 @@ def test_real_pairs_through_the_rectified_pipeline():
     refinement = pairs[0][1]
     assert refinement["instants"] == 3 and 0.5 < refinement["rotation_deg"] < 1.2
     assert refinement["error_before_px"] > 1.2 and refinement["error_after_px"] < 0.4
-    for pair, _, settings in pairs:
+    for pair, _, matcher in pairs:
         scored = overlap(pair)
-        record, (checked, dense) = score_pair(pair, scored, "sgbm", settings)
+        record, (checked, dense) = score_pair(pair, scored, matcher)
         c, d = record["checked"], record["dense"]
         bound = (0.02, 0.85, 0.05) if pair.name.startswith("middlebury") else (0.075, 0.48, 0.15)
         assert c["abs_rel"] <= bound[0] and c["coverage"] >= bound[1] and d["abs_rel"] <= bound[2], (

@@ -16,20 +16,12 @@ import torch
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import invert_pose
-from fisheyedepth.stereo import (
-    MatcherSettings,
-    RigStereo,
-    StereoSettings,
-    build_rectification,
-    fuse,
-    match_pair,
-    remap,
-)
+from fisheyedepth.stereo import RigStereo, SgbmParameters, SgbmSettings, fuse, match_pair
 from fisheyedepth.stereo.fill import fill, fill_rows, matchable
 from fisheyedepth.stereo.mapback import PixelMaps, sample
 from fisheyedepth.stereo.match import INVALID, despeckle, match, match_both, normalise
 from fisheyedepth.stereo.pipeline import grey as grey_image
-from fisheyedepth.stereo.rectify import nearest_parallax
+from fisheyedepth.stereo.rectify import build_rectification, nearest_parallax, remap
 from stereo_world import pair, pose, render, texture_volume
 
 from conftest import aria_fisheye624, kitti02, realdata_dir
@@ -171,7 +163,7 @@ def test_each_direction_is_matched_over_its_own_span_of_columns():
     volume = texture_volume(3)
     a, b = (remap(grey_image(render(camera, P, volume)[0]), side)
             for P, side in ((T_a, rect.a), (T_b, rect.b)))  # fmt: skip
-    both = [match_both(a, b, rect.a.valid, rect.b.valid, rect.disparities, rect.grid.step, MatcherSettings(),
+    both = [match_both(a, b, rect.a.valid, rect.b.valid, rect.disparities, rect.grid.step, SgbmParameters(),
                        first=rect.first_disparity, spans=spans) for spans in (rect.spans, None)]  # fmt: skip
     for spanned, whole in ((both[0].a, both[1].a), (both[0].b, both[1].b)):
         spanned, whole = spanned.checked, whole.checked
@@ -208,26 +200,26 @@ def test_matching_recovers_a_shift_and_rejects_what_it_cannot_see():
     left, right = texture[:, 40:240], texture[:, 52:252]  # a point at column x in left is at x - 12 in right
     seen = np.ones(left.shape, bool)
     step = math.radians(0.25)
-    found = match(left, right, seen, seen, 64, step, MatcherSettings())
+    found = match(left, right, seen, seen, 64, step, SgbmParameters())
     inner = found.checked[:, 70:-10]  # left of column 64 + a block SGBM answers nothing
     assert (inner != INVALID).mean() > 0.9
     assert np.abs(inner[inner != INVALID] - 12).max() < 0.25
     # the right camera blind in a band: the left pixels whose match lies there are rejected
     blind = seen.copy()
     blind[:, 100:140] = False
-    found = match(left, right, seen, blind, 64, step, MatcherSettings())
+    found = match(left, right, seen, blind, 64, step, SgbmParameters())
     rows, cols = np.nonzero(found.matched != INVALID)
     partner = np.round(cols - found.matched[rows, cols]).astype(int)
     assert len(rows) > 1000 and not ((partner >= 100) & (partner < 140)).any()
     # a parallax beyond the range: winners at its end are rejected, not kept
-    found = match(left, texture[:, 80:280], seen, seen, 32, step, MatcherSettings())  # disparity 40
+    found = match(left, texture[:, 80:280], seen, seen, 32, step, SgbmParameters())  # disparity 40
     assert (found.matched[found.matched != INVALID] < 31).all()
 
 
 def test_a_speckle_is_a_solid_angle():
     disparity = np.full((60, 60), 10.0, np.float32)
     disparity[20:25, 20:25] = 30.0  # a 25-pixel island
-    settings = MatcherSettings(speckle_deg2=0.01 * 100)  # 100 pixels of 0.1 degrees
+    settings = SgbmParameters(speckle_deg2=0.01 * 100)  # 100 pixels of 0.1 degrees
     assert settings.speckle_pixels(math.radians(0.1)) == 100
     assert settings.speckle_pixels(math.radians(0.05)) == 400
     kept = despeckle(disparity, settings.speckle_pixels(math.radians(0.1)), 2.0)
@@ -345,7 +337,7 @@ def test_a_fisheye_pair_comes_back_within_one_percent():
     camera = kitti02().resize(512, 512)
     reference, source, truth = pair(camera, camera, pose(0, (-0.2, 0, 0)), pose(0, (0.2, 0, 0)))
     rect = build_rectification(camera, camera, source.T_ref_to_view.double().numpy(), 0.5)
-    settings = StereoSettings(min_distance=0.5, max_distance=20.0)
+    settings = SgbmSettings(min_distance=0.5, max_distance=20.0)
     maps, other = match_pair(grey(reference), grey(source), rect, settings)
     truth = truth[0].numpy()
     kept = (maps.distance > 0) & (truth > 0)
@@ -366,13 +358,13 @@ def test_a_pinhole_pair_gives_stereo_sgbms_own_answer():
     error against the truth is no larger than SGBM's alone."""
     camera = PinholeCamera(width=320, height=240, fx=260.0, fy=260.0, cx=159.5, cy=119.5)
     reference, source, truth = pair(camera, camera, pose(0, (-0.1, 0, 0)), pose(0, (0.1, 0, 0)))
-    settings = StereoSettings(min_distance=0.8, max_distance=20.0)
+    settings = SgbmSettings(min_distance=0.8, max_distance=20.0)
     rect = build_rectification(camera, camera, source.T_ref_to_view.double().numpy(), 0.8)
     ours, _ = match_pair(grey(reference), grey(source), rect, settings, (True, False))
-    m = settings.matcher
+    m = settings.sgbm
     seen = np.ones((240, 320), bool)
     a, b = (normalise(grey(v), seen, m.normalise_window) for v in (reference, source))
-    sgbm = m.sgbm(rect.disparities)  # the pipeline's own settings
+    sgbm = m.create(rect.disparities)  # the pipeline's own settings
     d = sgbm.compute(a, b).astype(np.float32) / 16
     rays, _ = compute_rays(camera)
     theirs = np.where(d > 1, 260.0 * 0.2 / np.maximum(d, 1e-6), 0) / rays[..., 2].numpy()
@@ -402,7 +394,7 @@ def test_a_live_rig_gets_distance_for_every_camera():
         "back": pose(180, (0, 0, -0.2)),
     }
     rig = RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()},
-                    StereoSettings(min_distance=0.5, max_distance=20.0), threads=2)  # fmt: skip
+                    SgbmSettings(min_distance=0.5, max_distance=20.0), threads=2)  # fmt: skip
     assert set(rig.pairs) == {("left", "right")} and len(rig.unpaired) == 2
     body = [pose(0, (0.3 * i, 0, 0.3 * i)) for i in range(2)]  # forward and aside: the back camera's
     # own motion is not along its axis alone (there it would resolve little of the room)

@@ -15,8 +15,8 @@ import torch.nn.functional as F
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import invert_pose
-from fisheyedepth.stereo import SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
-from fisheyedepth.stereo.sweep import box_mean, census_cost
+from fisheyedepth.stereo import SweepMatcher, SweepSettings, View
+from fisheyedepth.stereo.costs import aggregate, box_mean, census, census_cost, hamming, winner, zncc_cost
 from stereo_world import pair, pose, render, scores, texture_volume
 
 from conftest import kitti02
@@ -41,8 +41,8 @@ def test_the_separable_box_mean_is_the_window_mean(window):
 def test_hypotheses_warped_in_chunks_give_the_same_volume():
     camera = kitti02().resize(48, 48)
     reference, source, _ = pair(camera, camera, pose(), pose(30.0, (0.2, 0.0, 0.0)))
-    one, seen_one = SweepStereo(hypotheses=10, chunk=1).cost_volume(reference, [source])
-    many, seen_many = SweepStereo(hypotheses=10, chunk=4).cost_volume(reference, [source])
+    one, seen_one = SweepMatcher(SweepSettings(hypotheses=10, chunk=1)).cost_volume(reference, [source])
+    many, seen_many = SweepMatcher(SweepSettings(hypotheses=10, chunk=4)).cost_volume(reference, [source])
     assert torch.equal(one, many) and torch.equal(seen_one, seen_many)
 
 
@@ -109,18 +109,18 @@ def test_winner_refines_to_the_parabola_vertex_and_says_how_unique_it_is():
 )
 def test_bad_settings_are_refused_by_name(option, value, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(")):
-        SweepStereo(**{option: value})
+        SweepMatcher(SweepSettings(**{option: value}))
 
 
 def test_a_reference_without_sources_is_refused():
     camera = PinholeCamera(width=32, height=32, fx=30.0, fy=30.0, cx=15.5, cy=15.5)
     with pytest.raises(ValueError, match="sources: sweep stereo needs at least one source view"):
-        SweepStereo()(View(torch.rand(1, 1, 32, 32), camera, torch.eye(4)), [])
+        SweepMatcher(SweepSettings())(View(torch.rand(1, 1, 32, 32), camera, torch.eye(4)), [])
 
 
 # ------------------------------------------------------------------ metric distance, exact ground truth
 SIZE = 160
-SWEEP = SweepStereo(hypotheses=64, min_distance=0.5, max_distance=20.0)
+SWEEP = SweepMatcher(SweepSettings(hypotheses=64, min_distance=0.5, max_distance=20.0))
 
 
 def test_a_fisheye_rig_gives_metric_distance_beyond_90_degrees():
@@ -182,8 +182,8 @@ def test_a_rectified_pinhole_pair_beside_opencv_stereo_sgbm():
     width, height, f = 128, 96, 80.0
     camera = PinholeCamera(width=width, height=height, fx=f, fy=f, cx=63.5, cy=47.5)
     reference, source, truth = pair(camera, camera, pose(), pose(0.0, (0.2, 0.0, 0.0)), seed=3)
-    sweep = {cost: SweepStereo(hypotheses=64, min_distance=1.0, max_distance=20.0, cost=cost, window=9)
-             for cost in ("zncc", "census")}  # fmt: skip
+    sweep = {cost: SweepMatcher(SweepSettings(hypotheses=64, min_distance=1.0, max_distance=20.0, cost=cost,
+                                              window=9)) for cost in ("zncc", "census")}  # fmt: skip
     ours = {cost: scores(s(reference, [source]).distance, truth) for cost, s in sweep.items()}
 
     left = (reference.image[0, 0].numpy() * 255).astype(np.uint8)
@@ -204,8 +204,8 @@ def test_a_rectified_pinhole_pair_beside_opencv_stereo_sgbm():
 def test_the_sweep_runs_on_cuda_as_on_the_cpu():
     camera = kitti02().resize(64, 64)
     reference, source, _ = pair(camera, camera, pose(), pose(30.0, (0.2, 0.0, 0.0)))
-    on_cpu = SweepStereo(hypotheses=24)(reference, [source])
+    on_cpu = SweepMatcher(SweepSettings(hypotheses=24))(reference, [source])
     cuda = [View(v.image.cuda(), v.camera, v.T_ref_to_view.cuda()) for v in (reference, source)]
-    on_gpu = SweepStereo(hypotheses=24)(cuda[0], cuda[1:])
+    on_gpu = SweepMatcher(SweepSettings(hypotheses=24))(cuda[0], cuda[1:])
     agree = (on_gpu.dense.cpu() - on_cpu.dense).abs() <= 1e-3 * on_cpu.dense
     assert agree.float().mean() > 0.99

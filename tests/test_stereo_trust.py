@@ -17,7 +17,7 @@ import torch
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.base import CameraModel
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
-from fisheyedepth.stereo import RigStereo, StereoSettings, match_pair, rectify_pair
+from fisheyedepth.stereo import RigStereo, SgbmSettings, match_pair, rectify_pair
 from fisheyedepth.stereo.fuse import fuse
 from fisheyedepth.stereo.pipeline import MAX_TRIANGULATION_DEG, pair_range
 from fisheyedepth.stereo.rectify import RectificationCache
@@ -27,7 +27,7 @@ from stereo_world import pose, render, texture_volume
 
 from conftest import kitti02
 
-SETTINGS = StereoSettings(min_distance=0.5, max_distance=20.0)
+SETTINGS = SgbmSettings(min_distance=0.5, max_distance=20.0)
 
 
 def shot(camera, P, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -66,7 +66,7 @@ def test_the_round_trip_drops_answers_outside_the_partners_view():
     and the kept pixels are right."""
     camera = fisheye()
     now, then = pose(0, (0.0, 0.0, 0.0)), pose(0, (0.0, 0.0, 1.0))
-    loose = dataclasses.replace(SETTINGS, matcher=dataclasses.replace(SETTINGS.matcher, round_trip=1e6))
+    loose = dataclasses.replace(SETTINGS, sgbm=dataclasses.replace(SETTINGS.sgbm, round_trip=1e6))
     without, truth = pair_maps(camera, camera, now, then, settings=loose)
     kept, _ = pair_maps(camera, camera, now, then)
     wrong_without, wrong_with = (float((errors(m.distance, truth) > 0.25).mean()) for m in (without, kept))
@@ -192,7 +192,7 @@ def test_a_long_motion_pair_searches_the_triangulation_angle_a_matcher_can_match
     """A car's 1.3 m motion pair from 0.3 m on would search 77 degrees of parallax at its cameras' step
     (grids of 6862x4042 were refused): the range stops at the triangulation angle a window matcher can
     still match across, the step is coarsened so the search fits, and the pair is matched."""
-    settings = StereoSettings(min_distance=0.3, max_distance=80.0)
+    settings = SgbmSettings(min_distance=0.3, max_distance=80.0)
     car = PinholeCamera(width=968, height=608, fx=1060.0, fy=1060.0, cx=483.5, cy=303.5)
     nearest, step = pair_range(car, car, 1.3, settings)
     assert nearest == pytest.approx(1.3 / math.sin(math.radians(MAX_TRIANGULATION_DEG)))

@@ -42,7 +42,7 @@ import torch
 from fisheyedepth.cameras.rays import compute_rays, pixel_grid
 from fisheyedepth.data.realframes import adt_camera
 from fisheyedepth.data.realpairs import MOTORCYCLE, adt_left_to_right, adt_pairs, motorcycle, overlap
-from fisheyedepth.stereo import RigStereo, StereoSettings, fuse, match_pair, rectify_pair
+from fisheyedepth.stereo import RigStereo, SgbmSettings, fuse, match_pair, rectify_pair
 from fisheyedepth.stereo.match import normalise
 from fisheyedepth.stereo.pipeline import grey
 from fisheyedepth.stereo.scores import score
@@ -94,16 +94,16 @@ def rays_section(quick: bool) -> list[str]:
 def middlebury_section(rounds: int, quick: bool) -> tuple[list[str], float]:
     threads(1)
     pair = motorcycle()
-    settings = StereoSettings(min_distance=1.5, max_distance=10.0)
+    settings = SgbmSettings(min_distance=1.5, max_distance=10.0)
     rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings, (True, False))
     a, b = grey(pair.image), grey(pair.partner_image)
-    m = settings.matcher
+    m = settings.sgbm
     seen = np.ones(a.shape, bool)
     raw = [normalise(x, seen, m.normalise_window) for x in (a, b)]
     # the raw pair's disparity range for the same nearest distance (d + doffs = f b / z)
     c = MOTORCYCLE
     raw_range = 16 * math.ceil((c["f"] * c["baseline"] / settings.min_distance - c["doffs"]) / 16)
-    sgbm = m.sgbm(raw_range)
+    sgbm = m.create(raw_range)
     results = {}
 
     def ours():
@@ -149,7 +149,7 @@ def adt_section(rounds: int, quick: bool) -> list[str]:
         return ["(ADT: no adt_slam under FISHEYEDEPTH_REALDATA)"]
     threads(2)
     pair = adt_pairs(folder, adt_left_to_right(folder))[0]
-    settings = StereoSettings(min_distance=0.2, max_distance=10.0)
+    settings = SgbmSettings(min_distance=0.2, max_distance=10.0)
     rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings)
     a, b = grey(pair.image), grey(pair.partner_image)
     seconds = statistics.median(
@@ -179,7 +179,7 @@ def rgb_section(rounds: int, quick: bool) -> list[str]:
     world = torch.eye(4, dtype=torch.float64)
     world[:3, 3] = torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64)
     images = {n: grey(render(cameras[n], world @ to_device[n], texture_volume(0))[0]) for n in names}
-    settings = StereoSettings(min_distance=0.3, max_distance=20.0)
+    settings = SgbmSettings(min_distance=0.3, max_distance=20.0)
     rgb_to = {n: (torch.linalg.inv(to_device[n]) @ to_device["camera-rgb"]).numpy() for n in names[1:]}
     rects = {
         n: rectify_pair(cameras["camera-rgb"], cameras[n], T, settings, (True, False))
@@ -228,7 +228,7 @@ def rig_section(rounds: int, quick: bool) -> list[str]:
         images = [
             {n: cv2.resize(x, (cameras[n].width, cameras[n].height)) for n, x in i.items()} for i in images
         ]
-    rig = RigStereo(cameras, {n: layout.cameras[n].cam_to_body for n in names}, StereoSettings(), threads=2)
+    rig = RigStereo(cameras, {n: layout.cameras[n].cam_to_body for n in names}, SgbmSettings(), threads=2)
     instants, partners = [], []
     for i in range(count):
         earlier = [j for j in range(i) if np.linalg.norm(poses[i][:3, 3] - poses[j][:3, 3]) >= 0.05]
@@ -292,7 +292,7 @@ def car_section(rounds: int, quick: bool) -> list[str]:
     volume = texture_volume(0)
     images = [{n: (render(cameras[n], P @ E, volume)[0][0, 0].numpy() * 255).astype(np.uint8)
                for n, E in cam_to_body.items()} for P in body]  # fmt: skip
-    rig = RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()}, StereoSettings(), threads=2)
+    rig = RigStereo(cameras, {n: E.numpy() for n, E in cam_to_body.items()}, SgbmSettings(), threads=2)
     rig(images[0])
     rig(images[1], previous=images[0], motion=(torch.linalg.inv(body[0]) @ body[1]).numpy())  # warm
     seconds = []
@@ -306,7 +306,7 @@ def car_section(rounds: int, quick: bool) -> list[str]:
     rig_s = statistics.median(seconds)
     threads(1)
     a, b = (normalise(images[0]["front_left"].astype(np.float32), np.ones((h, w), bool), 15) for _ in (0, 1))
-    sgbm = StereoSettings().matcher.sgbm(256)
+    sgbm = SgbmSettings().sgbm.create(256)
     alone = statistics.median(interleaved({"": lambda: sgbm.compute(a, b)}, max(1, rounds), warmup=1)[""])
     return [
         f"A car's six {w}x{h} pinholes moving 1.3 m between instants (DDAD's half-size cameras in the "
@@ -317,12 +317,13 @@ def car_section(rounds: int, quick: bool) -> list[str]:
 
 
 def sweep_section(quick: bool) -> list[str]:
-    from fisheyedepth.stereo import SweepStereo, View
+    from fisheyedepth.stereo import SweepMatcher, SweepSettings, View
 
     threads(1)
     pair = motorcycle()
     hypotheses = 16 if quick else 128
-    sweep = SweepStereo(hypotheses=hypotheses, min_distance=1.5, max_distance=10.0, cost="census")
+    settings = SweepSettings(hypotheses=hypotheses, min_distance=1.5, max_distance=10.0, cost="census")
+    sweep = SweepMatcher(settings)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     cells = []
     for device in devices:

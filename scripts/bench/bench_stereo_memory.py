@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Peak memory of one stereo pair through the rectified pipeline (``RigStereo``, as
 ``fisheyedepth-multiview`` matches each pair), per pixel of its images, at growing sizes: the figure
-behind the bound the command refuses a recording by (``stereo.recording.pair_memory``) before any
+behind the bound the command refuses a recording by (``stereo.sgbm.pair_memory``) before any
 work (BENCHMARKS.md, "Memory of a stereo pair", after the stereo section).
 
 Usage: python scripts/bench/bench_stereo_memory.py [--sizes 512 1024 2048] [--quick] [--no-write]
@@ -26,7 +26,7 @@ def child(size: int, match: bool) -> None:
     import numpy as np
 
     sys.path.insert(0, str(ROOT / "tests"))
-    from fisheyedepth.stereo.pipeline import RigStereo
+    from fisheyedepth.stereo import RigStereo
 
     from conftest import kitti02
 
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     if args.child:
         child(int(args.child[0]), args.child[1] == "match")
         return 0
-    from fisheyedepth.stereo.recording import MEMORY_BASE, MEMORY_PER_PIXEL, pair_memory
+    from fisheyedepth.stereo.sgbm import MEMORY_BASE, MEMORY_PER_PIXEL, pair_memory
 
     measured = []
     for size in args.sizes:

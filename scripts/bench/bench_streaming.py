@@ -131,7 +131,7 @@ def rig_section(threads: int, quick: bool) -> list[str]:
     if not src.is_dir():
         return [RIG_HEADING, "", f"(no {src}: set FISHEYEDEPTH_REALDATA)"]
     from fisheyedepth.rerun3d import RigRecorder
-    from fisheyedepth.stereo import RigStereo, StereoSettings
+    from fisheyedepth.stereo import RigStereo, SgbmSettings
     from live_rig import body_masks, instants, replay, rig_layout
 
     measured = {}
@@ -142,7 +142,7 @@ def rig_section(threads: int, quick: bool) -> list[str]:
         cameras = {n: layout.cameras[n].camera for n in names}
         extrinsics = {n: layout.cameras[n].cam_to_body for n in names}
         for recorded in (False, True):
-            stereo = RigStereo(cameras, extrinsics, StereoSettings(), threads, body_masks(layout, names))
+            stereo = RigStereo(cameras, extrinsics, SgbmSettings(), threads, body_masks(layout, names))
             path = Path(tmp) / "recording.rrd"
             start = time.perf_counter()
             if recorded:

@@ -29,7 +29,7 @@ from hydra.utils import instantiate
 from fisheyedepth.cli import prepare_data
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.plan import data_plan
-from fisheyedepth.stereo.sweep import SweepStereo, View
+from fisheyedepth.stereo.sweep import SweepMatcher, SweepSettings, View
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _compose import compose_config  # noqa: E402
@@ -61,7 +61,9 @@ def main(argv=None) -> int:
     cfg = compose_config(["data=synthetic", *world, f"data.datamodule.size=[{args.size},{args.size}]"])
     prepare_data(data_plan(cfg))
     dataset = instantiate(cfg.data.datamodule, offsets=args.offsets).dataset("test")
-    sweep = SweepStereo(args.hypotheses, 1.5, 80.0, cost="zncc", window=5 if args.size < 200 else 7, paths=4)
+    sweep = SweepMatcher(
+        SweepSettings(args.hypotheses, 1.5, 80.0, cost="zncc", window=5 if args.size < 200 else 7, paths=4)
+    )
     rows = {"monocular": [], "sweep, every pixel it sees": [], "monocular, sweep where checked": [],
             "better of the two per pixel (truth picks)": []}  # fmt: skip
     checked = []

@@ -33,7 +33,15 @@ from fisheyedepth.cli import prepare_data
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.geometry.se3 import transform_points
 from fisheyedepth.plan import data_plan
-from fisheyedepth.stereo import StereoSettings, SweepStereo, View, fuse, match_pair, rectify_pair
+from fisheyedepth.stereo import (
+    SgbmSettings,
+    SweepMatcher,
+    SweepSettings,
+    View,
+    fuse,
+    match_pair,
+    rectify_pair,
+)
 from fisheyedepth.stereo.scores import score
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
@@ -65,7 +73,7 @@ class Result(NamedTuple):
     confidence: torch.Tensor | None = None
 
 
-def rectified(reference: View, sources: list[View], settings: StereoSettings) -> Result:
+def rectified(reference: View, sources: list[View], settings: SgbmSettings) -> Result:
     """The rectified pipeline on the reference against each source, fused."""
     maps = []
     for source in sources:
@@ -102,8 +110,8 @@ def main(argv=None) -> int:
     dm = build_datamodule(cfg, rig_offsets=[0] if args.rig_sources else [])
     dataset = dm.dataset("test")  # with the frames the model warps
     step = max(1, len(dataset) // args.frames)
-    sweep = SweepStereo(args.hypotheses, args.min_distance, args.max_distance, args.cost)
-    settings = StereoSettings(args.min_distance, args.max_distance)
+    sweep = SweepMatcher(SweepSettings(args.hypotheses, args.min_distance, args.max_distance, args.cost))
+    settings = SgbmSettings(args.min_distance, args.max_distance)
     evaluator = Evaluator(PROTOCOLS["full"], ("none",), rays=RAYS)
     totals: dict[str, list] = {"checked": [], "resolvable": [], "dense": []}
     errors = []  # the checked output's relative error on every pixel it keeps

@@ -39,8 +39,8 @@ import numpy as np
 from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
-from fisheyedepth.stereo import RigStereo, StereoSettings
-from fisheyedepth.stereo.recording import masks
+from fisheyedepth.stereo import RigStereo, SgbmSettings
+from fisheyedepth.stereo.sgbm import masks
 from fisheyedepth.utils import Terminated, check_apart, check_threads, pid_alive, sigterm_raises, stopped_by
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
 
 def run(args) -> dict:
     """What :func:`main` does with its parsed ``args``; the instants, seconds and instants per second."""
-    settings = StereoSettings(min_distance=args.min_distance, max_distance=args.max_distance)
+    settings = SgbmSettings(min_distance=args.min_distance, max_distance=args.max_distance)
     with rig_layout(args.rig) as layout:
         sequence = args.sequence or layout.sequences()[0]
         found, left_out = instants(layout, sequence)

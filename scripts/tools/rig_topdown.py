@@ -22,7 +22,7 @@ import torch
 from fisheyedepth.cameras import RayCache
 from fisheyedepth.cli import CommandParser
 from fisheyedepth.inference import point_cloud
-from fisheyedepth.stereo import RigStereo, StereoSettings
+from fisheyedepth.stereo import RigStereo, SgbmSettings
 from fisheyedepth.utils import atomic_write_png, ends_on_signals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -92,7 +92,7 @@ def main(argv=None) -> int:
         names = list(found[0].images)
         cameras = {n: layout.cameras[n].camera for n in names}
         extrinsics = {n: layout.cameras[n].cam_to_body for n in names}
-        settings = StereoSettings(max_distance=args.max_distance)
+        settings = SgbmSettings(max_distance=args.max_distance)
         stereo = RigStereo(cameras, extrinsics, settings, args.threads, body_masks(layout, names))
         points, path = [], []
         for instant, results, _ in replay(layout, stereo, found, quiet=True):

@@ -41,10 +41,12 @@ from pathlib import Path
 import cv2
 import torch
 
-from ..stereo.pipeline import StereoSettings
-from ..stereo.recording import MATCHERS, RECORDING, run
+from ..stereo.matchers import MATCHERS
+from ..stereo.pipeline import SgbmSettings
+from ..stereo.recording import RECORDING, run
 from ..stereo.refine import REFINE
-from ..stereo.sweep import SweepStereo
+from ..stereo.sgbm import SgbmMatcher
+from ..stereo.sweep import SweepMatcher, SweepSettings
 from ..utils import WRITE_ERRORS, Terminated, check_threads, sigterm_raises, stopped_by
 from . import CommandParser
 
@@ -89,16 +91,13 @@ def main(argv: list[str] | None = None) -> int:
             if given and args.matcher != matcher:
                 raise ValueError(f"{', '.join(given)}: an option of --matcher {matcher}, not {args.matcher}")
         if args.matcher == "sweep":
-            matcher = SweepStereo(
-                128 if args.hypotheses is None else args.hypotheses,
-                args.min_distance,
-                args.max_distance,
-                args.cost or "zncc",
-            )
+            hypotheses = 128 if args.hypotheses is None else args.hypotheses
+            settings = SweepSettings(hypotheses, args.min_distance, args.max_distance, args.cost or "zncc")
+            matcher = SweepMatcher(settings)
         else:
             resolution = None if args.resolution is None else math.radians(args.resolution)
-            matcher = StereoSettings(args.min_distance, args.max_distance, resolution,
-                                     min_confidence=args.min_confidence or 0.0)  # fmt: skip
+            matcher = SgbmMatcher(SgbmSettings(args.min_distance, args.max_distance, resolution,
+                                               min_confidence=args.min_confidence or 0.0))  # fmt: skip
         sources = tuple(args.sources.split(","))
         with sigterm_raises():
             summary = run(

@@ -1,34 +1,34 @@
-"""Metric distance from geometry, untrained, for calibrated cameras of any model: every pair rectified on
-the sphere and matched by OpenCV's semi-global matcher (:mod:`.rectify`, :mod:`.match`, :mod:`.fill`,
-:mod:`.mapback`, :mod:`.fuse`; :class:`.pipeline.RigStereo` for a live rig), or swept over distance
-hypotheses (:mod:`.sweep`)."""
+"""Metric distance from geometry, untrained, for calibrated cameras of any model, through one matcher
+interface (:mod:`.matchers`): :class:`SgbmMatcher` rectifies every pair on the sphere and matches it with
+OpenCV's semi-global matcher (:mod:`.pipeline`: :mod:`.rectify`, :mod:`.match`, :mod:`.fill`,
+:mod:`.mapback`, then :mod:`.fuse`), :class:`SweepMatcher` sweeps every partner at once over distance
+hypotheses (:mod:`.sweep`). :class:`RigStereo` is the live API for a rig, one call per instant
+(:mod:`.live`); the multi-view command's run over a recording is :mod:`.recording`."""
 
 from .fuse import Fused, fuse
+from .live import CameraResult, RigStereo
 from .mapback import PixelMaps
-from .match import MatcherSettings
-from .pipeline import RigStereo, StereoSettings, match_pair, rectify_pair
-from .rectify import Rectification, build_rectification, remap
-from .sweep import COSTS, StereoResult, SweepStereo, View, aggregate, census, hamming, winner, zncc_cost
+from .match import SgbmParameters
+from .matchers import MATCHERS, Matcher
+from .pipeline import SgbmSettings, match_pair, rectify_pair
+from .sgbm import SgbmMatcher
+from .sweep import SweepMatcher, SweepResult, SweepSettings, View
 
 __all__ = [
-    "COSTS",
+    "MATCHERS",
+    "CameraResult",
     "Fused",
-    "MatcherSettings",
+    "Matcher",
     "PixelMaps",
-    "Rectification",
     "RigStereo",
-    "StereoResult",
-    "StereoSettings",
-    "SweepStereo",
+    "SgbmMatcher",
+    "SgbmParameters",
+    "SgbmSettings",
+    "SweepMatcher",
+    "SweepResult",
+    "SweepSettings",
     "View",
-    "aggregate",
-    "build_rectification",
-    "census",
     "fuse",
-    "hamming",
     "match_pair",
     "rectify_pair",
-    "remap",
-    "winner",
-    "zncc_cost",
 ]

@@ -47,7 +47,7 @@ INVALID = -1.0  # a rejected disparity
 
 
 @dataclass(frozen=True)
-class MatcherSettings:
+class SgbmParameters:
     """``block``: SGBM's block size (odd); ``p1``, ``p2``: its smoothness penalties per block pixel
     (OpenCV's recommended ``8`` and ``32`` times the block's area); ``mode``: a key of :data:`MODES`;
     ``uniqueness``: percent by which the winner must beat the runner-up; ``lr_check``: grid pixels of
@@ -86,7 +86,8 @@ class MatcherSettings:
                 f"{self.end_margin}; need >= 0, > 0, >= 0"
             )
 
-    def sgbm(self, disparities: int, first: int = 0) -> cv2.StereoSGBM:
+    def create(self, disparities: int, first: int = 0) -> cv2.StereoSGBM:
+        """OpenCV's matcher with these parameters for ``disparities`` grid pixels from ``first``."""
         area = self.block * self.block
         return cv2.StereoSGBM_create(
             minDisparity=first, numDisparities=disparities, blockSize=self.block, P1=self.p1 * area,
@@ -180,7 +181,7 @@ def match(
     right_seen: np.ndarray,
     disparities: int,
     step: float,
-    settings: MatcherSettings,
+    settings: SgbmParameters,
     first: int = 0,
 ) -> Disparity:
     """The :class:`Disparity` of every pixel of ``left`` (``right``'s match at ``column - disparity``),
@@ -190,13 +191,13 @@ def match(
     return Disparity(matched, despeckle(matched, settings.speckle_pixels(step), settings.speckle_range))
 
 
-def _matched(left, right, left_seen, right_seen, disparities: int, settings: MatcherSettings, first: int,
+def _matched(left, right, left_seen, right_seen, disparities: int, settings: SgbmParameters, first: int,
              normalised: tuple | None = None):  # fmt: skip
     """SGBM's disparity of ``left``'s pixels, :data:`INVALID` where a check of the module rejects it
     (``normalised``: both images already normalised)."""
     a, b = normalised or (normalise(x, seen, settings.normalise_window)
                           for x, seen in ((left, left_seen), (right, right_seen)))  # fmt: skip
-    raw = settings.sgbm(disparities, first).compute(np.ascontiguousarray(a), np.ascontiguousarray(b))
+    raw = settings.create(disparities, first).compute(np.ascontiguousarray(a), np.ascontiguousarray(b))
     raw = raw.astype(np.float32) / 16.0
     lowest, highest = first + settings.end_margin, first + disparities - 1 - settings.end_margin
     ok = textured(left, left_seen, settings.block) & (raw >= lowest) & (raw <= highest)
@@ -242,7 +243,7 @@ def match_both(
     b_seen: np.ndarray,
     disparities: int,
     step: float,
-    settings: MatcherSettings,
+    settings: SgbmParameters,
     directions: tuple[bool, bool] = (True, True),
     first: int = 0,
     spans: tuple[tuple[int, int], tuple[int, int]] | None = None,

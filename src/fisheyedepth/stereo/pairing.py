@@ -12,6 +12,8 @@ import numpy as np
 from ..data.layouts import Frame, RigLayout
 
 SOURCES = ("rig", "time")
+MIN_BASELINE = 0.05  # metres a camera must have moved for its earlier or later image to be a partner
+SAME_INSTANT_NS = 1_000_000  # two cameras' images this close in time are one instant of the rig
 
 
 @dataclass(frozen=True)
@@ -38,6 +40,24 @@ def check_sources(sources: tuple[str, ...]) -> tuple[str, ...]:
     return sources
 
 
+def pair_pose(
+    layout: RigLayout,
+    camera_a: str,
+    frame_a: Frame,
+    camera_b: str,
+    frame_b: Frame,
+    same_instant_ns: int = SAME_INSTANT_NS,
+) -> np.ndarray:
+    """``T_a_to_b`` of two images: each camera's extrinsics and each instant's body pose. Two cameras of
+    one instant (within ``same_instant_ns``) are a rig pair: their extrinsics alone, so that its
+    rectification is built once (the body moves 0.4 mm in a millisecond at 0.4 m/s)."""
+    if camera_a != camera_b and abs(frame_a.key - frame_b.key) <= same_instant_ns:
+        return np.linalg.inv(layout.cameras[camera_b].cam_to_body) @ layout.cameras[camera_a].cam_to_body
+    world_a = frame_a.pose @ layout.cameras[camera_a].cam_to_body
+    world_b = frame_b.pose @ layout.cameras[camera_b].cam_to_body
+    return np.linalg.inv(world_b) @ world_a
+
+
 def _centre(layout: RigLayout, camera: str, frame: Frame) -> np.ndarray:
     return (frame.pose @ layout.cameras[camera].cam_to_body)[:3, 3]
 
@@ -45,8 +65,8 @@ def _centre(layout: RigLayout, camera: str, frame: Frame) -> np.ndarray:
 def pairings(
     layout: RigLayout,
     sources: tuple[str, ...] = SOURCES,
-    same_instant_ns: int = 1_000_000,
-    min_baseline: float = 0.05,
+    same_instant_ns: int = SAME_INSTANT_NS,
+    min_baseline: float = MIN_BASELINE,
     max_frames_apart: int = 5,
 ) -> list[Pairing]:
     """Every image of the recording with its partners: each other camera's image within

@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from torch import Tensor
 
 from ..data.realframes import Missing, adt_camera, load_adt
@@ -28,17 +27,21 @@ from ..data.realpairs import (
     motorcycle,
     overlap,
 )
-from .pipeline import StereoSettings, match_pair, rectify_pair
+from .matchers import MATCHERS, Matcher
+from .pipeline import SgbmSettings
 from .refine import Matches, match_features, refine_relative_pose
 from .scores import panel, score
-from .sweep import SweepStereo, View
+from .sgbm import SgbmMatcher
+from .sweep import SweepMatcher, SweepSettings
 
-MATCHERS = ("sgbm", "sweep")
 # the range by the scene's kind, never tuned on the ground truth: indoors 0.2-10 m; Middlebury's scene
 # 1.5-10 m. The sweep: ZNCC indoors (the command's default), census on Middlebury's two exposures.
 ADT_RANGE, MIDDLEBURY_RANGE = (0.2, 10.0), (1.5, 10.0)
-ADT_SWEEP = SweepStereo(128, *ADT_RANGE, cost="zncc")
-MIDDLEBURY_SWEEP = SweepStereo(128, *MIDDLEBURY_RANGE, cost="census")
+SETTINGS = {
+    "sgbm": {"adt": SgbmSettings(*ADT_RANGE), "middlebury": SgbmSettings(*MIDDLEBURY_RANGE)},
+    "sweep": {"adt": SweepSettings(128, *ADT_RANGE, cost="zncc"),
+              "middlebury": SweepSettings(128, *MIDDLEBURY_RANGE, cost="census")},
+}  # fmt: skip
 HEADER = (
     "| reference frame | its partner | overlap pixels | checked: abs_rel, a1, coverage "
     "| constant map there | filled: abs_rel, a1, coverage | constant map there "
@@ -60,23 +63,19 @@ def refine_adt(folder: Path) -> tuple[Tensor, dict[str, Any]]:
     return refined.T_a_to_b, record
 
 
-def distance_maps(
-    pair: RealPair, matcher: str, settings: StereoSettings | SweepStereo
-) -> tuple[np.ndarray, np.ndarray]:
-    """The checked and the filled distance ``[H, W]`` (0: none) of the pair's reference image."""
-    if matcher == "sweep":
-        result = settings(View(pair.image, pair.camera, torch.eye(4)),
-                          [View(pair.partner_image, pair.partner_camera, pair.T.float())])  # fmt: skip
-        return result.distance[0].numpy(), result.dense[0].numpy()
-    rect = rectify_pair(pair.camera, pair.partner_camera, pair.T.numpy(), settings, (True, False))
-    maps, _ = match_pair(pair.image, pair.partner_image, rect, settings, (True, False))
-    return maps.distance, maps.dense
+def matcher_for(name: str, scene: str) -> Matcher:
+    """The matcher ``name`` (:data:`~.matchers.MATCHERS`) with the settings of ``scene`` (``adt`` or
+    ``middlebury``: :data:`SETTINGS`)."""
+    if name not in MATCHERS:
+        raise ValueError(f"matcher: {name!r}; choose from {', '.join(MATCHERS)}")
+    settings = SETTINGS[name][scene]
+    return SgbmMatcher(settings) if name == "sgbm" else SweepMatcher(settings)
 
 
-def score_pair(pair: RealPair, scored: Tensor, matcher: str, settings) -> tuple[dict[str, Any], tuple]:
-    """One pair, scored on ``scored`` (its overlap): the checked and the filled output, each with the
-    constant map on its own scored pixels (:func:`.scores.score`)."""
-    checked, dense = distance_maps(pair, matcher, settings)
+def score_pair(pair: RealPair, scored: Tensor, matcher: Matcher) -> tuple[dict[str, Any], tuple]:
+    """One pair, scored on ``scored`` (its overlap): the checked and the filled output of ``matcher``,
+    each with the constant map on its own scored pixels (:func:`.scores.score`)."""
+    checked, dense = matcher.maps(pair.image, pair.partner_image, pair.camera, pair.partner_camera, pair.T)
     record = {
         "overlap_pixels": int(scored.sum()),
         "checked": score(checked, pair.distance.numpy(), scored.numpy()),
@@ -86,10 +85,10 @@ def score_pair(pair: RealPair, scored: Tensor, matcher: str, settings) -> tuple[
 
 
 def real_pairs(root: Path, matcher: str = "sgbm", middlebury: bool = True, echo=print) -> list[tuple]:
-    """``(pair or Missing, refinement, settings)`` for every real pair under ``root``: the ADT pairs
-    (refined) and, when scikit-image is installed, Middlebury's."""
-    if matcher not in MATCHERS:
-        raise ValueError(f"matcher: {matcher!r}; choose from {', '.join(MATCHERS)}")
+    """``(pair or Missing, refinement, matcher)`` for every real pair under ``root``: the ADT pairs
+    (refined) and, when scikit-image is installed, Middlebury's; ``matcher``: one of
+    :data:`~.matchers.MATCHERS`, with the scene's settings (:func:`matcher_for`)."""
+    adt = matcher_for(matcher, "adt")
     folder = Path(root) / "adt_slam"
     gone = [f for f in load_adt(folder) if isinstance(f, Missing)]
     out: list[tuple] = []
@@ -97,18 +96,10 @@ def real_pairs(root: Path, matcher: str = "sgbm", middlebury: bool = True, echo=
         out += [(m, None, None) for m in gone]
     else:
         T, refinement = refine_adt(folder)
-        near, far = ADT_RANGE
-        adt = ADT_SWEEP if matcher == "sweep" else StereoSettings(min_distance=near, max_distance=far)
         out += [(p, refinement, adt) for p in adt_pairs(folder, T)]
     if middlebury:
         try:
-            near, far = MIDDLEBURY_RANGE
-            settings = (
-                MIDDLEBURY_SWEEP
-                if matcher == "sweep"
-                else StereoSettings(min_distance=near, max_distance=far)
-            )
-            out.append((motorcycle(), None, settings))
+            out.append((motorcycle(), None, matcher_for(matcher, "middlebury")))
         except ImportError as err:
             echo(f"(Middlebury Motorcycle left out: {err})")
     return out
@@ -174,13 +165,13 @@ def multiview_scores(
     echo(HEADER)
     echo("|---|---|---|---|---|---|---|---|")
     record: dict[str, Any] = {}
-    for pair, refinement, settings in pairs:
+    for pair, refinement, stereo in pairs:
         if isinstance(pair, Missing):
             record[pair.name] = {"missing": str(pair.path)}
             echo(f"| {pair.name} | missing: {pair.path} | | | | | | |")
             continue
         scored = overlap(pair)
-        result, (checked, dense) = score_pair(pair, scored, matcher, settings)
+        result, (checked, dense) = score_pair(pair, scored, stereo)
         truth = pair.distance
         result["refinement"] = refinement
         result["models"] = {
@@ -188,8 +179,9 @@ def multiview_scores(
             for model, frames in predictions.items()
             if pair.name in frames
         }
-        kept = ("min_distance", "max_distance") + (("hypotheses", "cost") if matcher == "sweep" else ())
-        result["stereo"] = {"matcher": matcher, **{k: getattr(settings, k) for k in kept}}
+        settings = stereo.record()
+        kept = ("matcher", "min_distance", "max_distance", "hypotheses", "cost")
+        result["stereo"] = {k: settings[k] for k in kept if k in settings}
         record[pair.name] = result
         echo(multiview_row(pair.name, result))
         if pictures is not None:

@@ -8,20 +8,16 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
-import math
 import os
 import time
-from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from ..data.dataset import binary_mask, read_distance
-from ..data.layouts import Frame, RigLayout
-from ..option_checks import check_memory
+from ..data.dataset import read_distance
+from ..data.layouts import RigLayout
 from ..rerun3d import InstantRecorder, RecordingError
 from ..utils import (
     atomic_write_npy,
@@ -34,28 +30,15 @@ from ..utils import (
     staged_folder,
     take_lock,
 )
-from .fuse import Fused, fuse
-from .mapback import PixelMaps
-from .match import MatcherSettings, off_the_rim, textured
+from .match import SgbmParameters, off_the_rim, textured
+from .matchers import Matcher, RecordingMatches, check_run_memory
 from .pairing import NO_PARTNER, SOURCES, Pairing, check_sources, images_left_out, nothing_to_match, pairings
-from .pipeline import StereoSettings, Timer, grey, match_pair, nothing, pair_step, partner_pair
-from .rectify import RAYS, Rectification, RectificationCache
-from .refine import (
-    MOTION_FEATURES,
-    REFINE,
-    Features,
-    check_motion,
-    features,
-    layout_image,
-    refine_rig,
-    refined_rig_yaml,
-)
+from .pipeline import Timer, grey, nothing
+from .rectify import RAYS
+from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
 from .scores import panel, score
-from .static import StaticFinder, usable
-from .sweep import SweepStereo, View
 
 log = logging.getLogger("fisheyedepth")
-MATCHERS = ("sgbm", "sweep")
 
 
 def _truth(layout: RigLayout, pairing: Pairing) -> np.ndarray | None:
@@ -64,166 +47,6 @@ def _truth(layout: RigLayout, pairing: Pairing) -> np.ndarray | None:
         return None
     camera = layout.cameras[pairing.camera].camera
     return read_distance(path, camera)
-
-
-def masks(layout: RigLayout) -> dict[str, np.ndarray | None]:
-    """Each camera's body mask (``H x W`` bool, True: the scene), None where the rig names none."""
-    out = {}
-    for name, spec in layout.cameras.items():
-        size = (spec.camera.width, spec.camera.height)
-        out[name] = (
-            None if spec.mask is None else binary_mask(spec.mask, size, size, "body mask")[0].numpy() > 0.5
-        )
-    return out
-
-
-def static_masks(layout: RigLayout, max_distance: float, pairs: int = 12) -> dict[str, np.ndarray]:
-    """Each camera's pixels that do not move with the scene (:class:`.static.StaticFinder`), from up to
-    ``pairs`` pairs of its consecutive images spread over the recording (every sequence)."""
-    out = {}
-    for name, spec in layout.cameras.items():
-        finder = StaticFinder(spec.camera, max_distance)
-        found = []
-        for sequence in layout.sequences():
-            frames = layout.frames(sequence, name)
-            found += [(sequence, a, b) for a, b in zip(frames, frames[1:], strict=False)]
-        for sequence, a, b in found[:: max(1, len(found) // pairs)][:pairs]:
-            images = [layout_image(layout, sequence, name, frame) for frame in (a, b)]
-            finder.add(grey(images[0]), grey(images[1]), _T(layout, name, a, name, b))
-        out[name] = finder.mask
-    return out
-
-
-def _T(
-    layout: RigLayout,
-    camera_a: str,
-    frame_a: Frame,
-    camera_b: str,
-    frame_b: Frame,
-    same_instant_ns: int = 1_000_000,
-) -> np.ndarray:
-    """``T_a_to_b`` of two images: each camera's extrinsics and each instant's body pose. Two cameras of
-    one instant (within ``same_instant_ns``) are a rig pair: their extrinsics alone, so that its
-    rectification is built once (the body moves 0.4 mm in a millisecond at 0.4 m/s)."""
-    if camera_a != camera_b and abs(frame_a.key - frame_b.key) <= same_instant_ns:
-        return np.linalg.inv(layout.cameras[camera_b].cam_to_body) @ layout.cameras[camera_a].cam_to_body
-    world_a = frame_a.pose @ layout.cameras[camera_a].cam_to_body
-    world_b = frame_b.pose @ layout.cameras[camera_b].cam_to_body
-    return np.linalg.inv(world_b) @ world_a
-
-
-class PairStore:
-    """The recording's pairs through the rectified pipeline: each pair of images matched once, for the
-    images of the pair that ask for it (``pairings``: one, or both), and kept until they have taken
-    their maps."""
-
-    def __init__(self, layout: RigLayout, settings: StereoSettings, timer: Timer, pairings: list[Pairing]):
-        self.layout, self.settings, self.timer = layout, settings, timer
-        start = time.perf_counter()
-        self.static = static_masks(layout, settings.max_distance)
-        self.masks = {name: usable(mask, self.static[name]) for name, mask in masks(layout).items()}
-        timer.add("motion", start)
-        self.rectifications = RectificationCache(max_entries=64)
-        self.wanted: dict[tuple, set[tuple[str, int]]] = defaultdict(set)  # pair -> the images asking
-        for pairing in pairings:
-            for partner in pairing.partners:
-                key, _, _ = self._key(
-                    pairing.sequence, (pairing.camera, pairing.frame), (partner.camera, partner.frame)
-                )
-                self.wanted[key].add((pairing.camera, pairing.frame.key))
-        self.maps: dict[tuple, dict[tuple, PixelMaps | None]] = {}
-        self.unmatched: dict[str, str] = {}  # pair name -> why no map (no overlap, too short a baseline,
-        # a motion its images do not explain, images that contradict the pair's geometry)
-        # pair name -> its evidence (round trip, rows, a motion's residuals)
-        self.checks: dict[str, dict] = {}
-        self.described: dict[tuple, Features] = {}
-
-    @staticmethod
-    def _key(sequence: str, one: tuple[str, Frame], other: tuple[str, Frame]) -> tuple:
-        a, b = sorted((one, other), key=lambda x: (x[1].key, x[0]))  # the earlier image is camera a
-        return (sequence, a[0], a[1].key, b[0], b[1].key), a, b
-
-    def get(self, sequence: str, own: tuple[str, Frame], other: tuple[str, Frame]) -> PixelMaps | None:
-        """``own``'s maps against ``other`` (None where the pair is left out)."""
-        key, a, b = self._key(sequence, own, other)
-        if key not in self.maps:
-            self.maps[key] = self._match(sequence, a, b, self.wanted.pop(key, {(own[0], own[1].key)}))
-        entry = self.maps[key]
-        found = entry.pop((own[0], own[1].key), None)
-        if not entry:
-            del self.maps[key]
-        return found
-
-    def _match(self, sequence: str, a: tuple[str, Frame], b: tuple[str, Frame], wanted: set) -> dict:
-        layout, s = self.layout, self.settings
-        sides = (a[0], a[1].key), (b[0], b[1].key)
-        directions = tuple(side in wanted for side in sides)
-        name = f"{sequence}: {a[0]}/{a[1].key} ~ {b[0]}/{b[1].key}"
-        nothing_here = {side: None for side, want in zip(sides, directions, strict=True) if want}
-        start = time.perf_counter()
-        T = _T(layout, a[0], a[1], b[0], b[1])
-        cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
-        residual, record, images = 0.0, {}, None
-        if a[0] == b[0]:  # one camera at two instants: its motion checked against its images first
-            images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
-            found = [
-                self._features(sequence, cam, frame, image)
-                for (cam, frame), image in zip((a, b), images, strict=True)
-            ]
-            verdict = check_motion(found[0], cameras[0], found[1], cameras[1], T)
-            record = verdict.record()
-            start = self.timer.add("motion", start)
-            if verdict.left_out is not None:
-                self.checks[name] = record
-                self.unmatched[name] = verdict.left_out
-                return nothing_here
-            T, residual = verdict.T_a_to_b, verdict.residual
-        rect = partner_pair(*cameras, T, s, directions, self.rectifications)
-        if not isinstance(rect, Rectification):  # left out, and why
-            self.unmatched[name] = rect
-            return nothing_here
-        self.timer.add("rectify", start)
-        images = images or [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
-        pair_masks = (self.masks[a[0]], self.masks[b[0]])
-        maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks, residual)
-        evidence = next(m.evidence for m in maps if m is not None)
-        self.checks[name] = {**record, **evidence.record()}
-        if evidence.contradicted:
-            self.unmatched[name] = evidence.contradicted
-            return nothing_here
-        return {side: m for side, m, want in zip(sides, maps, directions, strict=True) if want}
-
-    def _features(self, sequence: str, camera: str, frame: Frame, image: np.ndarray) -> Features:
-        """An image's SIFT features, kept for the next pair it is in (the time pairs on its two sides)."""
-        key = (sequence, camera, frame.key)
-        if key not in self.described:
-            self.described[key] = features(grey(image), MOTION_FEATURES)
-            while len(self.described) > 4 * len(self.layout.cameras):
-                self.described.pop(next(iter(self.described)))
-        return self.described[key]
-
-
-def _sweep(layout: RigLayout, pairing: Pairing, sweep: SweepStereo, image: np.ndarray) -> Fused:
-    """The sweep for one pairing (its image the reference, its partners the sources)."""
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-
-    def tensor(bgr: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)[None].float().to(device) / 255
-
-    own = layout.cameras[pairing.camera].camera
-    reference = View(tensor(image), own, torch.eye(4, device=device))
-    sources = []
-    for partner in pairing.partners:
-        T = _T(layout, pairing.camera, pairing.frame, partner.camera, partner.frame)
-        partner_image = layout_image(layout, pairing.sequence, partner.camera, partner.frame)
-        sources.append(View(tensor(partner_image), layout.cameras[partner.camera].camera,
-                            torch.from_numpy(T).float().to(device)))  # fmt: skip
-    result = sweep(reference, sources)
-    distance, dense, confidence = (
-        x[0].cpu().numpy() for x in (result.distance, result.dense, result.confidence)
-    )
-    return Fused(distance, dense, np.where(distance > 0, confidence, 0).astype(np.float32),
-                 (distance > 0).astype(np.uint8))  # fmt: skip
 
 
 OUTPUTS = ("distance", "dense", "confidence")  # the .npy maps of an image, beside its panel
@@ -240,41 +63,6 @@ def check_out(root: Path, out: Path) -> None:
     """``--out`` is a folder of its own: neither the recording, nor inside it (its ground truth lies at the
     outputs' own paths), nor around it, compared as resolved paths (links followed)."""
     check_apart(out, "--out", {"the recording": root})
-
-
-# Peak memory of matching one pair: a fixed part and a part per pixel of its larger image at the cameras'
-# own resolution (the rays, the rectification's tables, both rectified images, SGBM's buffers and the
-# maps back). Measured 44 MiB at 256 px, 148-172 MiB at 512, 509-518 at 1024 and about 1.9 GiB at 2048
-# (scripts/bench/bench_stereo_memory.py; tests/test_multiview.py checks a 512 px pair against it): each
-# 0.9 of this bound or less.
-MEMORY_BASE = 64 * 2**20
-MEMORY_PER_PIXEL = 512
-SWEEP_MEMORY_PER_VOXEL = 20  # the sweep's cost sums, counts and volume (float32) and a chunk's warps
-
-
-def pair_memory(pixels: float) -> float:
-    """Bytes one pair of images of ``pixels`` pixels needs at its peak (:data:`MEMORY_PER_PIXEL`)."""
-    return MEMORY_BASE + MEMORY_PER_PIXEL * pixels
-
-
-def check_run_memory(layout: RigLayout, matcher: StereoSettings | SweepStereo) -> None:
-    """Refuse, before any work, a run whose largest image would need more memory than the machine has
-    (:func:`~fisheyedepth.option_checks.check_memory`), naming the camera (or the option) and both numbers."""
-    name, spec = max(layout.cameras.items(), key=lambda kv: kv[1].camera.width * kv[1].camera.height)
-    pixels, size = spec.camera.width * spec.camera.height, f"{spec.camera.width}x{spec.camera.height}"
-    if isinstance(matcher, StereoSettings):
-        scale = 1.0
-        if matcher.resolution is not None:  # a finer grid than the camera's own
-            scale = max(1.0, (pair_step(spec.camera, spec.camera, None) / matcher.resolution) ** 2)
-        what = f"{MEMORY_BASE // 2**20} MiB + {MEMORY_PER_PIXEL} bytes a pixel of a pair"
-        if scale > 1:
-            what += f", x {scale:.3g} at --resolution {math.degrees(matcher.resolution):g} degrees"
-        where = f"{layout.root / 'rig.yaml'}: camera {name!r}"
-        check_memory(where, size, pair_memory(pixels * scale), what)
-    else:
-        need = SWEEP_MEMORY_PER_VOXEL * matcher.hypotheses * pixels
-        what = f"{SWEEP_MEMORY_PER_VOXEL} bytes x hypotheses x camera {name!r}'s {size} pixels"
-        check_memory("--hypotheses", matcher.hypotheses, need, what)
 
 
 def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True) -> None:
@@ -302,7 +90,7 @@ def flat_fraction(image: np.ndarray, camera) -> float:
     judged = off_the_rim(valid)
     if not judged.any():
         return 1.0
-    flat = judged & ~textured(grey(image), valid, MatcherSettings.block)
+    flat = judged & ~textured(grey(image), valid, SgbmParameters.block)
     return round(float(flat.sum() / judged.sum()), 4)
 
 
@@ -327,7 +115,7 @@ def sole_writer(out: Path):
 def run(
     root: str | Path,
     out: str | Path,
-    matcher: SweepStereo | StereoSettings,
+    matcher: Matcher,
     sources: tuple[str, ...] = SOURCES,
     overwrite: bool = False,
     progress: bool = True,
@@ -335,8 +123,8 @@ def run(
     refine: str | None = None,
     rerun: bool = False,
 ) -> dict[str, Any]:
-    """The command's work: every pairing of ``root`` matched (``matcher``: :class:`.pipeline.StereoSettings`
-    for the rectified pipeline, a :class:`.sweep.SweepStereo` for the sweep), its outputs and
+    """The command's work: every pairing of ``root`` matched (``matcher``: a :class:`~.matchers.Matcher`,
+    :class:`.sgbm.SgbmMatcher` or :class:`.sweep.SweepMatcher`), its outputs and
     ``summary.json`` in ``out``; with ``refine`` (:data:`.refine.REFINE`) the rig's extrinsics are refined
     from its images first (:func:`.refine.refine_rig`), matched with, and written to ``out/rig.yaml``. The
     recording is never modified. Before any work: ``out`` is a folder of its own that can be written, no
@@ -349,10 +137,7 @@ def run(
         raise ValueError(f"--refine: {refine!r}; choose from {', '.join(REFINE)}")
     check_out(layout.root, out)
     check_writable(out, "--out")
-    min_baseline = (
-        matcher.min_baseline if isinstance(matcher, StereoSettings) else StereoSettings.min_baseline
-    )
-    planned = pairings(layout, sources, min_baseline=min_baseline)
+    planned = pairings(layout, sources, min_baseline=matcher.min_baseline)
     planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
     paired = [p for p in planned if p.partners]
     left_out = images_left_out(layout, planned)
@@ -434,34 +219,22 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     if unpaired:
         log.warning("%d images have no partner and are left out: %s", len(unpaired), ", ".join(unpaired[:5]))
     timer = Timer()
-    store = PairStore(layout, matcher, timer, paired) if isinstance(matcher, StereoSettings) else None
+    matches = matcher.recording(layout, paired, timer)
     images = []
     recorder = InstantRecorder(out / RECORDING, layout, recorded_rig, refinement) if rerun else None
     with recorder or contextlib.nullcontext():
-        bar = tqdm(
-            paired, desc=f"stereo ({'sgbm' if store else 'sweep'})", unit="image", disable=not progress
-        )
+        bar = tqdm(paired, desc=f"stereo ({matcher.name})", unit="image", disable=not progress)
         for pairing in bar:
-            images.append(_image(layout, pairing, matcher, store, timer, out, recorder))
+            images.append(_image(layout, pairing, matches, out, recorder))
     seconds = time.perf_counter() - begun
-    if isinstance(matcher, StereoSettings):
-        settings = {"matcher": "sgbm", **{k: getattr(matcher, k) for k in ("min_distance", "max_distance",
-                    "resolution", "min_baseline", "smooth", "max_disparities", "min_confidence")},
-                    **vars(matcher.matcher)}  # fmt: skip
-    else:
-        settings = {"matcher": "sweep", **{k: getattr(matcher, k) for k in matcher.__dataclass_fields__}}
     return {
         "root": None,
         "sources": list(sources),
-        "settings": settings,
+        "settings": matcher.record(),
         "refinement": refinement,
         "images": images,
         "images_left_out": left_out,
-        "static": {n: round(float(m.mean()), 4) for n, m in store.static.items()}
-        if store is not None
-        else {},
-        "pairs": store.checks if store is not None else {},
-        "pairs_left_out": store.unmatched if store is not None else {},
+        **matches.record(),  # static, pairs, pairs_left_out
         "kept_nothing": [r["image"] for r in images if not r["kept_pixels"]],
         "seconds": {
             "total": round(seconds, 3),
@@ -472,26 +245,11 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     }
 
 
-def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, Any]:
+def _image(layout, pairing, matches: RecordingMatches, out, recorder) -> dict[str, Any]:
     """One image's maps (against its partners) written into ``out``; its summary record, returned."""
     start = time.perf_counter()
     image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
-    own = (pairing.camera, pairing.frame)
-    disagree: dict[str, str] = {}
-    if store is not None:
-        found = [(p, store.get(pairing.sequence, own, (p.camera, p.frame))) for p in pairing.partners]
-        used = [(p, m) for p, m in found if m is not None]
-        fuse_start = time.perf_counter()
-        fused = fuse([m for _, m in used], matcher.min_confidence) if used else None
-        timer.add("fuse", fuse_start)
-        if fused is not None:  # partners whose distances disagree with the others': named, not fused
-            disagree = {
-                f"{used[k][0].camera}/{used[k][0].frame.key}": why for k, why in fused.left_out.items()
-            }
-            used = [pm for k, pm in enumerate(used) if k not in fused.left_out]
-    else:
-        used = [(p, None) for p in pairing.partners]
-        fused = _sweep(layout, pairing, matcher, image)
+    fused, used, disagree = matches.image(pairing, image)
     if fused is None:  # every partner left out: nothing to say about this image
         fused = nothing(layout.cameras[pairing.camera].camera)
     *maps, picture = outputs(pairing)
@@ -502,7 +260,7 @@ def _image(layout, pairing, matcher, store, timer, out, recorder) -> dict[str, A
     atomic_write_png(out / picture, tiles)
     record: dict[str, Any] = {
         "image": pairing.name,
-        "partners": [f"{p.camera}/{p.frame.key}" for p, _ in used],
+        "partners": [f"{p.camera}/{p.frame.key}" for p in used],
         "partners_disagreeing": disagree,
         "flat": flat_fraction(image, layout.cameras[pairing.camera].camera),
         "kept": round(float((fused.distance > 0).mean()), 4),

@@ -345,7 +345,7 @@ def build_rectification(
     ``directions``: the cameras whose pixels it must answer (a motion pair answers the newer image only:
     its grid is narrower by the disparity range); ``min_distance``, ``max_distance``: metres, the range
     searched (None: to infinity); ``margin``: grid pixels the matcher rejects at each end of its range
-    (:attr:`.match.MatcherSettings.end_margin`), added to it; ``asked``: the cameras whose own distances
+    (:attr:`.match.SgbmParameters.end_margin`), added to it; ``asked``: the cameras whose own distances
     are wanted (None: ``directions``): the range reaches the largest parallax their pixels can show at
     ``min_distance``; a camera matched only for the round trip needs no more, as a point shows one
     parallax from either camera."""

@@ -20,9 +20,10 @@ started (left-right consistency for any geometry), and a winner inside the range
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import NamedTuple
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, NamedTuple
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -31,9 +32,19 @@ from ..cameras.base import CameraModel
 from ..cameras.rays import RayCache
 from ..geometry.se3 import invert_pose, transform_points
 from ..geometry.warp import pixels_to_grid, sample, warp_to_source
+from ..option_checks import check_memory
+from .costs import COSTS, aggregate, census, census_cost, window_stats, winner, zncc_cost
+from .fuse import Fused
+from .matchers import ImageMaps
+from .pairing import MIN_BASELINE, Pairing, pair_pose
+from .refine import layout_image
 
-COSTS = ("zncc", "census")
+if TYPE_CHECKING:
+    from ..data.layouts import RigLayout
+    from .pipeline import Timer
+
 UNSEEN = 0.5  # the cost of a hypothesis no source sees: neither a match nor a mismatch (costs are in [0, 1])
+MEMORY_PER_VOXEL = 20  # bytes: the sweep's cost sums, counts and volume (float32) and a chunk's warps
 RAYS = RayCache(max_entries=16)  # each camera's rays, unprojected once (iterative for most fisheye models)
 
 
@@ -47,7 +58,9 @@ class View(NamedTuple):
     T_ref_to_view: Tensor
 
 
-class StereoResult(NamedTuple):
+class SweepResult(NamedTuple):
+    """What :meth:`SweepMatcher.__call__` finds for a reference image."""
+
     distance: Tensor  # [B, H, W] metres along the ray; 0 where the check rejects, nothing is seen, or the
     # winner is the range's first or last hypothesis
     dense: Tensor  # [B, H, W] the same before the check: every pixel a source sees at some hypothesis
@@ -57,12 +70,13 @@ class StereoResult(NamedTuple):
 
 
 @dataclass(frozen=True)
-class SweepStereo:
-    """The sweep's settings. ``hypotheses`` distances uniform in inverse distance over
-    ``[min_distance, max_distance]`` metres; ``cost``: ``zncc`` (``window`` x ``window``) or ``census``
-    (``census_window``); ``p1``, ``p2``: the aggregation's penalties for a step of one hypothesis and for a
-    jump, in cost units; ``paths``: 0 (none), 4 or 8; ``check_px``: the round trip's tolerance;
-    ``chunk``: hypotheses warped at once (memory against speed; the result does not depend on it)."""
+class SweepSettings:
+    """The sweep's parameters (:class:`SweepMatcher`). ``hypotheses`` distances uniform in inverse
+    distance over ``[min_distance, max_distance]`` metres; ``cost``: ``zncc`` (``window`` x ``window``)
+    or ``census`` (``census_window``); ``p1``, ``p2``: the aggregation's penalties for a step of one
+    hypothesis and for a jump, in cost units; ``paths``: 0 (none), 4 or 8; ``check_px``: the round
+    trip's tolerance; ``chunk``: hypotheses warped at once (memory against speed; the result does not
+    depend on it)."""
 
     hypotheses: int = 128
     min_distance: float = 0.3
@@ -102,6 +116,21 @@ class SweepStereo:
         """``[D]`` inverse distances, nearest first, uniform steps."""
         return torch.linspace(1 / self.min_distance, 1 / self.max_distance, self.hypotheses, device=device)
 
+
+@dataclass(frozen=True)
+class SweepMatcher:
+    """Sweep stereo (module docstring) with its :class:`SweepSettings`: one reference image against its
+    sources (:meth:`__call__`), and the :class:`~.matchers.Matcher` interface the multi-view command and
+    the real-world scores call (:meth:`maps`, :meth:`recording`, :meth:`memory`)."""
+
+    settings: SweepSettings = field(default_factory=SweepSettings)
+    name: ClassVar[str] = "sweep"
+    min_baseline: ClassVar[float] = MIN_BASELINE
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.settings, SweepSettings):
+            raise ValueError(f"settings: {type(self.settings).__name__}; a SweepSettings expected")
+
     # ------------------------------------------------------------------ one reference
     def cost_volume(self, reference: View, sources: Sequence[View]) -> tuple[Tensor, Tensor]:
         """``[B, D, H, W]`` matching cost of every hypothesis, averaged over the sources that see it
@@ -110,18 +139,18 @@ class SweepStereo:
         ref = gray(reference.image)
         batch, _, height, width = ref.shape
         rays, has_ray = RAYS.get(reference.camera, ref.device)
-        if self.cost == "census":
-            ref_code = census(ref, self.census_window)
+        if self.settings.cost == "census":
+            ref_code = census(ref, self.settings.census_window)
         else:
-            ref_stats = window_stats(ref, self.window)
-        total = ref.new_zeros(batch, self.hypotheses, height, width)
-        count = ref.new_zeros(batch, self.hypotheses, height, width)
-        inverse = self.inverse_distances(ref.device)
+            ref_stats = window_stats(ref, self.settings.window)
+        total = ref.new_zeros(batch, self.settings.hypotheses, height, width)
+        count = ref.new_zeros(batch, self.settings.hypotheses, height, width)
+        inverse = self.settings.inverse_distances(ref.device)
         for source in sources:
             image = gray(source.image)
             T = _batched(source.T_ref_to_view, batch).to(ref)
-            for start in range(0, self.hypotheses, self.chunk):
-                k = min(self.chunk, self.hypotheses - start)
+            for start in range(0, self.settings.hypotheses, self.settings.chunk):
+                k = min(self.settings.chunk, self.settings.hypotheses - start)
 
                 def each(x: Tensor, k=k) -> Tensor:  # [B, ...] -> [B * k, ...], hypotheses inner
                     return x.unsqueeze(1).expand(x.shape[0], k, *x.shape[1:]).reshape(-1, *x.shape[1:])
@@ -137,13 +166,14 @@ class SweepStereo:
                     source.camera,
                 )
                 warped = sample(each(image), warp.grid, padding_mode="zeros")
-                if self.cost == "census":
+                if self.settings.cost == "census":
                     grouped = warped.reshape(batch, k, height, width)
-                    cost = census_cost(ref_code, grouped, self.census_window).reshape(
+                    cost = census_cost(ref_code, grouped, self.settings.census_window).reshape(
                         batch * k, height, width
                     )
                 else:
-                    cost = zncc_cost(each(ref), warped, self.window, tuple(each(x) for x in ref_stats))
+                    stats = tuple(each(x) for x in ref_stats)
+                    cost = zncc_cost(each(ref), warped, self.settings.window, stats)
                 seen = warp.valid.to(ref.dtype).reshape(batch, k, height, width)
                 total[:, start : start + k] += cost.reshape(batch, k, height, width) * seen
                 count[:, start : start + k] += seen
@@ -155,16 +185,16 @@ class SweepStereo:
         and which pixels are seen."""
         volume, count = self.cost_volume(reference, sources)
         seen = (count > 0).any(1)
-        aggregated = aggregate(volume, self.p1, self.p2, self.paths)
+        aggregated = aggregate(volume, self.settings.p1, self.settings.p2, self.settings.paths)
         index, confidence = winner(aggregated)
-        inverse = self.inverse_distances(volume.device)
+        inverse = self.settings.inverse_distances(volume.device)
         step = inverse[1] - inverse[0]
         distance = 1 / (inverse[0] + index * step).clamp(min=float(inverse[-1]) * 0.5)
         distance = torch.where(seen, distance, torch.zeros_like(distance))
         return distance, torch.where(seen, confidence, torch.zeros_like(confidence)), seen
 
     # ------------------------------------------------------------------ with the round trip
-    def __call__(self, reference: View, sources: Sequence[View]) -> StereoResult:
+    def __call__(self, reference: View, sources: Sequence[View]) -> SweepResult:
         """Distance for the reference, kept where a round trip through some source's own estimate (that
         source as reference, the reference as its source) comes back within ``check_px``."""
         if not sources:
@@ -177,16 +207,83 @@ class SweepStereo:
             partner = View(source.image, source.camera, torch.eye(4, dtype=dense.dtype))
             partner_distance, _, _ = self.estimate(partner, [View(reference.image, reference.camera, back)])
             kept |= round_trip(dense, reference.camera, partner_distance, source.camera, source.T_ref_to_view,
-                               self.check_px)  # fmt: skip
+                               self.settings.check_px)  # fmt: skip
         # a winner at either end of the range is no measurement (the cost may fall further beyond it):
         # low texture matched at the farthest hypothesis in both directions passes the round trip
-        inverse = self.inverse_distances(dense.device)
+        inverse = self.settings.inverse_distances(dense.device)
         quarter = (inverse[0] - inverse[1]) / 4  # an inner winner is at most half a step from its index
         reciprocal = 1 / dense.clamp(min=1e-12)
         inside = (reciprocal < inverse[0] - quarter) & (reciprocal > inverse[-1] + quarter)
         kept &= seen & (dense > 0) & inside
         distance = torch.where(kept, dense, torch.zeros_like(dense))
-        return StereoResult(distance, dense, confidence, kept, seen)
+        return SweepResult(distance, dense, confidence, kept, seen)
+
+    # ------------------------------------------------------------------ as a Matcher
+    def maps(
+        self, image, partner_image, camera, partner_camera, T_ref_to_partner
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`__call__` with one source: the reference's checked and filled distance."""
+        T = torch.as_tensor(np.asarray(T_ref_to_partner) if not isinstance(T_ref_to_partner, Tensor)
+                            else T_ref_to_partner).float()  # fmt: skip
+        reference, partner = View(as_batch(image), camera, torch.eye(4)), as_batch(partner_image)
+        found = self(reference, [View(partner, partner_camera, T)])
+        return found.distance[0].cpu().numpy(), found.dense[0].cpu().numpy()
+
+    def recording(self, layout: RigLayout, pairings: list[Pairing], timer: Timer) -> SweepRecording:
+        return SweepRecording(layout, self)
+
+    def memory(self, camera: CameraModel) -> float:
+        return MEMORY_PER_VOXEL * self.settings.hypotheses * camera.width * camera.height
+
+    def check_memory(self, name: str, camera: CameraModel, where: str) -> None:
+        size = f"{camera.width}x{camera.height}"
+        what = f"{MEMORY_PER_VOXEL} bytes x hypotheses x camera {name!r}'s {size} pixels"
+        check_memory("--hypotheses", self.settings.hypotheses, self.memory(camera), what)
+
+    def record(self) -> dict[str, Any]:
+        return {"matcher": self.name, **asdict(self.settings)}
+
+
+class SweepRecording:
+    """:class:`SweepMatcher`'s run over a recording (:class:`~.matchers.RecordingMatches`): each image the
+    reference, all its partners the sources at once (on the GPU where there is one)."""
+
+    def __init__(self, layout: RigLayout, sweep: SweepMatcher):
+        self.layout, self.sweep = layout, sweep
+        self.device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    def _tensor(self, bgr: np.ndarray) -> Tensor:
+        return torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)[None].float().to(self.device) / 255
+
+    def image(self, pairing: Pairing, image: np.ndarray) -> ImageMaps:
+        layout, device = self.layout, self.device
+        own = layout.cameras[pairing.camera].camera
+        reference = View(self._tensor(image), own, torch.eye(4, device=device))
+        sources = []
+        for partner in pairing.partners:
+            T = pair_pose(layout, pairing.camera, pairing.frame, partner.camera, partner.frame)
+            partner_image = layout_image(layout, pairing.sequence, partner.camera, partner.frame)
+            sources.append(View(self._tensor(partner_image), layout.cameras[partner.camera].camera,
+                                torch.from_numpy(T).float().to(device)))  # fmt: skip
+        result = self.sweep(reference, sources)
+        distance, dense, confidence = (
+            x[0].cpu().numpy() for x in (result.distance, result.dense, result.confidence)
+        )
+        fused = Fused(distance, dense, np.where(distance > 0, confidence, 0).astype(np.float32),
+                      (distance > 0).astype(np.uint8))  # fmt: skip
+        return ImageMaps(fused, list(pairing.partners), {})
+
+    def record(self) -> dict[str, Any]:
+        return {"static": {}, "pairs": {}, "pairs_left_out": {}}
+
+
+def as_batch(image: np.ndarray | Tensor) -> Tensor:
+    """An ``H x W (x C)`` array or a ``[C, H, W]`` / ``[1, C, H, W]`` tensor as ``[1, C, H, W]`` float."""
+    if isinstance(image, Tensor):
+        return (image if image.dim() == 4 else image[None]).float()
+    array = np.asarray(image, dtype=np.float32)
+    array = array[..., None] if array.ndim == 2 else array
+    return torch.from_numpy(np.ascontiguousarray(array)).permute(2, 0, 1)[None]
 
 
 def _batched(T: Tensor, batch: int) -> Tensor:
@@ -203,136 +300,6 @@ def gray(image: Tensor) -> Tensor:
     if image.shape[1] != 1:
         raise ValueError(f"image: {image.shape[1]} channels; expected 1 or 3")
     return image
-
-
-# ------------------------------------------------------------------ matching costs
-def box_mean(x: Tensor, window: int) -> Tensor:
-    """Mean over the ``window`` x ``window`` neighbourhood (the image's inside only, at its border): a row
-    mean then a column mean, ``2 window`` additions per pixel instead of ``window**2``."""
-    r = window // 2
-    rows = F.avg_pool2d(x, (1, window), stride=1, padding=(0, r), count_include_pad=False)
-    return F.avg_pool2d(rows, (window, 1), stride=1, padding=(r, 0), count_include_pad=False)
-
-
-def window_stats(a: Tensor, window: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-pixel mean and variance of ``a`` over the window, and the image's largest variance (the scale
-    of :func:`zncc_cost`'s regulariser): computed once for a reference compared with many warps."""
-    mean = box_mean(a, window)
-    var = (box_mean(a * a, window) - mean**2).clamp(min=0)
-    return mean, var, var.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-12)
-
-
-def zncc_cost(
-    a: Tensor, b: Tensor, window: int, stats_a: tuple[Tensor, Tensor, Tensor] | None = None, eps: float = 1e-4
-) -> Tensor:
-    """``(1 - ZNCC) / 2`` in [0, 1] of ``[B, 1, H, W]`` images over ``window`` x ``window``: 0 for
-    windows equal up to gain and offset, 1 for inverted ones; flat windows score 0.5 (no evidence).
-    ``stats_a``: :func:`window_stats` of ``a``, when already known."""
-    mean_a, var_a, scale = window_stats(a, window) if stats_a is None else stats_a
-    mean_b = box_mean(b, window)
-    var_b = (box_mean(b * b, window) - mean_b**2).clamp(min=0)
-    covariance = box_mean(a * b, window) - mean_a * mean_b
-    ncc = covariance / torch.sqrt((var_a + eps * scale) * (var_b + eps * scale))
-    return ((1 - ncc.clamp(-1, 1)) / 2)[:, 0]
-
-
-def census(image: Tensor, window: int) -> Tensor:
-    """``[B, window**2 - 1, H, W]`` bool: each neighbour brighter than the centre (the census transform)."""
-    r = window // 2
-    padded = F.pad(image, (r, r, r, r), mode="replicate")
-    height, width = image.shape[-2:]
-    bits = [
-        padded[:, 0, dy : dy + height, dx : dx + width] > image[:, 0]
-        for dy in range(window)
-        for dx in range(window)
-        if (dy, dx) != (r, r)
-    ]
-    return torch.stack(bits, 1)
-
-
-def hamming(a: Tensor, b: Tensor) -> Tensor:
-    """The fraction of census bits that differ, ``[B, H, W]`` in [0, 1]."""
-    return (a != b).float().mean(1)
-
-
-def census_cost(reference_bits: Tensor, images: Tensor, window: int) -> Tensor:
-    """``hamming(reference_bits, census(image))`` for each of ``images [B, K, H, W]`` (``K`` warps compared
-    with one reference's :func:`census` ``[B, window**2 - 1, H, W]``), ``[B, K, H, W]`` in [0, 1], without
-    building the images' census: one neighbour at a time, the differing bits counted in uint8 (a tenth of
-    the memory traffic of stacking the bits and averaging them as floats)."""
-    r = window // 2
-    height, width = images.shape[-2:]
-    padded = F.pad(images, (r, r, r, r), mode="replicate")
-    differ = torch.zeros(images.shape, dtype=torch.uint8, device=images.device)
-    bit = 0
-    for dy in range(window):
-        for dx in range(window):
-            if (dy, dx) == (r, r):
-                continue
-            brighter = padded[:, :, dy : dy + height, dx : dx + width] > images
-            differ += brighter != reference_bits[:, bit : bit + 1]
-            bit += 1
-    return differ.float() / bit
-
-
-# ------------------------------------------------------------------ semi-global aggregation
-STRAIGHT = ((0, 1), (0, -1), (1, 0), (-1, 0))  # (dy, dx): along rows and columns, both ways
-DIRECTIONS = {4: STRAIGHT, 8: (*STRAIGHT, (1, 1), (-1, -1), (1, -1), (-1, 1))}
-
-
-def aggregate(volume: Tensor, p1: float, p2: float, paths: int = 4) -> Tensor:
-    """The sum over ``paths`` directions of Hirschmueller's path costs ``L_r`` of ``volume [B, D, H, W]``
-    (``paths=0``: the volume itself)."""
-    if paths == 0:
-        return volume
-    return sum(path_cost(volume, dy, dx, p1, p2) for dy, dx in DIRECTIONS[paths])
-
-
-def path_cost(volume: Tensor, dy: int, dx: int, p1: float, p2: float) -> Tensor:
-    """``L_r`` along direction ``r = (dy, dx)``: one image line at a time, every line of the other axis and
-    every hypothesis at once. A diagonal path walks the rows and takes its predecessor from the row
-    before, shifted by one column. The walked axis is moved to the front, so each line is contiguous."""
-    if dy == 0:  # horizontal: walk the columns
-        return path_cost(volume.transpose(-1, -2), dx, 0, p1, p2).transpose(-1, -2)
-    lines = volume.permute(2, 0, 1, 3).contiguous()  # [H, B, D, W]
-    out = torch.empty_like(lines)
-    rows = range(lines.shape[0]) if dy > 0 else range(lines.shape[0] - 1, -1, -1)
-    previous = None
-    for y in rows:
-        cost = lines[y]  # [B, D, W]
-        if previous is None:
-            current = cost.clone()
-        else:
-            if dx:  # the predecessor of column x is column x - dx of the previous row
-                previous = torch.roll(previous, shifts=dx, dims=-1)
-                edge = slice(0, 1) if dx > 0 else slice(-1, None)
-                previous[..., edge] = cost[..., edge]  # a path starts at the border
-            best = previous.amin(1, keepdim=True)
-            step = torch.minimum(previous, best + p2)  # stay, or jump anywhere
-            step[:, :-1] = torch.minimum(step[:, :-1], previous[:, 1:] + p1)  # one hypothesis nearer
-            step[:, 1:] = torch.minimum(step[:, 1:], previous[:, :-1] + p1)  # one farther
-            current = cost + step - best
-        out[y] = current
-        previous = current
-    return out.permute(1, 2, 0, 3)
-
-
-def winner(aggregated: Tensor) -> tuple[Tensor, Tensor]:
-    """Winner-take-all with a parabola through the winner and its two neighbours: ``[B, H, W]`` fractional
-    hypothesis index, and the confidence ``1 - best / second best`` outside the winner's neighbours."""
-    depth = aggregated.shape[1]
-    best, index = aggregated.min(1)
-    lower = aggregated.gather(1, (index - 1).clamp(min=0)[:, None])[:, 0]
-    upper = aggregated.gather(1, (index + 1).clamp(max=depth - 1)[:, None])[:, 0]
-    curvature = lower - 2 * best + upper
-    offset = torch.where(curvature > 1e-12, (lower - upper) / (2 * curvature.clamp(min=1e-12)), 0 * best)
-    inner = (index > 0) & (index < depth - 1)
-    refined = index.to(aggregated.dtype) + torch.where(inner, offset.clamp(-0.5, 0.5), 0 * best)
-    hypotheses = torch.arange(depth, device=aggregated.device).reshape(1, -1, 1, 1)
-    near = (hypotheses - index[:, None]).abs() <= 1
-    second = aggregated.masked_fill(near, float("inf")).amin(1)
-    confidence = (1 - best / second.clamp(min=1e-12)).clamp(0, 1)
-    return refined, confidence
 
 
 # ------------------------------------------------------------------ the round trip
