@@ -17,7 +17,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from fisheyedepth.data import FisheyeDataModule, FisheyeDataset, Kitti360Layout, RigLayout, collate
-from fisheyedepth.data import dataset as dataset_module
+from fisheyedepth.data import files as data_files
 from fisheyedepth.data.kitti360 import read_cam_to_pose, read_poses
 
 from conftest import TRAIN_SEQ, kitti02
@@ -256,7 +256,7 @@ def test_grayscale_camera_warns_once_naming_the_file(damaged, cache, caplog, mon
     assert all(torch_equal_channels(s["image"]) for s in grey)
     assert not any(torch_equal_channels(s["image"]) for s in colour)
     # every later read comes from the resize cache, and the start-up probe still reports the camera
-    monkeypatch.setattr(dataset_module, "_reported", set())
+    monkeypatch.setattr(data_files, "_reported", set())
     caplog.clear()
     FisheyeDataset(Kitti360Layout(damaged), [{"sequence": TRAIN_SEQ}], size=(64, 64), cache_dir=cache)
     assert len(grayscale_records(caplog)) == 1

@@ -27,7 +27,7 @@ from fisheyedepth.checkpoints import (
 )
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.train import train
-from fisheyedepth.data.dataset import read_distance
+from fisheyedepth.data.files import read_distance
 from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.option_checks import Either, Number, in_bytes, machine_memory
 from fisheyedepth.plan import choose_accelerator, describe_accelerator, train_plan

@@ -218,13 +218,68 @@ def test_a_recording_that_cannot_be_written_is_one_error_and_leaves_nothing(tmp_
     recorder = RigRecorder(target)
     recorder.instant(0, 0, {"a": CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})})
 
-    def stopped():
+    def stopped(**kwargs):
         raise RuntimeError("File-writer thread shut down prematurely")
 
     recorder.stream.flush = stopped  # what the SDK raises when the disk fills under it
     with pytest.raises(RecordingError, match=r"rec.rrd: the recording could not be written .*full disk"):
         recorder.close()
     assert not target.exists() and not list(tmp_path.glob(".rec.rrd.*"))
+
+
+def test_a_recording_whose_writer_does_not_finish_in_time_is_one_error(tmp_path, monkeypatch):
+    """The SDK's flush waits for ever by default: the recorder bounds it (``FLUSH_SECONDS``), and a
+    writer that has not finished by then is a RecordingError saying so, nothing at the path."""
+    pytest.importorskip("rerun")
+    from fisheyedepth import rerun3d
+    from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
+
+    monkeypatch.setattr(rerun3d, "FLUSH_SECONDS", 1e-6)  # no writer finishes in a microsecond
+    target = tmp_path / "rec.rrd"
+    recorder = RigRecorder(target)
+    noise = np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    for i in range(30):
+        recorder.instant(i, i, {"a": CameraView(CAMERA, noise, {"d": np.full((60, 80), 2.0, np.float32)})})
+    with pytest.raises(RecordingError, match=r"rec.rrd: the recording could not be written \(its writer "
+                       r"did not finish within 1e-06 s\)"):  # fmt: skip
+        recorder.close()
+    assert not list(tmp_path.iterdir())  # nothing at its path, no temporary
+
+
+def test_a_recording_stopped_by_a_file_size_limit_names_it_in_one_line(tmp_path):
+    """The SDK's writer stops at ``ulimit -f`` saying only that it stopped: the error names the limit,
+    and the SDK's own log lines stay out of the command's output. A writer that hung would print every
+    thread's stack after 90 s (and fail), not hold the suite."""
+    pytest.importorskip("rerun")
+    import subprocess
+    import sys
+
+    code = f"""
+import faulthandler, resource, sys
+faulthandler.dump_traceback_later(90, exit=True)
+import numpy as np
+from fisheyedepth.cameras import PinholeCamera
+from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
+camera = PinholeCamera(width=320, height=240, fx=200.0, fy=200.0, cx=159.5, cy=119.5)
+rng = np.random.default_rng(0)
+try:
+    with RigRecorder({str(tmp_path / "rec.rrd")!r}) as recorder:  # rerun imported and started first
+        resource.setrlimit(resource.RLIMIT_FSIZE, (300_000, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+        for i in range(40):  # noise: about 100 kB an instant as JPEG
+            image = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+            recorder.instant(i, i, {{"a": CameraView(camera, image, {{}})}})
+except RecordingError as err:
+    print(f"error: {{err}}", file=sys.stderr)
+    sys.exit(2)
+"""
+    env = {k: v for k, v in os.environ.items() if k != "RUST_LOG"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=150, env=env)
+    assert done.returncode == 2, done.stderr[-6000:]
+    assert done.stderr.strip().splitlines() == [
+        f"error: {tmp_path / 'rec.rrd'}: the recording could not be written (the file-size limit of this "
+        "process, 300000 bytes (ulimit -f))"
+    ]
+    assert not list(tmp_path.iterdir())  # nothing at its path, no temporary
 
 
 def test_a_killed_writers_temporary_is_removed_by_the_next_run(tmp_path):

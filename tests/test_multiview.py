@@ -319,6 +319,7 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
     import errno
 
     from fisheyedepth.cli import multiview
+    from fisheyedepth.data.layouts import RigLayout
     from fisheyedepth.stereo import recording
 
     def full(path, array):
@@ -335,7 +336,7 @@ def test_a_disk_that_fills_during_the_run_is_one_line_and_leaves_nothing_a_kille
     def unreadable(layout, sequence, camera, frame):
         raise PermissionError(errno.EACCES, "Permission denied", str(image))
 
-    monkeypatch.setattr(recording, "layout_image", unreadable)  # an input, not --out: named as read
+    monkeypatch.setattr(RigLayout, "read_image", unreadable)  # an input, not --out: named as read
     assert multiview.main([str(rec), "--out", str(out), "--quiet"]) == 2
     assert capsys.readouterr().err == f"error: {image}: cannot be read (Permission denied)\n"
     stale = tmp_path / ".out.multiview-killed"  # what a SIGKILLed run leaves (no clean-up runs)

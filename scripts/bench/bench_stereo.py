@@ -210,7 +210,6 @@ def rig_section(rounds: int, quick: bool) -> list[str]:
         return ["(four-camera rig: no aria_gen2_rig under FISHEYEDEPTH_REALDATA)"]
     from fisheyedepth.data.aria import aria_to_rig
     from fisheyedepth.data.layouts import RigLayout
-    from fisheyedepth.stereo.refine import layout_image
 
     threads(2)
     with tempfile.TemporaryDirectory() as tmp:
@@ -220,7 +219,7 @@ def rig_section(rounds: int, quick: bool) -> list[str]:
         names = list(layout.cameras)
         frames = {n: layout.frames(sequence, n) for n in names}
         count = min(len(f) for f in frames.values())
-        images = [{n: layout_image(layout, sequence, n, frames[n][i]) for n in names} for i in range(count)]
+        images = [{n: layout.read_image(sequence, n, frames[n][i]) for n in names} for i in range(count)]
         poses = [frames[names[0]][i].pose for i in range(count)]
     cameras = {n: layout.cameras[n].camera for n in names}
     if quick:

@@ -40,7 +40,6 @@ from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
 from fisheyedepth.images import read_image
 from fisheyedepth.stereo import RigStereo, SgbmSettings
-from fisheyedepth.stereo.sgbm import masks
 from fisheyedepth.utils import Terminated, check_apart, check_threads, pid_alive, sigterm_raises, stopped_by
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
@@ -107,7 +106,8 @@ def instants(layout: RigLayout, sequence: str) -> tuple[list[Instant], list[str]
 def body_masks(layout: RigLayout, cameras: list[str]) -> dict[str, np.ndarray]:
     """The named cameras' body masks (True: the scene), read and checked as ``fisheyedepth-multiview``
     reads them; a camera without one is not named."""
-    return {name: mask for name, mask in masks(layout).items() if name in cameras and mask is not None}
+    masks = {name: layout.read_mask(name) for name in cameras}
+    return {name: mask for name, mask in masks.items() if mask is not None}
 
 
 def earlier_partner(history: deque, pose: np.ndarray, min_baseline: float):

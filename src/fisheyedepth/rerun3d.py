@@ -60,6 +60,10 @@ TRUTH_COLOUR = (255, 0, 255)  # ground-truth points: magenta, apart from any ima
 JPEG_QUALITY = 90
 SEED = 0
 AXIS_LENGTH = 0.05  # metres: each camera's axes (x red, y green, z blue) at its pose in the body frame
+# The longest a finished recording may take to reach its file: the SDK waits for ever by default, so a
+# writer that stops answering (a hung network mount) would hold the command; beyond this it is an error.
+# Its writer keeps up with the logging as it goes, so what is left at the end takes seconds.
+FLUSH_SECONDS = 300.0
 
 
 def import_rerun():
@@ -100,10 +104,13 @@ class RecordingError(ValueError):
 
 
 def write_failure(path: Path, err: Exception) -> str:
-    """Why the SDK's file writer stopped (it reports only that it did): no space left in the folder, or
-    the process's file-size limit (``ulimit -f``); else its own words and both guesses."""
+    """Why the SDK's file writer stopped (it reports only that it did): no time left to finish
+    (:data:`FLUSH_SECONDS`), no space left in the folder, or the process's file-size limit
+    (``ulimit -f``); else its own words and both guesses."""
     import resource
 
+    if "timed out" in str(err):
+        return f"its writer did not finish within {FLUSH_SECONDS:g} s"
     limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     try:
         free = os.statvfs(Path(path).parent)
@@ -288,7 +295,7 @@ class RigRecorder:
 
     def _finish(self) -> None:
         with self._writing():
-            self.stream.flush()
+            self.stream.flush(timeout_sec=FLUSH_SECONDS)
             self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
             self.stream.disconnect()
 

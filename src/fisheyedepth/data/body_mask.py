@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from ..cameras import CameraModel, compute_rays
 from ..utils import atomic_write_bytes
-from .dataset import read_checked
+from .files import read_checked
 from .kitti360 import Kitti360Layout
 from .layouts import RigLayout
 

@@ -22,6 +22,7 @@ from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_ca
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
 from ..geometry.se3 import rig_extent_problem
 from ..utils import path_name
+from .files import binary_mask, read_checked, read_distance
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +41,40 @@ class Frame:
     pose: np.ndarray  # 4x4 body to world
 
 
-class RigLayout:
+class RecordingFiles:
+    """What every layout reads of its recording, each file checked once and refused by name
+    (:mod:`.files`): a layout has ``cameras`` (name -> :class:`CameraSpec`) and says where each file lies
+    (``image``, ``distance``); the dataset, the stereo command, refinement and the tools all read through
+    these."""
+
+    cameras: dict[str, CameraSpec]
+
+    def read_image(self, sequence: str, camera: str, frame: Frame) -> np.ndarray:
+        """The image of ``camera`` at ``frame`` as 8-bit BGR ``H x W x 3``, refused by name unless it is
+        at the camera's calibrated size (:func:`~.files.read_checked`)."""
+        native = self.cameras[camera].camera
+        return read_checked(self.image(sequence, camera, frame), (native.width, native.height))
+
+    def read_distance(self, sequence: str, camera: str, frame: Frame) -> np.ndarray | None:
+        """The frame's ground-truth distance ``H x W`` float32 metres (0: none), checked
+        (:func:`~.files.read_distance`); None where the recording has none."""
+        path = self.distance(sequence, camera, frame)
+        return None if path is None else read_distance(path, self.cameras[camera].camera)
+
+    def read_mask(self, camera: str) -> np.ndarray | None:
+        """``camera``'s body mask as ``H x W`` bool (True: the scene), refused by name unless it is at the
+        camera's calibrated size; None where the rig names none. Decoded once."""
+        spec = self.cameras[camera]
+        if spec.mask is None:
+            return None
+        decoded = self.__dict__.setdefault("_decoded_masks", {})  # by camera, for the layout's life
+        if camera not in decoded:
+            size = (spec.camera.width, spec.camera.height)
+            decoded[camera] = binary_mask(spec.mask, size, size, "body mask")[0].numpy() > 0.5
+        return decoded[camera]
+
+
+class RigLayout(RecordingFiles):
     """A robot's own recording (docs/data-format.md, "Robot rig layout").
 
     ``root/rig.yaml`` lists the cameras; ``root/<sequence>/images/<camera>/<timestamp_ns>.png`` hold the

@@ -16,7 +16,6 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from ..data.dataset import read_distance
 from ..data.layouts import RigLayout
 from ..rerun3d import InstantRecorder, RecordingError
 from ..utils import (
@@ -35,18 +34,10 @@ from .matchers import Matcher, RecordingMatches, check_run_memory
 from .pairing import NO_PARTNER, SOURCES, Pairing, check_sources, images_left_out, nothing_to_match, pairings
 from .pipeline import Timer, grey, nothing
 from .rectify import RAYS
-from .refine import REFINE, layout_image, refine_rig, refined_rig_yaml
+from .refine import REFINE, refine_rig, refined_rig_yaml
 from .scores import panel, score
 
 log = logging.getLogger("fisheyedepth")
-
-
-def _truth(layout: RigLayout, pairing: Pairing) -> np.ndarray | None:
-    path = layout.distance(pairing.sequence, pairing.camera, pairing.frame)
-    if path is None:
-        return None
-    camera = layout.cameras[pairing.camera].camera
-    return read_distance(path, camera)
 
 
 OUTPUTS = ("distance", "dense", "confidence")  # the .npy maps of an image, beside its panel
@@ -67,8 +58,9 @@ def check_out(root: Path, out: Path) -> None:
 
 def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True) -> None:
     """Every image the run reads (each image it matches and their partners) decoded and checked against
-    its camera's size, and every ground-truth file checked (:func:`~..data.dataset.read_distance`), before
-    any output exists: a bad file is named before the first map is written, not after."""
+    its camera's size, and every ground-truth file checked
+    (:meth:`~..data.layouts.RigLayout.read_distance`), before any output exists: a bad file is named
+    before the first map is written, not after."""
     images = {}
     for pairing in paired:
         for camera, frame in (
@@ -78,9 +70,9 @@ def check_inputs(layout: RigLayout, paired: list[Pairing], progress: bool = True
             images[pairing.sequence, camera, frame.key] = (pairing.sequence, camera, frame)
     for sequence, camera, frame in tqdm(images.values(), desc="checking images", unit="image",
                                         disable=not progress):  # fmt: skip
-        layout_image(layout, sequence, camera, frame)
+        layout.read_image(sequence, camera, frame)
     for pairing in paired:
-        _truth(layout, pairing)
+        layout.read_distance(pairing.sequence, pairing.camera, pairing.frame)
 
 
 def flat_fraction(image: np.ndarray, camera) -> float:
@@ -248,14 +240,14 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
 def _image(layout, pairing, matches: RecordingMatches, out, recorder) -> dict[str, Any]:
     """One image's maps (against its partners) written into ``out``; its summary record, returned."""
     start = time.perf_counter()
-    image = layout_image(layout, pairing.sequence, pairing.camera, pairing.frame)
+    image = layout.read_image(pairing.sequence, pairing.camera, pairing.frame)
     fused, used, disagree = matches.image(pairing, image)
     if fused is None:  # every partner left out: nothing to say about this image
         fused = nothing(layout.cameras[pairing.camera].camera)
     *maps, picture = outputs(pairing)
     for path, array in zip(maps, (fused.distance, fused.dense, fused.confidence), strict=True):
         atomic_write_npy(out / path, array)
-    truth = _truth(layout, pairing)
+    truth = layout.read_distance(pairing.sequence, pairing.camera, pairing.frame)
     tiles = panel(image[..., ::-1], fused.distance, fused.dense, truth)
     atomic_write_png(out / picture, tiles)
     record: dict[str, Any] = {

@@ -24,9 +24,8 @@ from torch import Tensor
 
 from ..cameras import load_yaml
 from ..cameras.base import CameraModel
-from ..data.layouts import Frame, RigLayout
+from ..data.layouts import RigLayout
 from ..geometry.se3 import axis_angle_to_matrix, make_pose
-from ..images import read_image
 
 REFINE = ("rotation", "pose")  # what --refine corrects of each camera's extrinsics (pose: also the direction)
 
@@ -339,19 +338,6 @@ def check_motion(
 
 
 # ------------------------------------------------------------------ a whole rig, from its recording
-def layout_image(layout: RigLayout, sequence: str, camera: str, frame: Frame) -> np.ndarray:
-    """The image of ``camera`` at ``frame`` as 8-bit BGR, checked against the camera's calibrated size."""
-    path = layout.image(sequence, camera, frame)
-    bgr = read_image(path).bgr
-    expected = (layout.cameras[camera].camera.width, layout.cameras[camera].camera.height)
-    if (bgr.shape[1], bgr.shape[0]) != expected:
-        raise ValueError(
-            f"{path}: {bgr.shape[1]}x{bgr.shape[0]} pixels, but the calibration of camera {camera!r} is "
-            f"{expected[0]}x{expected[1]}"
-        )
-    return bgr
-
-
 def _same_instants(layout: RigLayout, a: str, b: str, limit: int, same_instant_ns: int = 1_000_000):
     """Up to ``limit`` (sequence, frame of a, frame of b) taken at one instant, spread over the recording."""
     found = []
@@ -370,8 +356,8 @@ def _pair_matches(layout: RigLayout, a: str, b: str, instants: int) -> list[Matc
     found = []
     for sequence, frame_a, frame_b in _same_instants(layout, a, b, instants):
         found.append(match_features(
-            layout_image(layout, sequence, a, frame_a), layout.cameras[a].camera,
-            layout_image(layout, sequence, b, frame_b), layout.cameras[b].camera,
+            layout.read_image(sequence, a, frame_a), layout.cameras[a].camera,
+            layout.read_image(sequence, b, frame_b), layout.cameras[b].camera,
         ))  # fmt: skip
     return found
 

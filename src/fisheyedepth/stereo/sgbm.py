@@ -16,7 +16,6 @@ import numpy as np
 import torch
 
 from ..cameras.base import CameraModel
-from ..data.dataset import binary_mask
 from ..data.layouts import Frame, RigLayout
 from ..option_checks import check_memory
 from .fuse import fuse
@@ -25,7 +24,7 @@ from .matchers import ImageMaps
 from .pairing import Pairing, pair_pose
 from .pipeline import SgbmSettings, Timer, grey, match_pair, pair_step, partner_pair, rectify_pair
 from .rectify import Rectification, RectificationCache
-from .refine import MOTION_FEATURES, Features, check_motion, features, layout_image
+from .refine import MOTION_FEATURES, Features, check_motion, features
 from .static import StaticFinder, usable
 
 # Peak memory of matching one pair: a fixed part and a part per pixel of its larger image at the cameras'
@@ -92,17 +91,6 @@ class SgbmMatcher:
         return {"matcher": self.name, **{k: getattr(s, k) for k in ranges}, **vars(s.sgbm)}
 
 
-def masks(layout: RigLayout) -> dict[str, np.ndarray | None]:
-    """Each camera's body mask (``H x W`` bool, True: the scene), None where the rig names none."""
-    out = {}
-    for name, spec in layout.cameras.items():
-        size = (spec.camera.width, spec.camera.height)
-        out[name] = (
-            None if spec.mask is None else binary_mask(spec.mask, size, size, "body mask")[0].numpy() > 0.5
-        )
-    return out
-
-
 def static_masks(layout: RigLayout, max_distance: float, pairs: int = 12) -> dict[str, np.ndarray]:
     """Each camera's pixels that do not move with the scene (:class:`.static.StaticFinder`), from up to
     ``pairs`` pairs of its consecutive images spread over the recording (every sequence)."""
@@ -114,7 +102,7 @@ def static_masks(layout: RigLayout, max_distance: float, pairs: int = 12) -> dic
             frames = layout.frames(sequence, name)
             found += [(sequence, a, b) for a, b in zip(frames, frames[1:], strict=False)]
         for sequence, a, b in found[:: max(1, len(found) // pairs)][:pairs]:
-            images = [layout_image(layout, sequence, name, frame) for frame in (a, b)]
+            images = [layout.read_image(sequence, name, frame) for frame in (a, b)]
             finder.add(grey(images[0]), grey(images[1]), pair_pose(layout, name, a, name, b))
         out[name] = finder.mask
     return out
@@ -129,7 +117,7 @@ class SgbmRecording:
         self.layout, self.settings, self.timer = layout, settings, timer
         start = time.perf_counter()
         self.static = static_masks(layout, settings.max_distance)
-        self.masks = {name: usable(mask, self.static[name]) for name, mask in masks(layout).items()}
+        self.masks = {name: usable(layout.read_mask(name), self.static[name]) for name in layout.cameras}
         timer.add("motion", start)
         self.rectifications = RectificationCache(max_entries=64)
         self.wanted: dict[tuple, set[tuple[str, int]]] = defaultdict(set)  # pair -> the images asking
@@ -173,7 +161,7 @@ class SgbmRecording:
         cameras = layout.cameras[a[0]].camera, layout.cameras[b[0]].camera
         residual, record, images = 0.0, {}, None
         if a[0] == b[0]:  # one camera at two instants: its motion checked against its images first
-            images = [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
+            images = [layout.read_image(sequence, cam, frame) for cam, frame in (a, b)]
             found = [
                 self._features(sequence, cam, frame, image)
                 for (cam, frame), image in zip((a, b), images, strict=True)
@@ -191,7 +179,7 @@ class SgbmRecording:
             self.unmatched[name] = rect
             return nothing_here
         self.timer.add("rectify", start)
-        images = images or [layout_image(layout, sequence, cam, frame) for cam, frame in (a, b)]
+        images = images or [layout.read_image(sequence, cam, frame) for cam, frame in (a, b)]
         pair_masks = (self.masks[a[0]], self.masks[b[0]])
         maps = match_pair(images[0], images[1], rect, s, directions, self.timer, pair_masks, residual)
         evidence = next(m.evidence for m in maps if m is not None)

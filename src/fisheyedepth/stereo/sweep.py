@@ -37,7 +37,6 @@ from .costs import COSTS, aggregate, census, census_cost, window_stats, winner, 
 from .fuse import Fused
 from .matchers import ImageMaps
 from .pairing import MIN_BASELINE, Pairing, pair_pose
-from .refine import layout_image
 
 if TYPE_CHECKING:
     from ..data.layouts import RigLayout
@@ -262,7 +261,7 @@ class SweepRecording:
         sources = []
         for partner in pairing.partners:
             T = pair_pose(layout, pairing.camera, pairing.frame, partner.camera, partner.frame)
-            partner_image = layout_image(layout, pairing.sequence, partner.camera, partner.frame)
+            partner_image = layout.read_image(pairing.sequence, partner.camera, partner.frame)
             sources.append(View(self._tensor(partner_image), layout.cameras[partner.camera].camera,
                                 torch.from_numpy(T).float().to(device)))  # fmt: skip
         result = self.sweep(reference, sources)

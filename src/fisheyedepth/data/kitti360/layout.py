@@ -10,7 +10,7 @@ import numpy as np
 
 from ...cameras import load_camera
 from ...utils import path_name
-from ..layouts import CameraSpec, Frame, existing
+from ..layouts import CameraSpec, Frame, RecordingFiles, existing
 from .files import read_cam_to_pose, read_cam_to_velo, read_poses
 
 log = logging.getLogger(__name__)
@@ -36,7 +36,7 @@ def warn_no_mask(camera: str, expected: Path) -> None:
     )
 
 
-class Kitti360Layout:
+class Kitti360Layout(RecordingFiles):
     """The official KITTI-360 layout (and the synthetic world's)."""
 
     name = "kitti360"
