@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 # A training size whose aspect ratio differs from a camera's by more than this stretches its images.
 ASPECT_TOLERANCE = 0.01
 
+
 def report_aspect(root, name: str, native: tuple[int, int], size: tuple[int, int]) -> None:
     """Warn (once per camera and size) when resizing to ``size`` stretches the camera's images."""
     native_ratio, ratio = native[0] / native[1], size[0] / size[1]
