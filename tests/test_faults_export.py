@@ -21,7 +21,7 @@ import pytest
 from omegaconf import OmegaConf
 
 import fisheyedepth.cli.export as export_module
-import fisheyedepth.utils as utils_module
+import fisheyedepth.files as files_module
 from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.runtimes import META, OnnxRuntime, add_metadata
@@ -158,7 +158,7 @@ def second_export_waiting(monkeypatch, cfg) -> tuple[threading.Thread, dict]:
             waiting.set()
         return flock(fd, operation)
 
-    monkeypatch.setattr(fcntl, "flock", noting_flock)  # the writers' lock (utils.take_lock)
+    monkeypatch.setattr(fcntl, "flock", noting_flock)  # the writers' lock (files.take_lock)
 
     def run():
         try:
@@ -264,7 +264,7 @@ def test_a_folder_that_refuses_the_file_is_one_line_and_leaves_nothing(
     def refused(*args, dir=None, **kwargs):  # noqa: A002 - tempfile's keyword
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), dir)
 
-    hold_during_export(monkeypatch, lambda: monkeypatch.setattr(utils_module.tempfile, "mkstemp", refused))
+    hold_during_export(monkeypatch, lambda: monkeypatch.setattr(files_module.tempfile, "mkstemp", refused))
     assert one_line_error(export, export_cfg(checkpoint, out), capsys) == (
         f"error: {out}: cannot be written (Permission denied: {tmp_path}); choose another output=FILE"
     )

@@ -1,6 +1,6 @@
 """Names that become paths: a camera or sequence name from a bag's options, a ``rig.yaml``, a calibration
 file, an Aria export, a split file or a KITTI-360 option is one plain file or folder name
-(``fisheyedepth.utils.path_name``), or the command stops with one line naming the file and the field;
+(``fisheyedepth.files.path_name``), or the command stops with one line naming the file and the field;
 nothing is read or written outside the dataset's folder. And the importers' writes: all or nothing,
 never over an existing file without ``--overwrite``."""
 
@@ -19,7 +19,7 @@ from fisheyedepth.data.aria import CALIBRATION, aria_to_rig
 from fisheyedepth.data.dataset import parse_split
 from fisheyedepth.data.kitti360 import Kitti360Layout
 from fisheyedepth.data.layouts import RigLayout
-from fisheyedepth.utils import NAME_BYTES, move_into_place, path_name, staged_folder
+from fisheyedepth.files import NAME_BYTES, move_into_place, path_name, staged_folder
 
 from test_faults_data import write_tiny_rig
 

@@ -34,10 +34,10 @@ from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.cli.train import train
 from fisheyedepth.data.kitti360 import kitti360_camera
+from fisheyedepth.files import atomic_write_text
 from fisheyedepth.images import ImageError, read_image
 from fisheyedepth.inference import DistancePredictor
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_text
 
 from conftest import TINY, TRAIN_SEQ, copy_tiny_world
 
@@ -132,9 +132,9 @@ def test_a_signal_while_a_checkpoint_is_written_stops_only_once_it_is_whole(
 ):
     """Ctrl-C inside ``torch.save`` cuts its zip writer (a RuntimeError and a traceback, not the stop
     asked for): the signal is held until the checkpoint is in place, then given to the handlers that
-    were there (here KeyboardInterrupt, and utils.sigterm_raises' Terminated)."""
+    were there (here KeyboardInterrupt, and signals.sigterm_raises' Terminated)."""
     from fisheyedepth.checkpoints import write_checkpoint
-    from fisheyedepth.utils import Terminated, sigterm_raises
+    from fisheyedepth.signals import Terminated, sigterm_raises
 
     save, calls = torch.save, []
 

@@ -19,10 +19,11 @@ import yaml
 from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cli import multiview
 from fisheyedepth.data.layouts import RigLayout
+from fisheyedepth.files import check_apart
 from fisheyedepth.geometry import MAX_MOTION, rigid_transform
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, make_pose
 from fisheyedepth.stereo import RigStereo, SgbmSettings, sgbm
-from fisheyedepth.utils import check_apart, cores
+from fisheyedepth.utils import cores
 from test_multiview import small_rig
 
 from conftest import load_script
@@ -425,7 +426,7 @@ def test_train_eval_export_and_predict_stopped_by_a_signal_end_with_one_line_and
 def test_the_other_commands_stopped_by_a_signal_end_with_one_line_and_write_nothing(
     tmp_path, monkeypatch, capsys, signum, status, said
 ):
-    """``fisheyedepth-estimate-mask`` and ``scripts/tools`` (``utils.ends_on_signals``): stopped while it
+    """``fisheyedepth-estimate-mask`` and ``scripts/tools`` (``signals.ends_on_signals``): stopped while it
     reads the recording, the command returns the signal's status with one line and writes nothing."""
     import signal
 

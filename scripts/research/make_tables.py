@@ -220,7 +220,7 @@ def main(argv=None) -> int:
         text += "\n```latex\n" + "".join(latex(title, spec, rows) for title, spec in chosen) + "```\n"
     print(text)
     if args.out:
-        from fisheyedepth.utils import atomic_write_text
+        from fisheyedepth.files import atomic_write_text
 
         atomic_write_text(args.out, text)
     return 0

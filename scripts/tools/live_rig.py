@@ -38,9 +38,11 @@ import numpy as np
 
 from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
+from fisheyedepth.files import check_apart, pid_alive
 from fisheyedepth.images import read_image
+from fisheyedepth.signals import Terminated, sigterm_raises, stopped_by
 from fisheyedepth.stereo import RigStereo, SgbmSettings
-from fisheyedepth.utils import Terminated, check_apart, check_threads, pid_alive, sigterm_raises, stopped_by
+from fisheyedepth.utils import check_threads
 
 HISTORY = 10  # earlier instants kept for the motion partner (the latest one far enough away is taken)
 

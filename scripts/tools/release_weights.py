@@ -30,8 +30,9 @@ from fisheyedepth.checkpoints import (
     sha256,
 )
 from fisheyedepth.cli import CommandParser
+from fisheyedepth.files import atomic_write_bytes, atomic_write_text
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_bytes, atomic_write_text, ends_on_signals
+from fisheyedepth.signals import ends_on_signals
 
 
 def release(ckpt: Path, out: Path, name: str = RELEASED, overwrite: bool = False) -> tuple[Path, str]:

@@ -18,10 +18,11 @@ import torch
 
 from fisheyedepth.cli import CommandParser
 from fisheyedepth.data.layouts import RigLayout
+from fisheyedepth.files import atomic_write_png
 from fisheyedepth.images import read_image
 from fisheyedepth.inference import DistancePredictor, colour_bar
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.utils import atomic_write_png, ends_on_signals
+from fisheyedepth.signals import ends_on_signals
 from fisheyedepth.viz import colourise
 
 

@@ -21,9 +21,10 @@ import torch
 
 from fisheyedepth.cameras import RayCache
 from fisheyedepth.cli import CommandParser
+from fisheyedepth.files import atomic_write_png
 from fisheyedepth.inference import point_cloud
+from fisheyedepth.signals import ends_on_signals
 from fisheyedepth.stereo import RigStereo, SgbmSettings
-from fisheyedepth.utils import atomic_write_png, ends_on_signals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from live_rig import body_masks, instants, replay, rig_layout  # noqa: E402

@@ -28,7 +28,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from fisheyedepth.cli import CommandParser  # noqa: E402
 from fisheyedepth.evaluation import ANGLE_BINS, evaluate  # noqa: E402
 from fisheyedepth.module import FisheyeDepthModule  # noqa: E402
-from fisheyedepth.utils import ends_on_signals  # noqa: E402
+from fisheyedepth.signals import ends_on_signals  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # scripts/, for _compose
 from _compose import ROOT, build_datamodule, compose_config  # noqa: E402

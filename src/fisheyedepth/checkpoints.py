@@ -12,7 +12,7 @@ Checkpoints are written by :func:`write_checkpoint` (in training through
 :class:`~fisheyedepth.training.AtomicCheckpointIO`):
 beside their target under a hidden name with the writer's pid, flushed to disk, then renamed over the
 target, so a kill at any moment leaves the previous file whole;
-:func:`~fisheyedepth.utils.remove_stale_temporaries` removes what killed writers left.
+:func:`~fisheyedepth.files.remove_stale_temporaries` removes what killed writers left.
 """
 
 from __future__ import annotations
@@ -29,11 +29,12 @@ from typing import Any
 
 import torch
 
+from .files import atomic_target
 from .migration import FLAT_KEYS, current_hparams, nested_hparams
 from .models.depth_net import check_network_memory
 from .option_checks import MODEL_OPTIONS, check_options
 from .options import check_combinations, net_options
-from .utils import atomic_target, signals_deferred
+from .signals import signals_deferred
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
 RESUME_KEYS = ("pytorch-lightning_version", "state_dict", "optimizer_states", "loops", "epoch", "global_step")
@@ -320,7 +321,7 @@ def load_weights(model: torch.nn.Module, path: str | os.PathLike, state: Any) ->
 # ------------------------------------------------------------------ writing
 def write_checkpoint(checkpoint: dict[str, Any], path: str | os.PathLike) -> Path:
     """``torch.save`` into a temporary file beside ``path``, ``fsync``, then ``os.replace`` over it
-    (:func:`~fisheyedepth.utils.atomic_target`): the previous file stays whole until the new one is.
+    (:func:`~fisheyedepth.files.atomic_target`): the previous file stays whole until the new one is.
     Never through the system temp folder, which may be another filesystem (where a move becomes a copy
     that truncates the target first)."""
     path = Path(path)

@@ -27,10 +27,10 @@ from torch.nn import functional as F
 from .cameras import CameraModel, RayCache
 from .data.batch import SkippedBatch
 from .data.kitti360 import OCCLUSION, occlusion_filter
+from .files import atomic_write_png
 from .metrics import NAMES, DepthMetrics
 from .models.cost_volume import Sources
 from .runtimes import as_runtime
-from .utils import atomic_write_png
 from .viz import panel, to_uint8
 
 log = logging.getLogger(__name__)

@@ -20,9 +20,9 @@ import torch
 from torch import Tensor, nn
 
 from .cameras import CameraModel, RayCache, compute_rays
+from .files import atomic_write_bytes, atomic_write_npy, atomic_write_png
 from .rerun3d import RecordingError  # rerun itself is imported only when recording
 from .runtimes import TorchRuntime, as_runtime
-from .utils import atomic_write_bytes, atomic_write_npy, atomic_write_png
 from .viz import colourise
 
 PNG_SCALES = {"mm": 1000.0, "256": 256.0}  # uint16 PNG value per metre

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from .checkpoints import model_from_checkpoint
 from .data.batch import Batch, SkippedBatch
+from .files import atomic_write_png
 from .losses.objective import SelfSupervisedObjective
 from .losses.photometric import photometric_error
 from .metrics import DepthMetrics
@@ -32,7 +33,6 @@ from .models.depth_net import check_network_memory
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
 from .options import check_numbers, model_options, unknown_options
 from .training import StepGuard, build_optimizer, build_scheduler
-from .utils import atomic_write_png
 from .viz import panel
 
 

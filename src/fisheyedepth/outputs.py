@@ -7,11 +7,10 @@ meanwhile is refused, not overwritten; a folder that refuses writes is named (:f
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 from pathlib import Path
 
-from .utils import WRITE_ERRORS, drop_lock, take_lock, temporary_beside
+from .files import WRITE_ERRORS, drop_lock, place_new, take_lock, temporary_beside
 
 
 def record_path(path: Path) -> Path:
@@ -65,34 +64,16 @@ def place(path: Path, data: bytes, record: str, overwrite: bool) -> None:
 
 @contextlib.contextmanager
 def staged(path: Path, data: bytes):
-    """``data`` in a temporary file beside ``path`` (:func:`~fisheyedepth.utils.temporary_beside`);
+    """``data`` in a temporary file beside ``path`` (:func:`~fisheyedepth.files.temporary_beside`);
     removed when the block ends, unless it was moved into place."""
     with temporary_beside(path) as tmp:
         tmp.write_bytes(data)
         yield str(tmp)
 
 
-def place_new(tmp: str, path: Path) -> None:
-    """``tmp`` at ``path``, which must not exist: ``os.link``, a FileExistsError naming ``path`` if a file
-    took the name meanwhile; on a filesystem without hard links (FAT), checked and renamed."""
-    try:
-        os.link(tmp, path)
-    except FileExistsError:
-        raise FileExistsError(f"{path} exists; pass overwrite=true to replace it") from None
-    except OSError as err:
-        if err.errno not in NO_HARD_LINKS:
-            raise
-        if path.exists():
-            raise FileExistsError(f"{path} exists; pass overwrite=true to replace it") from None
-        os.replace(tmp, path)
-
-
-NO_HARD_LINKS = (errno.EPERM, errno.EOPNOTSUPP, errno.ENOTSUP, errno.EMLINK)
-
-
 @contextlib.contextmanager
 def writable(path: Path):
-    """A folder that cannot be written (:data:`~fisheyedepth.utils.WRITE_ERRORS`) is a ValueError naming
+    """A folder that cannot be written (:data:`~fisheyedepth.files.WRITE_ERRORS`) is a ValueError naming
     ``path`` and why, not a traceback: the output option is at fault, as a missing checkpoint is."""
     try:
         yield

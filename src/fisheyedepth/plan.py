@@ -29,12 +29,12 @@ from .config import (
     rig_offsets,
     source_offsets,
 )
+from .files import check_apart, check_writable
 from .models.depth_net import check_input_size, check_network_memory
 from .option_checks import TRAINER_OPTIONS, check_options
 from .options import check_combinations, net_options
 from .runtimes import POST_PROCESSING, RUNTIME_PRECISIONS, one_of
 from .synthetic.spec import check_render_memory
-from .utils import check_apart, check_writable
 
 log = logging.getLogger("fisheyedepth")
 

@@ -46,9 +46,9 @@ import numpy as np
 import torch
 
 from .cameras import CameraModel, RayCache
+from .files import check_writable, place_new, remove_stale_temporaries, temporary_beside
 from .geometry import rigid_transform
-from .outputs import place_new
-from .utils import check_writable, is_number, is_whole, remove_stale_temporaries, temporary_beside
+from .utils import is_number, is_whole
 from .viz import colourise
 
 if TYPE_CHECKING:  # the multi-view run's types, for InstantRecorder's signatures

@@ -25,7 +25,7 @@ from typing import Any
 
 import yaml
 
-from ..utils import atomic_write_text
+from ..files import atomic_write_text
 from .base import CameraModel, CameraParameterError
 
 

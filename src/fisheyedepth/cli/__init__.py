@@ -1,9 +1,8 @@
 """The commands behind ``train.py``, ``eval.py``, ``predict.py`` and ``export.py``: the only place where
 configs become objects (``hydra.utils.instantiate``). Each command makes its plan from the composed config
-(:mod:`fisheyedepth.plan`: every option checked, nothing built yet), then builds from the plan. One small
-module per command; this one holds what they share: how an input error ends a command, process-wide
-settings, the first-use rendering of the synthetic data, the network predict and eval run, and output
-paths that never replace an earlier run's file."""
+(:mod:`fisheyedepth.plan`: every option checked, nothing built yet), then builds from it. One module per
+command; this one holds what they share: how an input error ends a command, process-wide settings, the
+synthetic data's first rendering, the network predict and eval run, output paths that replace nothing."""
 
 from __future__ import annotations
 
@@ -16,10 +15,12 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
+from ..files import WRITE_ERRORS
 from ..plan import DataPlan, RuntimePlan, thawed
 from ..runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
+from ..signals import Terminated, sigterm_raises, stopped_by
 from ..synthetic import ensure_datasets
-from ..utils import WRITE_ERRORS, Terminated, keep_freed_memory, sigterm_raises, stopped_by
+from ..utils import keep_freed_memory
 
 log = logging.getLogger("fisheyedepth")
 
@@ -73,8 +74,7 @@ QUIET_LOGGERS = ("lightning.pytorch.trainer.connectors.signal_connector",)
 
 def prepare_process(keep_memory: bool) -> None:
     """Process-wide settings, before any work: :data:`QUIET_WARNINGS` silenced, with ``keep_memory``
-    glibc keeping the memory of freed tensors for reuse instead of unmapping it
-    (:func:`fisheyedepth.utils.keep_freed_memory`)."""
+    glibc keeping freed tensors' memory for reuse, not unmapping it (:func:`~..utils.keep_freed_memory`)."""
     for message in QUIET_WARNINGS:
         warnings.filterwarnings("ignore", message=message)
     for name in QUIET_LOGGERS:

@@ -8,7 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from ..data import body_mask
-from ..utils import ends_on_signals, path_name
+from ..files import path_name
+from ..signals import ends_on_signals
 from . import CommandParser
 
 

@@ -15,22 +15,18 @@ from rich.console import Console
 from rich.table import Table
 
 from ..evaluation import evaluate, scored_recording
+from ..files import atomic_write_text
 from ..option_checks import SWITCH
 from ..plan import Scoring, eval_plan
 from ..runtimes import as_runtime
-from ..utils import atomic_write_text, run_config
+from ..utils import run_config
 from . import free_path, load_runtime, prepare_data
 
 
 def _git_commit() -> str | None:
+    git = ["git", "-C", str(Path(__file__).parent), "rev-parse", "HEAD"]
     try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).parent,
-        ).stdout.strip()
+        return subprocess.run(git, capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
 

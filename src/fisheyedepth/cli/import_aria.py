@@ -8,7 +8,8 @@ import inspect
 from pathlib import Path
 
 from ..data.aria import aria_to_rig
-from ..utils import check_apart, run_import
+from ..files import check_apart
+from ..signals import run_import
 from . import CommandParser
 
 

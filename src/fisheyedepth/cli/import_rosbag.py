@@ -11,7 +11,8 @@ import yaml
 from ..cameras import load_yaml
 from ..data.layouts import read_transform
 from ..data.rosbag import RosbagError, import_rosbag
-from ..utils import check_apart, run_import
+from ..files import check_apart
+from ..signals import run_import
 from . import CommandParser, named_values
 
 

@@ -41,13 +41,15 @@ from pathlib import Path
 import cv2
 import torch
 
+from ..files import WRITE_ERRORS
+from ..signals import Terminated, sigterm_raises, stopped_by
 from ..stereo.matchers import MATCHERS
 from ..stereo.pipeline import SgbmSettings
 from ..stereo.recording import RECORDING, run
 from ..stereo.refine import REFINE
 from ..stereo.sgbm import SgbmMatcher
 from ..stereo.sweep import SweepMatcher, SweepSettings
-from ..utils import WRITE_ERRORS, Terminated, check_threads, sigterm_raises, stopped_by
+from ..utils import check_threads
 from . import CommandParser
 
 

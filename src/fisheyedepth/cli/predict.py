@@ -16,6 +16,7 @@ from rich.console import Console
 from tqdm import tqdm
 
 from ..cameras import load_camera
+from ..files import atomic_write_text
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter, frame_recording
 from ..option_checks import SWITCH
@@ -23,7 +24,7 @@ from ..options import CONF_DIR
 from ..plan import predict_plan
 from ..rerun3d import RecordingError
 from ..runtimes import OnnxRuntime
-from ..utils import Terminated, atomic_write_text, signal_name, stopped_by
+from ..signals import Terminated, signal_name, stopped_by
 from . import free_path, load_runtime, model_file_alias, run_command
 
 log = logging.getLogger("fisheyedepth")
@@ -37,9 +38,8 @@ class RecordingFailed(ValueError):
 def predict(cfg: DictConfig) -> dict[str, Any]:
     plan = predict_plan(cfg)  # the output folder writable, the runtime's options: nothing loaded yet
     out = plan.output
-    writer = PredictionWriter(
-        out, plan.z_depth, plan.point_cloud, plan.png_scale, plan.vmin, plan.vmax, plan.overwrite
-    )
+    writer = PredictionWriter(out, plan.z_depth, plan.point_cloud, plan.png_scale, plan.vmin, plan.vmax,
+                              plan.overwrite)  # fmt: skip
     source = FrameSource(plan.input, plan.max_frames)  # lists the inputs without decoding any
     writer.check_free(source.names())
     rerun = cfg.get("rerun", False)

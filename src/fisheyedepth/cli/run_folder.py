@@ -22,7 +22,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from ..utils import drop_lock, remove_stale_temporaries, take_lock
+from ..files import drop_lock, remove_stale_temporaries, take_lock
 
 log = logging.getLogger("fisheyedepth")
 

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ..option_checks import check_options
+from ..signals import Terminated, stopped_by
 from ..synthetic.folder import is_empty_dir, made_by_generator
 from ..synthetic.rig import RIGS
 from ..synthetic.sensor import EFFECTS
@@ -15,7 +16,6 @@ from ..synthetic.spec import GENERATE_OPTIONS, SPEC_FIELDS, WorldSpec
 from ..synthetic.traffic import MAX_TRAFFIC
 from ..synthetic.world import SCENES
 from ..synthetic.writer import generate
-from ..utils import Terminated, stopped_by
 from . import CommandParser
 
 

@@ -15,7 +15,7 @@ from omegaconf import DictConfig
 from ..checkpoints import CheckpointError, weights_mismatch
 from ..config import named_option, resolve_base_focal
 from ..plan import ModelPlan, TrainPlan, check_select, describe_accelerator, train_plan
-from ..utils import EXIT_SIGINT, EXIT_SIGTERM, sigterm_left_alone
+from ..signals import EXIT_SIGINT, EXIT_SIGTERM, sigterm_left_alone
 from . import INPUT_ERRORS, prepare_data, prepare_process
 from .run_folder import run_folder
 

@@ -33,13 +33,8 @@ import yaml
 from tqdm import tqdm
 
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
+from ..files import inside, move_into_place, path_name, staged_folder
 from ..images import ImageError, read_image
-from ..utils import (
-    inside,
-    move_into_place,
-    path_name,
-    staged_folder,
-)
 from .layouts import RigLayout, read_transform, unit_quaternion
 
 CALIBRATION = "calib_slam_fisheye624.json"

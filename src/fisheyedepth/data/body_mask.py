@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from ..cameras import CameraModel, compute_rays
-from ..utils import atomic_write_bytes
+from ..files import atomic_write_bytes
 from .files import read_checked
 from .kitti360 import Kitti360Layout
 from .layouts import RigLayout

@@ -25,9 +25,9 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from ..files import atomic_write_bytes, file_key, path_name
 from ..geometry import relative_pose
 from ..images import ImageError, read_image
-from ..utils import atomic_write_bytes, file_key, path_name
 from .augment import Augment, PoseNoise
 from .files import binary_mask, read_checked, report_grayscale, warn_once
 from .kitti360 import OCCLUSION, Kitti360Layout, LidarGroundTruth

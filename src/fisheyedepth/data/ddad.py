@@ -60,14 +60,8 @@ import yaml
 from tqdm import tqdm
 
 from ..cameras import CalibrationError, PinholeCamera, camera_from_mapping, load_json, save_camera
+from ..files import atomic_write_npy, inside, move_into_place, path_name, staged_folder
 from ..images import ImageError, read_image
-from ..utils import (
-    atomic_write_npy,
-    inside,
-    move_into_place,
-    path_name,
-    staged_folder,
-)
 from .kitti360 import OCCLUSION, project_points
 from .layouts import RigLayout, quaternion_matrix, unit_quaternion
 

@@ -19,9 +19,9 @@ import torch
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
 from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_camera, read_calibration
+from ..files import path_name
 from ..geometry import make_pose, pose_from_3x4, quaternion_to_matrix
 from ..geometry.se3 import rig_extent_problem
-from ..utils import path_name
 from .files import binary_mask, read_checked, read_distance
 
 log = logging.getLogger(__name__)

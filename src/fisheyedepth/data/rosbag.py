@@ -22,7 +22,7 @@ The import is written into a hidden folder beside ``out``, opened with ``RigLayo
 will read) and only then moved into place: a failed import leaves nothing at ``out``. A corrupt image
 message is skipped and counted (refused with ``strict``). Nothing is overwritten without ``overwrite``.
 Camera and sequence names become folder and file names under ``out``: each must be one plain name
-(:func:`fisheyedepth.utils.path_name`: no ``/``, no ``..``, ...).
+(:func:`fisheyedepth.files.path_name`: no ``/``, no ``..``, ...).
 """
 
 from __future__ import annotations
@@ -40,14 +40,9 @@ from tqdm import tqdm
 
 from ..cameras import CameraModel, load_camera, save_camera
 from ..cameras.opencv import ROS_MODELS
+from ..files import inside, move_into_place, path_name, staged_folder
 from ..geometry import make_pose, rigid_transform
 from ..images import read_image
-from ..utils import (
-    inside,
-    move_into_place,
-    path_name,
-    staged_folder,
-)
 from .layouts import RigLayout, in_pose_gap, max_gap_ns, quaternion_matrix, unit_quaternion
 
 log = logging.getLogger(__name__)

@@ -157,7 +157,7 @@ def multiview_scores(
     | filled | ground truth) into ``pictures``. Returns the record: per frame, the scores, the settings and
     the refinement."""
 
-    from ..utils import atomic_write_png
+    from ..files import atomic_write_png
 
     predictions = predictions or {}
     pairs = real_pairs(root, matcher, middlebury, echo)

@@ -17,8 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..data.layouts import RigLayout
-from ..rerun3d import InstantRecorder, RecordingError
-from ..utils import (
+from ..files import (
     atomic_write_npy,
     atomic_write_png,
     atomic_write_text,
@@ -29,6 +28,7 @@ from ..utils import (
     staged_folder,
     take_lock,
 )
+from ..rerun3d import InstantRecorder, RecordingError
 from .match import SgbmParameters, off_the_rim, textured
 from .matchers import Matcher, RecordingMatches, check_run_memory
 from .pairing import NO_PARTNER, SOURCES, Pairing, check_sources, images_left_out, nothing_to_match, pairings

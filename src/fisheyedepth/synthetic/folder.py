@@ -22,7 +22,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..utils import pid_alive
+from ..files import pid_alive
 from .spec import WorldSpec
 
 MARKER = ".fisheyedepth-synthetic"  # the first file of every dataset this generator starts

@@ -20,7 +20,7 @@ from multiprocessing import get_context
 import torch
 from tqdm import tqdm
 
-from ..utils import Terminated, sigterm_raises  # noqa: F401  (the renderer's, re-exported)
+from ..signals import Terminated, sigterm_raises  # noqa: F401  (the renderer's, re-exported)
 
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ...cameras import load_camera
-from ...utils import path_name
+from ...files import path_name
 from ..layouts import CameraSpec, Frame, RecordingFiles, existing
 from .files import read_cam_to_pose, read_cam_to_velo, read_poses
 

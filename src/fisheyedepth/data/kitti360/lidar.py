@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ...cameras import CameraModel
-from ...utils import atomic_write_bytes, file_key
+from ...files import atomic_write_bytes, file_key
 from .files import read_velodyne
 
 log = logging.getLogger(__name__)
