@@ -384,10 +384,11 @@ def test_a_mask_of_another_size_and_an_unknown_camera_are_refused(tmp_path, synt
 
 
 def test_the_real_frames_read_a_ddad_scene_as_the_import_does(tmp_path):
-    """``realframes.load_frames(root, ["ddad"])``: each camera of the first sample, its LiDAR ground truth
-    what numpy computes, scored as a LiDAR frame; without the folder, one missing frame named by it."""
-    from fisheyedepth import realscores as rs
-    from fisheyedepth.data import realframes as rf
+    """``realworld.frames.load_frames(root, ["ddad"])``: each camera of the first sample, its LiDAR
+    ground truth what numpy computes, scored as a LiDAR frame; without the folder, one missing frame
+    named by it."""
+    from fisheyedepth.realworld import frames as rf
+    from fisheyedepth.realworld import scores as rs
 
     assert rf.load_frames(tmp_path, ["ddad"]) == [rf.Missing("ddad", tmp_path / "ddad_scene01")]
     write_scene(tmp_path / "ddad_scene01")
@@ -500,10 +501,10 @@ def test_train_py_loads_and_trains_a_step_on_the_real_scene(real, tmp_path, capl
 
 @pytest.mark.realdata
 def test_the_real_frames_score_ddad_beside_the_constant_map(real):
-    """``realframes.load_frames(root, ["ddad"])`` (``make realscore``): each camera of the first sample
+    """``realworld.frames.load_frames(root, ["ddad"])`` (``make realscore``): each camera of the first sample
     with the same ground truth the import wrote, scored by the LiDAR protocol beside its constant map."""
-    from fisheyedepth import realscores as rs
-    from fisheyedepth.data import realframes as rf
+    from fisheyedepth.realworld import frames as rf
+    from fisheyedepth.realworld import scores as rs
 
     src, out, _ = real
     frames = rf.load_frames(src.parent, ["ddad"])

@@ -415,7 +415,7 @@ def test_rig_yaml_and_its_calibrations_refuse_a_deep_file(tmp_path):
 
 def test_aria_and_real_world_json_refuse_a_deep_file(tmp_path):
     from fisheyedepth.data.aria import CALIBRATION, aria_to_rig
-    from fisheyedepth.data.realframes import adt_camera, scannetpp_camera
+    from fisheyedepth.realworld.frames import adt_camera, scannetpp_camera
 
     records_table = load_script("tools/real_world").records_table
 
@@ -509,7 +509,7 @@ def test_every_shipped_camera_passes_the_rule():
 
 def real_cameras(realdata: Path) -> dict[str, CameraModel]:
     """Every camera of ../shared/realdata, through the project's readers where it has one."""
-    from fisheyedepth.data.realframes import adt_camera, scannetpp_camera
+    from fisheyedepth.realworld.frames import adt_camera, scannetpp_camera
 
     cameras = {f"kitti360 {i}": load_camera(realdata / "kitti360_frame" / f"image_0{i}.yaml") for i in (2, 3)}
     gen2 = realdata / "aria_gen2_rig" / "calib_slam_fisheye624.json"

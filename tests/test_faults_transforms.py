@@ -228,22 +228,28 @@ def test_a_recording_that_cannot_be_written_is_one_error_and_leaves_nothing(tmp_
     assert not target.exists() and not list(tmp_path.glob(".rec.rrd.*"))
 
 
-def test_a_recording_whose_writer_does_not_finish_in_time_is_one_error(tmp_path, monkeypatch):
+def test_a_recording_whose_writer_does_not_finish_in_time_is_one_error(tmp_path):
     """The SDK's flush waits for ever by default: the recorder bounds it (``FLUSH_SECONDS``), and a
-    writer that has not finished by then is a RecordingError saying so, nothing at the path."""
+    writer that has not finished by then (the SDK's own timeout error) is a RecordingError saying so,
+    nothing at the path."""
     pytest.importorskip("rerun")
     from fisheyedepth import rerun3d
     from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
 
-    monkeypatch.setattr(rerun3d, "FLUSH_SECONDS", 1e-6)  # no writer finishes in a microsecond
     target = tmp_path / "rec.rrd"
     recorder = RigRecorder(target)
-    noise = np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8)
-    for i in range(30):
-        recorder.instant(i, i, {"a": CameraView(CAMERA, noise, {"d": np.full((60, 80), 2.0, np.float32)})})
+    recorder.instant(0, 0, {"a": CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})})
+    asked = []
+
+    def slow(timeout_sec=1e38):  # what rerun 0.41 raises when the timeout passes
+        asked.append(timeout_sec)
+        raise RuntimeError("Flush timed out - not all log messages were sent")
+
+    recorder.stream.flush = slow
     with pytest.raises(RecordingError, match=r"rec.rrd: the recording could not be written \(its writer "
-                       r"did not finish within 1e-06 s\)"):  # fmt: skip
+                       r"did not finish within 300 s\)"):  # fmt: skip
         recorder.close()
+    assert asked == [rerun3d.FLUSH_SECONDS] == [300.0]
     assert not list(tmp_path.iterdir())  # nothing at its path, no temporary
 
 

@@ -563,7 +563,7 @@ def test_middlebury_motorcycle_a_real_pair_swept():
     The whole image (128 hypotheses) scores 0.0116 on 85.9 % of its pixels (BENCHMARKS.md); the window
     loses some of its border to the round trip."""
     pytest.importorskip("skimage")
-    from fisheyedepth.data.realpairs import motorcycle
+    from fisheyedepth.realworld.pairs import motorcycle
 
     pair = motorcycle()
     x0, y0, width, height = 250, 130, 320, 240
@@ -588,8 +588,8 @@ def test_real_pairs_through_the_rectified_pipeline():
     0.02 on 85 % or more of its overlap and filled within 0.05; every one far better than the constant
     map."""
     pytest.importorskip("skimage")
-    from fisheyedepth.data.realpairs import overlap
-    from fisheyedepth.stereo.realscores import real_pairs, score_pair
+    from fisheyedepth.realworld.pairs import overlap
+    from fisheyedepth.realworld.stereo import real_pairs, score_pair
 
     root = realdata_dir()
     if not (root / "adt_slam").is_dir():
@@ -618,15 +618,15 @@ def test_realscore_scores_stereo_beside_each_model(tmp_path, monkeypatch, capsys
     Middlebury pair, checked and filled, the constant map and each model on the same overlap pixels,
     pictures ``multiview_<frame>.png``; every number in the JSON too, and the record rebuilds the table."""
     pytest.importorskip("skimage")
-    from fisheyedepth.stereo import realscores
+    from fisheyedepth.realworld import stereo as stereo_scores
 
     root = realdata_dir()
     if not (root / "adt_slam").is_dir():
         pytest.skip(f"real data not found at {root} (set FISHEYEDEPTH_REALDATA)")
-    full = realscores.real_pairs
+    full = stereo_scores.real_pairs
     # for time: frame 0's two references and Middlebury
     monkeypatch.setattr(
-        realscores, "real_pairs", lambda *a, **k: [p for p in full(*a, **k) if "_1" not in p[0].name]
+        stereo_scores, "real_pairs", lambda *a, **k: [p for p in full(*a, **k) if "_1" not in p[0].name]
     )
     torch.manual_seed(0)
     module = bare_module(net={"scales": (0, 1), "base_focal": 20.0}, input_size=(64, 64))
@@ -637,7 +637,7 @@ def test_realscore_scores_stereo_beside_each_model(tmp_path, monkeypatch, capsys
             "--json", str(out)]  # fmt: skip
     assert load_script("tools/real_world").main(args) == 0
     lines = capsys.readouterr().out.splitlines()
-    table = lines[lines.index(realscores.HEADER) + 2 :]
+    table = lines[lines.index(stereo_scores.HEADER) + 2 :]
     rows = [[c.strip() for c in line.strip("|").split("|")] for line in table if line.startswith("| ")]
     names = ["adt_left_0", "adt_right_0", "middlebury_motorcycle"]
     assert [r[0] for r in rows] == names
@@ -661,7 +661,7 @@ def test_realscore_scores_stereo_beside_each_model(tmp_path, monkeypatch, capsys
     )
     # the record rebuilds the table, nothing re-scored
     assert load_script("tools/real_world").main(["--from-records", "--multiview", str(out)]) == 0
-    start = lines.index(realscores.HEADER)
+    start = lines.index(stereo_scores.HEADER)
     assert capsys.readouterr().out.splitlines() == lines[start : start + 2 + len(names)]
 
 

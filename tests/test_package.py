@@ -117,3 +117,24 @@ def test_keep_freed_memory_reuses_freed_blocks_instead_of_faulting_them_in_again
         faults[kind] = int(out.stdout.split()[-1])
     assert faults["default"] > 4 * 10_000, faults  # 200 MB a step, in pages of 16 kB at most
     assert faults["keep"] < faults["default"] / 4, faults
+
+
+def test_the_package_map_shows_every_module_once():
+    """docs/package.md's tree (one line a module) holds every module of ``src/fisheyedepth`` and no
+    other, each under its own package."""
+    root = Path(fisheyedepth.__file__).parent
+    text = (ROOT / "docs" / "package.md").read_text()
+    tree = text.split("## Layout", 1)[1].split("```text\n", 1)[1].split("```", 1)[0].splitlines()
+    assert tree[0] == "fisheyedepth/"
+    shown, above = [], []  # above: the packages the line lies in, outermost first
+    for line in tree[1:]:
+        depth = line.index("── ") // 4
+        name = line[depth * 4 + 4 :].split()[0]
+        del above[depth:]
+        shown.append("".join(above) + name)
+        if name.endswith("/"):
+            above.append(name)
+    files = [str(p.relative_to(root)) for p in root.rglob("*.py") if p.name != "__init__.py"]
+    packages = [f"{p.parent.relative_to(root)}/" for p in root.rglob("__init__.py") if p.parent != root]
+    assert sorted(shown) == sorted(files + packages)
+    assert len(shown) == len(set(shown))

@@ -1,4 +1,4 @@
-"""Scores on real photographs (``fisheyedepth.data.realframes``, ``fisheyedepth.realscores``,
+"""Scores on real photographs (``fisheyedepth.realworld.frames``, ``fisheyedepth.realworld.scores``,
 ``scripts/tools/real_world.py``): the real frames of ../shared/realdata (or FISHEYEDEPTH_REALDATA), skipped
 when absent."""
 
@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from fisheyedepth import realscores as rs
 from fisheyedepth.cameras import CalibrationError
-from fisheyedepth.data import realframes as rf
 from fisheyedepth.data.kitti360 import OCCLUSION
 from fisheyedepth.evaluation import PROTOCOLS, Evaluator
 from fisheyedepth.images import read_image
+from fisheyedepth.realworld import frames as rf
+from fisheyedepth.realworld import scores as rs
 
 from conftest import bare_module, load_script, realdata_dir
 

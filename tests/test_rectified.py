@@ -441,7 +441,7 @@ def test_a_live_rig_gets_distance_for_every_camera():
 # ------------------------------------------------------------------ real photographs
 def test_sift_matches_on_a_rectified_middlebury_pair_lie_on_one_row():
     pytest.importorskip("skimage")
-    from fisheyedepth.data.realpairs import motorcycle
+    from fisheyedepth.realworld.pairs import motorcycle
 
     p = motorcycle()
     rect = build_rectification(p.camera, p.partner_camera, p.T.numpy(), 1.5)
@@ -470,7 +470,7 @@ def sift_rows(rect, image_a, image_b, ratio: float = 0.75) -> tuple[np.ndarray, 
 
 @pytest.fixture(scope="module")
 def adt_refined():
-    from fisheyedepth.stereo.realscores import refine_adt
+    from fisheyedepth.realworld.stereo import refine_adt
 
     folder = realdata_dir() / "adt_slam"
     if not folder.is_dir():
@@ -483,7 +483,7 @@ def test_sift_matches_on_the_rectified_adt_pair_lie_on_one_row_once_refined(adt_
     """The ADT SLAM pair rectified with its refined rotation: the mutual SIFT matches of its three
     instants that lie within 3 px of a row (the others are wrong matches, anywhere) lie within 0.25 px of
     it on the median; with the stored extrinsics, 1.8 px."""
-    from fisheyedepth.data.realpairs import adt_instants, adt_left_to_right, adt_pairs
+    from fisheyedepth.realworld.pairs import adt_instants, adt_left_to_right, adt_pairs
 
     folder, (T, refinement) = adt_refined
     assert 0.5 < refinement["rotation_deg"] < 1.2

@@ -40,8 +40,8 @@ import numpy as np
 import torch
 
 from fisheyedepth.cameras.rays import compute_rays, pixel_grid
-from fisheyedepth.data.realframes import adt_camera
-from fisheyedepth.data.realpairs import MOTORCYCLE, adt_left_to_right, adt_pairs, motorcycle, overlap
+from fisheyedepth.realworld.frames import adt_camera
+from fisheyedepth.realworld.pairs import MOTORCYCLE, adt_left_to_right, adt_pairs, motorcycle, overlap
 from fisheyedepth.stereo import RigStereo, SgbmSettings, fuse, match_pair, rectify_pair
 from fisheyedepth.stereo.match import normalise
 from fisheyedepth.stereo.pipeline import grey

@@ -42,8 +42,8 @@ from ..cameras import (
 )
 from ..cameras.fisheye624 import ARIA_PARAMS
 from ..cameras.io import field
+from ..data.ddad import read_scene
 from ..images import read_image
-from .ddad import read_scene
 
 FRAME_SETS = ("kitti360", "scannetpp", "adt", "ddad")  # what a caller chooses from; adt holds four frames
 FOLDERS = {

@@ -1,9 +1,9 @@
 """Stereo scored on real photographs with metric ground truth (``make realscore``): the Aria Digital
 Twin's two SLAM fisheyes (frames 0 and 1, each camera as the reference, their rotation refined from
 the images' feature matches first) and Middlebury 2014 Motorcycle (a rectified pinhole pair); readers
-in :mod:`fisheyedepth.data.realpairs`.
+in :mod:`fisheyedepth.realworld.pairs`.
 
-Each pair is scored on the reference's overlap (:func:`~fisheyedepth.data.realpairs.overlap`): the
+Each pair is scored on the reference's overlap (:func:`~fisheyedepth.realworld.pairs.overlap`): the
 checked output on the overlap pixels it keeps, with its coverage of the overlap; the filled (dense) output
 on every overlap pixel it has; the constant map at the overlap's median distance on the same pixels as
 each. The matcher is the rectified one (``sgbm``, :mod:`.pipeline`) or the sweep (``sweep``).
@@ -17,8 +17,14 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
-from ..data.realframes import Missing, adt_camera, load_adt
-from ..data.realpairs import (
+from ..stereo.matchers import MATCHERS, Matcher
+from ..stereo.pipeline import SgbmSettings
+from ..stereo.refine import Matches, match_features, refine_relative_pose
+from ..stereo.scores import panel, score
+from ..stereo.sgbm import SgbmMatcher
+from ..stereo.sweep import SweepMatcher, SweepSettings
+from .frames import Missing, adt_camera, load_adt
+from .pairs import (
     ADT_CAMERAS,
     RealPair,
     adt_instants,
@@ -27,12 +33,6 @@ from ..data.realpairs import (
     motorcycle,
     overlap,
 )
-from .matchers import MATCHERS, Matcher
-from .pipeline import SgbmSettings
-from .refine import Matches, match_features, refine_relative_pose
-from .scores import panel, score
-from .sgbm import SgbmMatcher
-from .sweep import SweepMatcher, SweepSettings
 
 # the range by the scene's kind, never tuned on the ground truth: indoors 0.2-10 m; Middlebury's scene
 # 1.5-10 m. The sweep: ZNCC indoors (the command's default), census on Middlebury's two exposures.

@@ -1,4 +1,4 @@
-"""Scores on the real frames with metric ground truth (:mod:`fisheyedepth.data.realframes`).
+"""Scores on the real frames with metric ground truth (:mod:`fisheyedepth.realworld.frames`).
 
 A projected LiDAR scan is scored under the ``full`` protocol (every point up to 80 m that the camera can
 see, the occlusion filter on), then the ``kitti360`` protocol (under 8 m); a dense map on every pixel
@@ -16,9 +16,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .data.realframes import RAYS, RealFrame
-from .evaluation import PROTOCOLS, Evaluator, Protocol
-from .metrics import DepthMetrics
+from ..evaluation import PROTOCOLS, Evaluator, Protocol
+from ..metrics import DepthMetrics
+from .frames import RAYS, RealFrame
 
 
 def protocols(frame: RealFrame) -> tuple[Protocol, ...]:

@@ -27,7 +27,7 @@ from torch import Tensor
 from ..cameras import CameraModel, PinholeCamera
 from ..cameras.io import field
 from ..geometry.se3 import invert_pose, make_pose, transform_points
-from .realframes import RAYS, Missing, load_adt, one_match, read_json, read_rgb
+from .frames import RAYS, Missing, load_adt, one_match, read_json, read_rgb
 
 MOTORCYCLE = {"f": 994.978, "cx": 311.193, "cy": 254.877, "doffs": 31.086, "baseline": 0.193001}
 ADT_CAMERAS = ("camera-slam-left", "camera-slam-right")
