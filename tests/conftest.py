@@ -363,7 +363,7 @@ TEST_MODULE = {"compile_kernels": False, "optimizer": {"lr": 1e-4}, "scheduler":
 def bare_net(**net):
     """A :class:`~fisheyedepth.models.DepthNet` with the YAML's options, :data:`TEST_NET` and ``net``."""
     from fisheyedepth.models import DepthNet
-    from fisheyedepth.options import net_options
+    from fisheyedepth.options.defaults import net_options
 
     return DepthNet(**net_options(**TEST_NET | net))
 
@@ -372,7 +372,7 @@ def bare_objective(**objective):
     """A :class:`~fisheyedepth.losses.objective.SelfSupervisedObjective` with the YAML's options,
     :data:`TEST_OBJECTIVE` and ``objective``."""
     from fisheyedepth.losses.objective import SelfSupervisedObjective
-    from fisheyedepth.options import objective_options
+    from fisheyedepth.options.defaults import objective_options
 
     return SelfSupervisedObjective(**objective_options(**TEST_OBJECTIVE | objective))
 

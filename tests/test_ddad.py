@@ -424,7 +424,7 @@ def test_the_real_scene_imports_with_its_lidar_in_every_camera(real):
     front camera (fx 2168, a narrow view), 9.1-9.9 k in the side ones (fx 1060); the ground 1.2-1.5 m
     below the cameras, level with the vehicle frame within 3 degrees (a wrong quaternion order or
     direction would tilt it)."""
-    from test_realdata import fit_plane_ransac
+    from test_real_recordings import fit_plane_ransac
 
     src, out, summary = real
     assert summary["cameras"] == ["CAMERA_01", "CAMERA_05", "CAMERA_06"]

@@ -27,7 +27,7 @@ from fisheyedepth.cli.predict import predict
 from fisheyedepth.runtimes import META, OnnxRuntime, add_metadata
 
 from conftest import load_cfg
-from test_faults_run import images_of, one_line_error, predict_cfg
+from test_faults_entrypoints import images_of, one_line_error, predict_cfg
 
 
 def export_cfg(checkpoint, output: Path, size: int = 64, **values):

@@ -35,7 +35,7 @@ from fisheyedepth.synthetic import WorldSpec, generate
 from fisheyedepth.synthetic.folder import NoSpaceLeft
 
 from conftest import aria_fisheye624, bare_module, kitti02
-from test_faults_run import one_line_error, predict_cfg
+from test_faults_entrypoints import one_line_error, predict_cfg
 
 SIZE = 64
 

@@ -15,11 +15,12 @@ from hydra import compose, initialize_config_dir
 
 from fisheyedepth.cli.train import train
 from fisheyedepth.config import check_config
-from fisheyedepth.option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Group, Number, check_options
+from fisheyedepth.options.kinds import Group, Number, check_options
+from fisheyedepth.options.tables import DATAMODULE_OPTIONS, MODEL_OPTIONS
 from fisheyedepth.synthetic import GENERATE_OPTIONS
 
 from conftest import ROOT, TINY, bare_module, bare_objective
-from test_faults_run import one_line_error
+from test_faults_entrypoints import one_line_error
 
 EFFECTS = "exposure, white_balance, vignetting, noise, motion_blur"
 
@@ -273,7 +274,7 @@ def test_the_tables_name_the_options_of_their_readers():
     """A misspelt key in a table would check nothing: each names an argument its reader takes, and the
     readers' defaults pass."""
     from fisheyedepth.data import Augment, FisheyeDataModule, PoseNoise
-    from fisheyedepth.options import model_options
+    from fisheyedepth.options.defaults import model_options
     from fisheyedepth.synthetic import WorldSpec, ensure_dataset
 
     def arguments(function) -> set[str]:

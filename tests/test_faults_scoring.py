@@ -22,7 +22,7 @@ from fisheyedepth.metrics import DepthMetrics
 
 from conftest import bare_module, kitti02
 from test_faults_data import write_tiny_rig
-from test_faults_run import one_line_error
+from test_faults_entrypoints import one_line_error
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_700_000_000_000_000_000

@@ -16,7 +16,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-import fisheyedepth.option_checks as option_checks
+import fisheyedepth.options.memory as option_memory
 from fisheyedepth.checkpoints import (
     CHECKSUMS,
     RELEASED,
@@ -29,7 +29,8 @@ from fisheyedepth.cli.export import export
 from fisheyedepth.cli.train import train
 from fisheyedepth.data.files import read_distance
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.option_checks import Either, Number, in_bytes, machine_memory
+from fisheyedepth.options.kinds import Either, Number
+from fisheyedepth.options.memory import in_bytes, machine_memory
 from fisheyedepth.plan import choose_accelerator, describe_accelerator, train_plan
 from fisheyedepth.runtimes import TrainedDepthNet
 from fisheyedepth.synthetic import WorldSpec, generate
@@ -37,7 +38,7 @@ from fisheyedepth.synthetic.writer import ensure_datasets
 from test_faults_options import train_cfg
 
 from conftest import bare_module, load_script, script_folder
-from test_faults_run import one_line_error, python
+from test_faults_entrypoints import one_line_error, python
 
 GiB = 2**30
 
@@ -45,7 +46,7 @@ GiB = 2**30
 @pytest.fixture
 def sixteen_gib(monkeypatch):
     """A machine of 16 GiB, whatever this one has: the messages below state both numbers."""
-    monkeypatch.setattr(option_checks, "machine_memory", lambda: 16 * GiB)
+    monkeypatch.setattr(option_memory, "machine_memory", lambda: 16 * GiB)
 
 
 # ------------------------------------------------------------------ memory

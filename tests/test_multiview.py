@@ -1,6 +1,6 @@
-"""Sweep stereo on recordings: a rig's rotation refined from its images' feature matches, the
-``fisheyedepth-multiview`` command on a rig recording in a textured room with exact ground truth, and a
-real rectified pair (Middlebury 2014 Motorcycle)."""
+"""The multi-view command on recordings (``fisheyedepth-multiview``, both matchers): a rig's rotation
+refined from its images' feature matches, the command on a rig recording in a textured room with exact
+ground truth, and a real rectified pair (Middlebury 2014 Motorcycle)."""
 
 from __future__ import annotations
 
@@ -403,14 +403,14 @@ def test_no_number_without_evidence(tmp_path, capsys, monkeypatch):
     assert twelve_bit.dtype == np.uint16 and twelve_bit.max() <= 4095 and eight_bit.max() >= 200  # not 0-15
     assert np.abs(eight_bit.astype(int) - twelve_bit // 16).max() <= 1  # the 8 bits it was made from
 
-    monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**20)
+    monkeypatch.setattr("fisheyedepth.options.memory.machine_memory", lambda: 2**20)
     assert multiview.main([str(rec), "--out", str(tmp_path / "o4"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err == (
         f"error: {rec / 'rig.yaml'}: camera 'left': '128x128' needs 72 MiB of memory (64 MiB + 512 bytes a "
         "pixel of a pair); this machine has 1 MiB\n"
     )
-    monkeypatch.setattr("fisheyedepth.option_checks.machine_memory", lambda: 2**30)
+    monkeypatch.setattr("fisheyedepth.options.memory.machine_memory", lambda: 2**30)
     args = [
         str(rec),
         "--out",

@@ -10,11 +10,11 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from fisheyedepth import options
 from fisheyedepth.losses.objective import SelfSupervisedObjective
 from fisheyedepth.models import DepthNet
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.options import CONF_DIR, keywords, model_defaults, model_options, net_options
+from fisheyedepth.options import defaults as options
+from fisheyedepth.options.defaults import CONF_DIR, keywords, model_defaults, model_options, net_options
 
 
 def keyword_defaults(cls) -> dict[str, object]:

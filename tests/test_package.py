@@ -78,10 +78,10 @@ def test_commands_that_train_nothing_start_without_lightning():
 
 def test_the_lightning_module_keeps_the_lifecycle_alone():
     """The objective (``losses/objective.py``), the step guard and the optimiser builders
-    (``training.py``) and the option groups (``options.py``) live apart from the LightningModule."""
+    (``training.py``) and the option groups (``options/``) live apart from the LightningModule."""
     package = ROOT / "src" / "fisheyedepth"
     assert len((package / "module.py").read_text().splitlines()) <= 300
-    for name in ("losses/objective.py", "training.py", "options.py"):
+    for name in ("losses/objective.py", "training.py", "options/defaults.py"):
         assert (package / name).is_file(), name
 
 

@@ -16,7 +16,7 @@ from fisheyedepth.cli.train import train
 from fisheyedepth.plan import RuntimePlan, eval_plan, export_plan, predict_plan, train_plan
 
 from conftest import ROOT, TINY, load_cfg
-from test_faults_run import one_line_error
+from test_faults_entrypoints import one_line_error
 
 
 def compose_cfg(name: str, tmp_path: Path, *overrides: str):

@@ -23,7 +23,7 @@ from fisheyedepth.cli.export import export
 from fisheyedepth.cli.predict import predict
 from fisheyedepth.images import FrameSource, ImageError, is_live
 from fisheyedepth.module import FisheyeDepthModule
-from fisheyedepth.options import keywords
+from fisheyedepth.options.defaults import keywords
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet, flip_averaged
 
 from conftest import TRAIN_SEQ, bare_module, kitti02, kitti03, load_cfg, printed, tiny_batch, train_few_steps

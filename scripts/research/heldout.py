@@ -36,7 +36,7 @@ from pathlib import Path
 
 import yaml
 
-from fisheyedepth.runtimes import POST_PROCESSING
+from fisheyedepth.options.tables import POST_PROCESSING
 from fisheyedepth.utils import run_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -48,10 +48,11 @@ from torch import Tensor
 from fisheyedepth.cameras import load_json
 from fisheyedepth.cli import CommandParser
 from fisheyedepth.files import atomic_write_bytes, atomic_write_text
+from fisheyedepth.options.tables import POST_PROCESSING
 from fisheyedepth.realworld.frames import FRAME_SETS, RAYS, Missing, RealFrame, load_frames
 from fisheyedepth.realworld.scores import constant_map, protocols, score, scored_pixels
 from fisheyedepth.realworld.stereo import multiview_records_table, multiview_scores
-from fisheyedepth.runtimes import POST_PROCESSING, OnnxRuntime, TorchRuntime, TrainedDepthNet
+from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from fisheyedepth.signals import ends_on_signals
 from fisheyedepth.viz import panel
 

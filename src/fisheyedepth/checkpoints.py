@@ -32,8 +32,9 @@ import torch
 from .files import atomic_target
 from .migration import FLAT_KEYS, current_hparams, nested_hparams
 from .models.depth_net import check_network_memory
-from .option_checks import MODEL_OPTIONS, check_options
-from .options import check_combinations, net_options
+from .options.defaults import check_combinations, net_options
+from .options.kinds import check_options
+from .options.tables import MODEL_OPTIONS
 from .signals import signals_deferred
 
 # What Lightning needs to resume a run (global step, optimiser, scheduler, loops).
@@ -178,8 +179,8 @@ def check_hyper_parameters(path: str | os.PathLike, stored: Any) -> None:
     network: not a mapping, grouped options without the ``net`` group (the network's options, which
     the module would otherwise fill with today's defaults), or a ``net`` that is no mapping; then each
     option of its kind, the options that contradict each other
-    (:func:`~fisheyedepth.options.check_combinations`) and a network larger than this machine's memory
-    (:func:`~fisheyedepth.models.depth_net.check_network_memory`), before any weight is allocated."""
+    (:func:`~fisheyedepth.options.defaults.check_combinations`) and a network larger than this machine's
+    memory (:func:`~fisheyedepth.models.depth_net.check_network_memory`), before any weight is allocated."""
     if not isinstance(stored, dict):
         raise CheckpointError(path, f"its hyper_parameters are a {type(stored).__name__}, not a mapping")
     grouped = any(isinstance(stored.get(g), dict) for g in GROUPS)

@@ -17,7 +17,8 @@ from omegaconf import DictConfig, OmegaConf
 
 from .migration import nested_hparams
 from .models.depth_net import check_input_size
-from .option_checks import DATAMODULE_OPTIONS, MODEL_OPTIONS, Kind, check_options
+from .options.kinds import Kind, check_options
+from .options.tables import DATAMODULE_OPTIONS, MODEL_OPTIONS
 from .synthetic import GENERATE_OPTIONS
 
 log = logging.getLogger("fisheyedepth")
@@ -102,7 +103,7 @@ def _configured(node: DictConfig | None, table: dict[str, Kind]) -> dict[str, An
 def check_config(cfg: DictConfig) -> None:
     """The sizes (:func:`check_sizes`), then every switch and number of the model (``model.*``), the data
     module (``data.datamodule.*``) and the synthetic renderer (``data.generate.*``) of its kind and range
-    (:mod:`fisheyedepth.option_checks`), named as configured: refused before anything is rendered or
+    (:mod:`fisheyedepth.options`), named as configured: refused before anything is rendered or
     trained, where a wrong kind would otherwise be taken for another (``automask=maybe`` as true,
     ``truth_weight=nan`` as 0)."""
     check_sizes(cfg)

@@ -31,7 +31,7 @@ from .models import DepthNet, PoseNet, bin_expectation, bin_sums_reduced
 from .models.cost_volume import Sources
 from .models.depth_net import check_network_memory
 from .models.posenet import MONODEPTH2_TRANSLATION_PER_DISTANCE
-from .options import check_numbers, model_options, unknown_options
+from .options.defaults import check_numbers, model_options, unknown_options
 from .training import StepGuard, build_optimizer, build_scheduler
 from .viz import panel
 
@@ -41,7 +41,7 @@ class FisheyeDepthModule(L.LightningModule):
 
     def __init__(self, **options: Any):
         """Keywords: the option groups ``net``, ``objective``, ``optimizer``, ``scheduler`` (dicts, each
-        over the YAML's, :func:`~fisheyedepth.options.model_options`) and the module's own:
+        over the YAML's, :func:`~fisheyedepth.options.defaults.model_options`) and the module's own:
         ``eval_cap``: the validation metrics' ground-truth range (metres).
         ``input_size``: the (width, height) the network was trained at, kept in checkpoints for inference.
         ``compile_kernels``: while fitting, the bin expectation (its bin sums as channel reductions, which

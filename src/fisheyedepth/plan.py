@@ -31,9 +31,9 @@ from .config import (
 )
 from .files import check_apart, check_writable
 from .models.depth_net import check_input_size, check_network_memory
-from .option_checks import TRAINER_OPTIONS, check_options
-from .options import check_combinations, net_options
-from .runtimes import POST_PROCESSING, RUNTIME_PRECISIONS, one_of
+from .options.defaults import check_combinations, net_options
+from .options.kinds import check_options, one_of
+from .options.tables import POST_PROCESSING, RUNTIME_PRECISIONS, TRAINER_OPTIONS
 from .synthetic.spec import check_render_memory
 
 log = logging.getLogger("fisheyedepth")
@@ -215,8 +215,8 @@ def describe_accelerator(accelerator: Any) -> str:
 
 def check_training(cfg: DictConfig, model: ModelPlan, data: DataPlan) -> None:
     """What :func:`~fisheyedepth.config.check_config` leaves to the training plan: the trainer's options
-    by kind and range (:data:`~fisheyedepth.option_checks.TRAINER_OPTIONS`), the model's options that
-    contradict each other (:func:`~fisheyedepth.options.check_combinations`), and the memory the
+    by kind and range (:data:`~fisheyedepth.options.tables.TRAINER_OPTIONS`), the model's options that
+    contradict each other (:func:`~fisheyedepth.options.defaults.check_combinations`), and the memory the
     rendering (:func:`~fisheyedepth.synthetic.spec.check_render_memory`) and the network's training step
     (:func:`~fisheyedepth.models.depth_net.check_network_memory`) need, against this machine's."""
     trainer = OmegaConf.to_container(cfg.trainer, resolve=True)

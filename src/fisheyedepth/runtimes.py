@@ -37,9 +37,10 @@ from .checkpoints import model_from_checkpoint
 from .images import IMAGE_SUFFIXES, read_image
 from .models import DepthNet, depth_scale, distance_at_size
 from .models.depth_net import check_input_size
-from .options import check_numbers, model_options, unknown_options
+from .options.defaults import check_numbers, model_options, unknown_options
+from .options.kinds import one_of
+from .options.tables import POST_PROCESSING, RUNTIME_PRECISIONS
 
-RUNTIME_PRECISIONS = ("fp32", "bf16")
 META = "fisheyedepth."  # prefix of the ONNX metadata keys this project writes
 # Nodes quantized to int8 (see quantize_int8): the encoder, the decoder, the channel attention and the
 # logits' 3x3 convolution with the clamp on its output. The bin expectation after it (exp, a 1x1
@@ -52,7 +53,6 @@ INT8_SCOPES = (
     "/depth_net/heads.0/attention/",
     "/depth_net/heads.0/logits/",
 )
-POST_PROCESSING = ("none", "flip")  # what a runtime does with the network's distance (see flip_averaged)
 
 
 def _import_ort():
@@ -129,13 +129,6 @@ def add_metadata(onnx_bytes: bytes, metadata: dict[str, str]) -> bytes:
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
     return model.SerializeToString()
-
-
-def one_of(field: str, value: str, choices: tuple[str, ...]) -> str:
-    """``value`` if it is one of ``choices``, else a ValueError naming the option ``field``."""
-    if value not in choices:
-        raise ValueError(f"{field}: {value!r} is not one of {', '.join(choices)}")
-    return value
 
 
 def flip_averaged(distance, images: Tensor, cameras) -> Tensor:

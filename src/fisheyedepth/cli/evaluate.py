@@ -16,7 +16,7 @@ from rich.table import Table
 
 from ..evaluation import evaluate, scored_recording
 from ..files import atomic_write_text
-from ..option_checks import SWITCH
+from ..options.kinds import SWITCH
 from ..plan import Scoring, eval_plan
 from ..runtimes import as_runtime
 from ..utils import run_config

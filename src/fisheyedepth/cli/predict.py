@@ -19,8 +19,8 @@ from ..cameras import load_camera
 from ..files import atomic_write_text
 from ..images import FrameSource
 from ..inference import FramePrediction, PredictionWriter, frame_recording
-from ..option_checks import SWITCH
-from ..options import CONF_DIR
+from ..options.defaults import CONF_DIR
+from ..options.kinds import SWITCH
 from ..plan import predict_plan
 from ..rerun3d import RecordingError
 from ..runtimes import OnnxRuntime

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from ..option_checks import check_options
+from ..options.kinds import check_options
 from ..signals import Terminated, stopped_by
 from ..synthetic.folder import is_empty_dir, made_by_generator
 from ..synthetic.rig import RIGS

@@ -14,7 +14,8 @@ import torch
 from torch.utils.data import ConcatDataset, DataLoader, Sampler
 
 from ..models.depth_net import scale_focal
-from ..option_checks import DATAMODULE_OPTIONS, check_options
+from ..options.kinds import check_options
+from ..options.tables import DATAMODULE_OPTIONS
 from .augment import Augment, PoseNoise
 from .batch import collate
 from .dataset import FisheyeDataset

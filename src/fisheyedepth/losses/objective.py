@@ -27,7 +27,8 @@ from ..geometry import (
     translation_direction_error_deg,
     warp_to_source,
 )
-from ..option_checks import OBJECTIVE_OPTIONS, check_options
+from ..options.kinds import check_options
+from ..options.tables import OBJECTIVE_OPTIONS
 from .selfsup import ReprojectionLoss, edge_aware_smoothness, min_reprojection
 
 LOSS_RESOLUTIONS = ("full", "native")

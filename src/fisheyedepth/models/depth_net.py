@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from ..option_checks import check_memory
+from ..options.memory import check_memory
 from .cost_volume import CostVolume, Sources
 from .encoders import encoder_channels, make_encoder
 from .heads import (
@@ -412,7 +412,7 @@ def check_network_memory(
 ) -> None:
     """A ValueError naming ``prefix`` + ``n_bins`` or ``cost_volume`` when the network of the options
     ``net`` (those of :class:`DepthNet`) needs more memory than this machine has
-    (:func:`~fisheyedepth.option_checks.check_memory`): its weights (:func:`bins_memory`,
+    (:func:`~fisheyedepth.options.memory.check_memory`): its weights (:func:`bins_memory`,
     :func:`volume_memory`), and with ``training`` their gradients and Adam's moments and a step's
     activations on ``batch`` images of ``size`` with ``sources`` source images each."""
     parameter_bytes = TRAIN_PARAMETER_BYTES if training else RUN_PARAMETER_BYTES

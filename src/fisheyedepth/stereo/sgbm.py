@@ -17,7 +17,7 @@ import torch
 
 from ..cameras.base import CameraModel
 from ..data.layouts import Frame, RigLayout
-from ..option_checks import check_memory
+from ..options.memory import check_memory
 from .fuse import fuse
 from .mapback import PixelMaps
 from .matchers import ImageMaps

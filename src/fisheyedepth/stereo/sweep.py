@@ -32,7 +32,7 @@ from ..cameras.base import CameraModel
 from ..cameras.rays import RayCache
 from ..geometry.se3 import invert_pose, transform_points
 from ..geometry.warp import pixels_to_grid, sample, warp_to_source
-from ..option_checks import check_memory
+from ..options.memory import check_memory
 from .costs import COSTS, aggregate, census, census_cost, window_stats, winner, zncc_cost
 from .fuse import Fused
 from .matchers import ImageMaps

@@ -13,8 +13,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from .. import option_checks
-from ..option_checks import SWITCH, Choice, Group, Kind, ListOf, Number, check_memory, check_options
+from ..options import memory as option_memory
+from ..options.kinds import SWITCH, Choice, Group, Kind, ListOf, Number, check_options
+from ..options.memory import check_memory
 from .rig import RIGS, make_rig
 from .scene import LANES
 from .sensor import EFFECTS, check_effects
@@ -22,7 +23,7 @@ from .traffic import DENSITY
 from .world import SCENES
 
 # The kind and range of each switch and number of the generation (``data.generate.*`` of a training
-# config, the flags of ``fisheyedepth-synthetic``; fisheyedepth.option_checks): checked before anything
+# config, the flags of ``fisheyedepth-synthetic``; fisheyedepth.options.kinds): checked before anything
 # is rendered. ``worlds``: a mixed dataset's per-folder parameters, each of the same kinds.
 _WORLD_OPTIONS: dict[str, Kind] = {
     "frames": Number(low=9, whole=True, note="3 per split"),
@@ -166,7 +167,7 @@ def check_render_memory(options: Mapping[str, Any], prefix: str = "") -> None:
         cameras = len(make_rig(params["rig"], 16).cameras)
         renderers = 1 + workers if workers > 1 else 1
         need = render_memory(size, supersample, cameras, renderers)
-        key, have = "workers", option_checks.machine_memory()
+        key, have = "workers", option_memory.machine_memory()
         if render_memory(size, 1, cameras) > have:
             key = "size"
         elif render_memory(size, supersample, cameras) > have:

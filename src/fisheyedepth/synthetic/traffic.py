@@ -26,7 +26,7 @@ import math
 
 import numpy as np
 
-from ..option_checks import Number
+from ..options.kinds import Number
 from .world import CAR, CAR_COLOURS, FABRIC, Drive, World, _tint, path_heading, rightward
 
 KINDS = ("lead", "follower", "oncoming", "crossing", "pedestrian")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..option_checks import check_options
+from ..options.kinds import check_options
 from .folder import (
     check_parameters,
     finish,

@@ -8,7 +8,7 @@ Their defaults live in one place, the model's YAML (``conf/model/fisheyedepth.ya
 and scheduler it names in its ``defaults`` list): :func:`model_defaults` reads it, :func:`model_options`
 fills what a caller leaves out from it. The classes declare their keywords without defaults; each
 switch and number is checked by kind and range (:func:`check_numbers`, on
-:data:`fisheyedepth.option_checks.MODEL_OPTIONS`). Adding an option: a keyword of its class and a line
+:data:`fisheyedepth.options.tables.MODEL_OPTIONS`). Adding an option: a keyword of its class and a line
 of the YAML."""
 
 from __future__ import annotations
@@ -20,9 +20,10 @@ from typing import Any
 
 import yaml
 
-from .option_checks import MODEL_OPTIONS, check_options
+from .kinds import check_options
+from .tables import MODEL_OPTIONS
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"  # the Hydra configs of the entry points
+CONF_DIR = Path(__file__).resolve().parents[3] / "conf"  # the Hydra configs of the entry points
 MODEL_CONFIG = CONF_DIR / "model" / "fisheyedepth.yaml"
 GROUPS = ("net", "objective", "optimizer", "scheduler")
 

@@ -1,6 +1,6 @@
-"""Sweep stereo on the sphere (fisheyedepth.stereo): its costs, aggregation and refinement to exact numbers,
-and metric distance from a fisheye rig, a moving fisheye camera and a rectified pinhole pair (beside
-OpenCV's StereoSGBM) in a textured room with exact ground truth."""
+"""Sweep stereo on the sphere (fisheyedepth.stereo.sweep, .costs): its costs, aggregation and refinement
+to exact numbers, and metric distance from a fisheye rig, a moving fisheye camera and a rectified pinhole
+pair (beside OpenCV's StereoSGBM) in a textured room with exact ground truth."""
 
 from __future__ import annotations
 

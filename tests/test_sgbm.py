@@ -1,4 +1,4 @@
-"""The rectified stereo pipeline (fisheyedepth.stereo: rectify, match, fill, map back, fuse; RigStereo):
+"""The rectified SGBM pipeline (fisheyedepth.stereo: rectify, match, fill, map back, fuse; RigStereo):
 the spherical rectification's geometry to exact numbers for cameras of several models beyond 90 degrees
 of incidence, each step's rules on hand-made arrays, and metric distance from a fisheye pair, a pinhole
 pair (beside OpenCV's StereoSGBM alone) and a live rig in a textured room with exact ground truth; then

@@ -34,7 +34,7 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.runtimes import OnnxRuntime, onnx_metadata
 
 from conftest import ROOT, bare_module, copy_tiny_world
-from test_faults_run import TINY_RUN, images_of, one_line_error, predict_cfg, python
+from test_faults_entrypoints import TINY_RUN, images_of, one_line_error, predict_cfg, python
 
 # one epoch of two steps, one validation batch: a run takes a few seconds
 TINY_FIT = [
