@@ -29,13 +29,12 @@ import shutil
 from pathlib import Path
 
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..files import inside, move_into_place, path_name, staged_folder
 from ..images import ImageError, read_image
-from .layouts import RigLayout, read_transform, unit_quaternion
+from .layouts import read_transform, unit_quaternion, written_rig
 
 CALIBRATION = "calib_slam_fisheye624.json"
 POSES = "vio_high_frequency_T_odometry_device.csv"
@@ -177,14 +176,7 @@ def aria_to_rig(
             ],
             "source": f"Aria export {src} (fisheyedepth.data.aria)",
         }
-        (staging / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
-        try:  # read back as training reads it: what it would refuse is never put in place
-            layout = RigLayout(staging)
-            kept = {name: len(layout.frames(sequence, name)) for name in names}
-        except (FileNotFoundError, ValueError) as err:
-            raise ValueError(
-                f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
-            ) from None
+        kept = written_rig(staging, rig, sequence, names, src, out)  # as training reads it, or refused
         if not any(kept.values()):  # a rig of images without poses: nothing to train or match on
             first = min(min(files) for files in images.values())
             raise ValueError(

@@ -56,14 +56,13 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from ..cameras import CalibrationError, PinholeCamera, camera_from_mapping, load_json, save_camera
 from ..files import atomic_write_npy, inside, move_into_place, path_name, staged_folder
 from ..images import ImageError, read_image
 from .kitti360 import OCCLUSION, project_points
-from .layouts import RigLayout, quaternion_matrix, unit_quaternion
+from .layouts import quaternion_matrix, unit_quaternion, written_rig
 
 SCENE_PATTERN = "scene_*.json"
 # Two datums of one timestamp give one vehicle pose within these (measured on realdata/ddad_scene01:
@@ -617,14 +616,7 @@ def ddad_to_rig(
             "source": f"DDAD scene {scene.scene_file} (fisheyedepth.data.ddad), ground truth: {scene.lidar}",
             "time_origin": origin.stamp_text,
         }
-        (staging / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
-        try:  # read back as training reads it: what it would refuse is never put in place
-            layout = RigLayout(staging)
-            kept = {name: len(layout.frames(sequence, name)) for name in names}
-        except (FileNotFoundError, ValueError) as err:
-            raise ValueError(
-                f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
-            ) from None
+        kept = written_rig(staging, rig, sequence, names, src, out)  # as training reads it, or refused
         lost = {n: images[n] - kept[n] for n in names if kept[n] != images[n]}
         if lost:  # every image lies on a pose of its own timestamp: none may be left out
             raise ValueError(

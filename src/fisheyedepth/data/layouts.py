@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 
 from ..cameras import CalibrationError, CameraModel, camera_from_mapping, load_camera, load_yaml
 from ..cameras.calibration_files import CalibratedCamera, checked_rigid, find_camera, read_calibration
@@ -312,6 +313,20 @@ STAMP = re.compile(r"(0|[1-9]\d*)\.png")  # a timestamp in ns, written as an int
 
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm"}
+
+
+def written_rig(staging: Path, rig: dict, sequence: str, names, src: Path, out: Path) -> dict[str, int]:
+    """An importer's ``rig`` written as ``staging/rig.yaml`` and read back as training reads it: the frames
+    each camera of ``names`` keeps in ``sequence``. What the loader refuses is a ValueError naming the
+    source ``src``, with the paths as they will be at ``out``: it is never moved into place."""
+    (staging / "rig.yaml").write_text(yaml.safe_dump(rig, sort_keys=False, width=120))
+    try:
+        layout = RigLayout(staging)
+        return {name: len(layout.frames(sequence, name)) for name in names}
+    except (FileNotFoundError, ValueError) as err:
+        raise ValueError(
+            f"{src}: the converted rig does not load: {str(err).replace(str(staging), str(out))}"
+        ) from None
 
 
 def image_stamps(folder: Path) -> tuple[list[int], list[str]]:
