@@ -20,7 +20,8 @@ from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.rays import compute_rays
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
 from fisheyedepth.stereo import SweepMatcher, SweepSettings, View
-from fisheyedepth.stereo.refine import Matches, match_features, refine_relative_pose
+from fisheyedepth.stereo.features import Matches, match_features
+from fisheyedepth.stereo.refine import refine_relative_pose
 from stereo_world import pose, render, scores, texture_volume
 
 from conftest import bare_module, kitti02, load_script, realdata_dir

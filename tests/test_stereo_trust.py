@@ -18,10 +18,12 @@ from fisheyedepth.cameras import PinholeCamera
 from fisheyedepth.cameras.base import CameraModel
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, invert_pose, make_pose
 from fisheyedepth.stereo import RigStereo, SgbmSettings, match_pair, rectify_pair
+from fisheyedepth.stereo.features import features, match_features
 from fisheyedepth.stereo.fuse import fuse
+from fisheyedepth.stereo.motion import check_motion
 from fisheyedepth.stereo.pipeline import MAX_TRIANGULATION_DEG, pair_range
 from fisheyedepth.stereo.rectify import RectificationCache
-from fisheyedepth.stereo.refine import check_motion, features, guarded_refinement, match_features
+from fisheyedepth.stereo.refine import guarded_refinement
 from fisheyedepth.stereo.static import StaticFinder
 from stereo_world import pose, render, texture_volume
 

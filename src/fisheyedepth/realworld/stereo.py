@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 from torch import Tensor
 
+from ..stereo.features import Matches, match_features
 from ..stereo.matchers import MATCHERS, Matcher
 from ..stereo.pipeline import SgbmSettings
-from ..stereo.refine import Matches, match_features, refine_relative_pose
+from ..stereo.refine import refine_relative_pose
 from ..stereo.scores import panel, score
 from ..stereo.sgbm import SgbmMatcher
 from ..stereo.sweep import SweepMatcher, SweepSettings

@@ -20,11 +20,12 @@ import torch
 from ..cameras.base import CameraModel
 from ..geometry import MAX_MOTION, rig_extent_problem, rigid_transform
 from ..utils import check_threads
+from .features import Features, features
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
+from .motion import MOTION_FEATURES, check_motion
 from .pipeline import SgbmSettings, Timer, _relative, grey, match_pair, nothing, one_thread_each, partner_pair
 from .rectify import Rectification, RectificationCache
-from .refine import MOTION_FEATURES, Features, check_motion, features
 from .static import StaticFinder, usable
 
 
@@ -43,7 +44,7 @@ class RigStereo:
     sees the robot itself), optional. Rig pairs are every two cameras whose views overlap within the
     disparity range (the others are listed in ``unpaired``); their rectification is built once, here.
     ``threads``: pairs matched at once. Each camera's own motion since the previous instant is checked
-    against its images first (:func:`~.refine.check_motion`: refined, or left out where its images
+    against its images first (:func:`~.motion.check_motion`: refined, or left out where its images
     leave over a pixel of epipolar error); every pair's images are checked against its geometry
     (:class:`~.mapback.Evidence`); a partner left out is named in its camera's result with why. As the
     rig moves, each camera's pixels that do not move with the scene (a border, an overlay, the robot's

@@ -17,7 +17,6 @@ import dataclasses
 import math
 from typing import NamedTuple
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -26,27 +25,11 @@ from ..cameras import load_yaml
 from ..cameras.base import CameraModel
 from ..data.layouts import RigLayout
 from ..geometry.se3 import axis_angle_to_matrix, make_pose
+from .features import Matches, match_features
 
+# the fewest feature matches a pose is checked or fitted from (an instant alone, or a time pair)
+MIN_MOTION_INLIERS = 30
 REFINE = ("rotation", "pose")  # what --refine corrects of each camera's extrinsics (pose: also the direction)
-
-
-class Matches(NamedTuple):
-    rays_a: Tensor  # [N, 3] float64 unit bearings in camera a
-    rays_b: Tensor  # [N, 3] float64 unit bearings in camera b
-    uv_a: np.ndarray  # [N, 2] pixels
-    uv_b: np.ndarray
-
-    @staticmethod
-    def pooled(found: list[Matches]) -> Matches:
-        """The matches of several image pairs of the same two cameras, as one set (empty for none)."""
-        empty = Matches(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3, dtype=torch.float64),
-                        np.zeros((0, 2)), np.zeros((0, 2)))  # fmt: skip
-        return Matches(
-            torch.cat([m.rays_a for m in (empty, *found)]),
-            torch.cat([m.rays_b for m in (empty, *found)]),
-            np.concatenate([m.uv_a for m in (empty, *found)]),
-            np.concatenate([m.uv_b for m in (empty, *found)]),
-        )
 
 
 class Refinement(NamedTuple):
@@ -85,66 +68,6 @@ class PoseModel(NamedTuple):
     def pose(self, x: Tensor) -> Tensor:
         R, direction = self.rotation_direction(x)
         return make_pose(R, direction * self.length)
-
-
-def to_uint8(image: Tensor | np.ndarray) -> np.ndarray:
-    """An ``[H, W]``, ``[1|3, H, W]`` or ``[1, 1|3, H, W]`` image in [0, 1] (or 0-255) as 8-bit grey."""
-    array = (
-        image.detach().cpu().float().numpy() if isinstance(image, Tensor) else np.asarray(image, np.float32)
-    )
-    array = array.squeeze()
-    if array.ndim == 3:
-        array = array.mean(0) if array.shape[0] == 3 else array.mean(-1)
-    scale = 255.0 if array.max() <= 1.0 else 1.0
-    return np.clip(array * scale, 0, 255).astype(np.uint8)
-
-
-class Features(NamedTuple):
-    """An image's SIFT keypoints (``[N, 2]`` pixels) and descriptors (``[N, 128]`` float32)."""
-
-    uv: np.ndarray
-    descriptors: np.ndarray | None
-
-
-def features(image, count: int = 4000) -> Features:
-    """The image's SIFT :class:`Features` (at most ``count``), computed once per image and reusable for
-    every pair it is in (:func:`match_described`)."""
-    keys, descriptors = cv2.SIFT_create(nfeatures=count).detectAndCompute(to_uint8(image), None)
-    return Features(np.array([k.pt for k in keys], np.float64).reshape(-1, 2), descriptors)
-
-
-def match_described(
-    found_a: Features, camera_a: CameraModel, found_b: Features, camera_b: CameraModel, ratio: float = 0.8
-) -> Matches:
-    """The two images' features matched (Lowe's ratio test, kept only when mutual), as unit bearings of
-    pixels that have a ray."""
-    empty = Matches.pooled([])
-    desc_a, desc_b = found_a.descriptors, found_b.descriptors
-    if desc_a is None or desc_b is None or len(desc_a) < 2 or len(desc_b) < 2:
-        return empty
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    forward = matcher.knnMatch(desc_a, desc_b, k=2)
-    backward = {m.queryIdx: m.trainIdx for m, *_ in matcher.knnMatch(desc_b, desc_a, k=1) if m}
-    pairs = [
-        (m.queryIdx, m.trainIdx)
-        for m, n in (p for p in forward if len(p) == 2)
-        if m.distance < ratio * n.distance and backward.get(m.trainIdx) == m.queryIdx
-    ]
-    if not pairs:
-        return empty
-    uv_a = found_a.uv[[i for i, _ in pairs]]
-    uv_b = found_b.uv[[j for _, j in pairs]]
-    rays_a, ok_a = camera_a.unproject(torch.from_numpy(uv_a))
-    rays_b, ok_b = camera_b.unproject(torch.from_numpy(uv_b))
-    ok = (ok_a & ok_b).numpy()
-    return Matches(rays_a[ok], rays_b[ok], uv_a[ok], uv_b[ok])
-
-
-def match_features(
-    image_a, camera_a: CameraModel, image_b, camera_b: CameraModel, ratio: float = 0.8, count: int = 4000
-) -> Matches:
-    """SIFT matches between the two images (:func:`features`, :func:`match_described`)."""
-    return match_described(features(image_a, count), camera_a, features(image_b, count), camera_b, ratio)
 
 
 def epipolar_angles(rays_a: Tensor, rays_b: Tensor, R: Tensor, t: Tensor) -> Tensor:
@@ -270,71 +193,6 @@ def refine_pair(
     matches = match_features(image_a, camera_a, image_b, camera_b)
     focal = float(np.mean(camera_b.paraxial_focal()))
     return refine_relative_pose(matches, T_a_to_b, focal, direction=direction)
-
-
-class MotionCheck(NamedTuple):
-    """One camera's motion between two of its images, as its images see it (:func:`check_motion`)."""
-
-    T_a_to_b: np.ndarray  # [4, 4] float64: the pose to match with (refined where that is worth it)
-    before_px: float  # median epipolar error of the matches under the odometry's pose, pixels of camera b
-    after_px: float  # the same under the pose matched with
-    inliers: int
-    matches: int
-    applied: bool
-    left_out: str | None  # why the pair cannot be trusted, None where it can
-    residual: float = 0.0  # radians: ``after_px`` as an angle, what fusion counts against the pair
-
-    def record(self) -> dict:
-        return {"epipolar_px_before": _rounded(self.before_px), "epipolar_px_after": _rounded(self.after_px),
-                "inliers": self.inliers, "matches": self.matches, "refined": self.applied,
-                "left_out": self.left_out}  # fmt: skip
-
-
-def _rounded(value: float) -> float | None:
-    return round(value, 3) if math.isfinite(value) else None
-
-
-# A time pair is matched when its images explain its pose to about a pixel (what SGBM needs on its
-# epipolar rows), from at least MIN_MOTION_INLIERS feature matches.
-MAX_MOTION_RESIDUAL_PX = 1.0
-MIN_MOTION_INLIERS = 30
-# SIFT features an image brings to the motion check: a thousand leave hundreds of matches (a 968x608
-# camera moving 1.3 m: 483 of 485), and matching them takes a tenth of the time four thousand take
-MOTION_FEATURES = 1000
-
-
-def check_motion(
-    found_a: Features, camera_a: CameraModel, found_b: Features, camera_b: CameraModel, T_a_to_b: np.ndarray
-) -> MotionCheck:
-    """A time pair's pose (the odometry's ``T_a_to_b``) checked and refined from its images' feature
-    matches: rotation and the direction of travel (:func:`refine_relative_pose`, the odometry's length
-    kept), applied where it lowers the epipolar error by more than what it leaves (:func:`worth_it`). The
-    pair is left out, and why said, where its matches are too few to check it or where the error left is
-    over :data:`MAX_MOTION_RESIDUAL_PX`: odometry is not a calibration (a hand-held camera's poses were 2.6-9
-    px inconsistent with its images)."""
-    matches = match_described(found_a, camera_a, found_b, camera_b)
-    focal = float(np.mean(camera_b.paraxial_focal()))
-    nan = float("nan")
-    if len(matches.rays_a) < MIN_MOTION_INLIERS:
-        why = f"{len(matches.rays_a)} feature matches between its images; its motion cannot be checked"
-        return MotionCheck(np.asarray(T_a_to_b), nan, nan, 0, len(matches.rays_a), False, why)
-    try:
-        refined = refine_relative_pose(matches, torch.as_tensor(T_a_to_b, dtype=torch.float64), focal)
-    except ValueError as err:
-        return MotionCheck(np.asarray(T_a_to_b), nan, nan, 0, len(matches.rays_a), False, str(err))
-    applied = worth_it(refined)
-    T = refined.T_a_to_b.numpy() if applied else np.asarray(T_a_to_b, np.float64)
-    after = refined.error_after_px if applied else refined.error_before_px
-    why = None
-    if refined.inliers < MIN_MOTION_INLIERS:
-        why = f"{refined.inliers} of {refined.matches} feature matches fit its motion; too few to check it"
-    elif not after <= MAX_MOTION_RESIDUAL_PX:
-        why = (
-            f"its images leave {after:.2f} px of epipolar error under its motion (refined: "
-            f"{refined.error_after_px:.2f} px); stereo needs about {MAX_MOTION_RESIDUAL_PX:g}"
-        )
-    return MotionCheck(T, refined.error_before_px, after, refined.inliers, refined.matches, applied, why,
-                       after / focal)  # fmt: skip
 
 
 # ------------------------------------------------------------------ a whole rig, from its recording

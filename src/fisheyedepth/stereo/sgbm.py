@@ -18,13 +18,14 @@ import torch
 from ..cameras.base import CameraModel
 from ..data.layouts import Frame, RigLayout
 from ..options.memory import check_memory
+from .features import Features, features
 from .fuse import fuse
 from .mapback import PixelMaps
 from .matchers import ImageMaps
+from .motion import MOTION_FEATURES, check_motion
 from .pairing import Pairing, pair_pose
 from .pipeline import SgbmSettings, Timer, grey, match_pair, pair_step, partner_pair, rectify_pair
 from .rectify import Rectification, RectificationCache
-from .refine import MOTION_FEATURES, Features, check_motion, features
 from .static import StaticFinder, usable
 
 # Peak memory of matching one pair: a fixed part and a part per pixel of its larger image at the cameras'
