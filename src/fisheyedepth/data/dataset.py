@@ -429,14 +429,18 @@ class FisheyeDataset(Dataset):
         return binary_mask(path, size, native_size, "moving-object mask")
 
     def _mask(self, spec, camera) -> torch.Tensor:
-        """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used. Decoded once
-        per file and size for this dataset's life (a sample with rig sources needs every camera's mask)."""
+        """``[1, H, W]`` float: 1 where ``spec``'s body mask (if any) lets the pixel be used, read through
+        the layout (checked at its camera's size) and resized like the images (nearest). Kept per camera
+        and size for this dataset's life (a sample with rig sources needs every camera's mask)."""
         size = (camera.width, camera.height)
         if spec.mask is None:
             return torch.ones(1, camera.height, camera.width)
-        key = (str(spec.mask), size)
+        key = (spec.name, size)
         if key not in self._masks:
-            self._masks[key] = binary_mask(spec.mask, size)
+            mask = self.layout.read_mask(spec.name).astype(np.uint8)
+            if mask.shape[::-1] != size:
+                mask = cv2.resize(mask, size, interpolation=cv2.INTER_NEAREST)
+            self._masks[key] = torch.from_numpy(mask.astype(np.float32))[None]
         return self._masks[key].clone()
 
     def _ground_truth(self, item: Item, camera, frame: Frame) -> tuple[torch.Tensor, str] | None:
