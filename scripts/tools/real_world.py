@@ -8,9 +8,9 @@ every pixel: DDAD ships no body mask). Real cameras, never trained on.
 
     python scripts/tools/real_world.py MODEL [MODEL ...] [--root DIR] [--frames kitti360 scannetpp adt ddad]
                                  [--pictures DIR] [--json OUT] [--force] [--post-process flip]
-                                 [--no-multiview]
+                                 [--no-multiview] [--matcher sgbm|sweep]
     python scripts/tools/real_world.py --from-records docs/records/real_photographs   # kept scores
-    python scripts/tools/real_world.py --from-records --multiview RECORD               # the sweep's, kept
+    python scripts/tools/real_world.py --from-records --multiview RECORD               # stereo's, kept
 
 Prints one Markdown row per model and frame: abs_rel, a1 and rmse unscaled, then median-scaled (and
 the ratio ground truth / prediction), beside a constant map at the ground truth's median distance,
@@ -20,10 +20,11 @@ frame's size. ``--pictures``: input | prediction | ground truth | error per mode
 ``--json``: every number (the kitti360 protocol under 8 m for the KITTI-360 frame too). Exit status
 1 when a frame's files are missing (each is named in the table), 2 on a malformed file or option, or
 without a real data folder.
-Then sweep stereo (fisheyedepth.stereo, untrained) on every real frame with a partner: the ADT SLAM
-pairs, frames 0 and 1, each camera as the reference, the pair's rotation refined from its images first;
-and Middlebury 2014 Motorcycle (scikit-image). Each is scored on the reference's overlap with its partner,
-checked and dense, beside the constant map and each model on the same pixels (``--no-multiview``: not).
+Then stereo (fisheyedepth.stereo, untrained; ``--matcher``: sgbm, the default, or sweep) on every real
+frame with a partner: the ADT SLAM pairs, frames 0 and 1, each camera as the reference, the pair's
+rotation refined from its images first; and Middlebury 2014 Motorcycle (scikit-image). Each is scored on
+the reference's overlap with its partner, checked and dense, beside the constant map and each model on the
+same pixels (``--no-multiview``: not).
 ``--from-records``: the MODEL arguments are run records (files or folders, ``docs/records``) whose
 ``real_world`` scores are printed as kept, nothing re-scored.
 """
@@ -54,6 +55,7 @@ from fisheyedepth.realworld.scores import constant_map, protocols, score, scored
 from fisheyedepth.realworld.stereo import multiview_records_table, multiview_scores
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet
 from fisheyedepth.signals import ends_on_signals
+from fisheyedepth.stereo.matchers import MATCHERS
 from fisheyedepth.viz import panel
 
 ROOT_VARIABLE = "FISHEYEDEPTH_REALDATA"  # the real data folder, when --root is not given
@@ -313,8 +315,11 @@ def main(argv=None) -> int:
     parser.add_argument("--force", action="store_true", help="replace existing pictures and JSON")
     parser.add_argument("--post-process", default="none", choices=POST_PROCESSING)
     parser.add_argument("--from-records", action="store_true", help="MODEL...: run records; score nothing")
-    parser.add_argument("--no-multiview", action="store_true", help="score the models only, not sweep stereo")
-    parser.add_argument("--multiview", action="store_true", help="with --from-records: the sweep's table")
+    parser.add_argument("--no-multiview", action="store_true", help="score the models only, not stereo")
+    parser.add_argument(
+        "--matcher", choices=MATCHERS, default="sgbm", help="the stereo matcher (default sgbm)"
+    )
+    parser.add_argument("--multiview", action="store_true", help="with --from-records: the stereo table")
     args = parser.parse_args(argv)
     if args.from_records:
         try:
@@ -330,7 +335,9 @@ def main(argv=None) -> int:
         root = data_root(args.root)
 
         def multiview(record, predictions):
-            record["multiview"] = multiview_scores(root, predictions, args.pictures, echo)
+            record["multiview"] = multiview_scores(
+                root, predictions, args.pictures, echo, matcher=args.matcher
+            )
 
         if args.pictures is not None and not args.force and not args.no_multiview:
             taken = sorted(Path(args.pictures).glob("multiview_*.png"))
