@@ -34,7 +34,7 @@ from tqdm import tqdm
 from ..cameras import CalibrationError, Fisheye624Camera, camera_from_mapping, load_json, save_camera
 from ..files import inside, move_into_place, path_name, staged_folder
 from ..images import ImageError, read_image
-from .layouts import read_transform, unit_quaternion, written_rig
+from .layouts import pose_row, read_transform, written_rig
 
 CALIBRATION = "calib_slam_fisheye624.json"
 POSES = "vio_high_frequency_T_odometry_device.csv"
@@ -58,14 +58,7 @@ def read_aria_poses(path: str | os.PathLike) -> list[tuple[int, list[float]]]:
                 values = [float(row[c]) for c in POSE_COLUMNS[1:]]
             except (TypeError, ValueError):
                 raise ValueError(f"{path}:{line}: expected an integer timestamp and 7 numbers") from None
-            if not all(np.isfinite(values)):
-                raise ValueError(f"{path}:{line}: a non-finite value")
-            unit_quaternion(values[3:], f"{path}:{line}")
-            if stamp in lines:
-                raise ValueError(
-                    f"{path}:{line}: timestamp {stamp // 1000} us already has a pose on line {lines[stamp]}"
-                )
-            lines[stamp] = line
+            pose_row(f"{path}:{line}", values, stamp, f"{stamp // 1000} us", lines, line)
             rows.append((stamp, values))
     if len(rows) < 2:
         raise ValueError(f"{path}: fewer than two poses")

@@ -231,14 +231,9 @@ class RigLayout(RecordingFiles):
                 stamp, values = _timestamp(fields[0]), [float(x) for x in fields[1:]]
             except ValueError:
                 raise ValueError(f"{path}:{lineno}: expected 'timestamp_ns tx ty tz qx qy qz qw'") from None
-            if len(values) != 7 or not all(math.isfinite(v) for v in values):
+            if len(values) != 7:
                 raise ValueError(f"{path}:{lineno}: expected 8 finite numbers, got {len(values) + 1}")
-            unit_quaternion(values[3:], f"{path}:{lineno}")
-            if stamp in lines:
-                raise ValueError(
-                    f"{path}:{lineno}: timestamp {stamp} already has a pose on line {lines[stamp]}"
-                )
-            lines[stamp] = lineno
+            pose_row(f"{path}:{lineno}", values, stamp, str(stamp), lines, lineno)
             stamps.append(stamp)
             rows.append(values)
         if len(rows) < 2:
@@ -362,6 +357,18 @@ def unit_quaternion(values, where: str) -> np.ndarray:
             f"(norm within {QUATERNION_NORM_TOLERANCE:g} of 1)"
         )
     return q / norm
+
+
+def pose_row(where: str, values, stamp: int, said: str, lines: dict[int, int], line: int) -> None:
+    """One row of a pose file checked (``where``: its file and line): finite numbers, a unit quaternion
+    (``values[3:]``, :func:`unit_quaternion`) and a stamp no earlier row has (``lines``: stamp -> its line,
+    updated; ``said``: the stamp as the file writes it)."""
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{where}: a non-finite value")
+    unit_quaternion(values[3:], where)
+    if stamp in lines:
+        raise ValueError(f"{where}: timestamp {said} already has a pose on line {lines[stamp]}")
+    lines[stamp] = line
 
 
 def slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
