@@ -24,9 +24,18 @@ from .features import Features, features
 from .fuse import Fused, fuse
 from .mapback import PixelMaps
 from .motion import MOTION_FEATURES, check_motion
-from .pipeline import SgbmSettings, Timer, _relative, grey, match_pair, nothing, one_thread_each, partner_pair
+from .pipeline import SgbmSettings, Timer, grey, match_pair, nothing, one_thread_each, partner_pair
 from .rectify import Rectification, RectificationCache
 from .static import StaticFinder, usable
+
+
+def _relative(
+    cam_to_body_a: np.ndarray, cam_to_body_b: np.ndarray, b_body_from_a_body: np.ndarray | None = None
+):
+    """``T_a_to_b`` of two cameras (their ``cam_to_body``), optionally on two instants of the body
+    (``b_body_from_a_body``: a's body frame to b's)."""
+    motion = np.eye(4) if b_body_from_a_body is None else b_body_from_a_body
+    return np.linalg.inv(cam_to_body_b) @ motion @ cam_to_body_a
 
 
 class CameraResult(NamedTuple):

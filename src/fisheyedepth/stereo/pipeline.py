@@ -323,15 +323,6 @@ def partner_pair(
         return str(err)
 
 
-def _relative(
-    cam_to_body_a: np.ndarray, cam_to_body_b: np.ndarray, b_body_from_a_body: np.ndarray | None = None
-):
-    """``T_a_to_b`` of two cameras (their ``cam_to_body``), optionally on two instants of the body
-    (``b_body_from_a_body``: a's body frame to b's)."""
-    motion = np.eye(4) if b_body_from_a_body is None else b_body_from_a_body
-    return np.linalg.inv(cam_to_body_b) @ motion @ cam_to_body_a
-
-
 def nothing(camera: CameraModel) -> Fused:
     """The fused maps of an image without a partner: every pixel 0."""
     zeros = np.zeros((camera.height, camera.width), np.float32)

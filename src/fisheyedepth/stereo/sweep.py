@@ -222,8 +222,7 @@ class SweepMatcher:
         self, image, partner_image, camera, partner_camera, T_ref_to_partner
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`__call__` with one source: the reference's checked and filled distance."""
-        T = torch.as_tensor(np.asarray(T_ref_to_partner) if not isinstance(T_ref_to_partner, Tensor)
-                            else T_ref_to_partner).float()  # fmt: skip
+        T = torch.as_tensor(T_ref_to_partner).float()
         reference, partner = View(as_batch(image), camera, torch.eye(4)), as_batch(partner_image)
         found = self(reference, [View(partner, partner_camera, T)])
         return found.distance[0].cpu().numpy(), found.dense[0].cpu().numpy()
@@ -252,7 +251,7 @@ class SweepRecording:
         self.device = "cuda" if torch.cuda.is_available() else "cpu"
 
     def _tensor(self, bgr: np.ndarray) -> Tensor:
-        return torch.from_numpy(bgr[..., ::-1].copy()).permute(2, 0, 1)[None].float().to(self.device) / 255
+        return as_batch(bgr[..., ::-1]).to(self.device) / 255
 
     def image(self, pairing: Pairing, image: np.ndarray) -> ImageMaps:
         layout, device = self.layout, self.device

@@ -44,8 +44,8 @@ def import_rosbag(
     16-bit peaks and checks every camera, so most problems stop the import before an image is decoded;
     the second (:mod:`.write`) streams the images to disk one at a time. ``overwrite`` replaces
     ``rig.yaml``, the cameras' calibration files and the sequence's folder; other files of ``out`` stay."""
-    job = BagImport(bag, cameras, info_topics or {}, calibrations or {}, extrinsics or {}, odometry, tf_poses,
-                    body_frame, sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
+    job = BagImport(bag, cameras, info_topics, calibrations, extrinsics, odometry, tf_poses, body_frame,
+                    sequence, max_pose_gap, bit_depth, strict)  # fmt: skip
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a folder")
