@@ -24,9 +24,9 @@ from fisheyedepth.geometry import MAX_MOTION, rigid_transform
 from fisheyedepth.geometry.se3 import axis_angle_to_matrix, make_pose
 from fisheyedepth.stereo import RigStereo, SgbmSettings, sgbm
 from fisheyedepth.utils import cores
-from test_multiview import small_rig
 
 from conftest import load_script
+from test_multiview import small_rig
 
 CAMERA = PinholeCamera(width=80, height=60, fx=70.0, fy=70.0, cx=39.5, cy=29.5)
 
@@ -228,29 +228,39 @@ def test_a_recording_that_cannot_be_written_is_one_error_and_leaves_nothing(tmp_
     assert not target.exists() and not list(tmp_path.glob(".rec.rrd.*"))
 
 
-def test_a_recording_whose_writer_does_not_finish_in_time_is_one_error(tmp_path):
-    """The SDK's flush waits for ever by default: the recorder bounds it (``FLUSH_SECONDS``), and a
-    writer that has not finished by then (the SDK's own timeout error) is a RecordingError saying so,
-    nothing at the path."""
+def test_a_recording_whose_writer_does_not_finish_in_time_is_one_error(tmp_path, monkeypatch):
+    """The SDK's flush waits for ever by default: the recorder bounds it (``FLUSH_SECONDS``, asked in
+    slices of a second), and a writer that has not finished by then (the SDK's own timeout error) is a
+    RecordingError saying so, nothing at the path. A writer whose file stops growing at a file-size limit
+    or on a full disk has stopped: named after ``STALLED_SECONDS``, not at the bound."""
     pytest.importorskip("rerun")
+    import time
+
     from fisheyedepth import rerun3d
     from fisheyedepth.rerun3d import CameraView, RecordingError, RigRecorder
 
-    target = tmp_path / "rec.rrd"
-    recorder = RigRecorder(target)
-    recorder.instant(0, 0, {"a": CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})})
+    assert rerun3d.FLUSH_SECONDS == 300.0 and rerun3d.STALLED_SECONDS == 2.0
     asked = []
 
-    def slow(timeout_sec=1e38):  # what rerun 0.41 raises when the timeout passes
+    def slow(timeout_sec=1e38):  # what rerun 0.41 does when the timeout passes
         asked.append(timeout_sec)
+        time.sleep(timeout_sec)
         raise RuntimeError("Flush timed out - not all log messages were sent")
 
-    recorder.stream.flush = slow
-    with pytest.raises(RecordingError, match=r"rec.rrd: the recording could not be written \(its writer "
-                       r"did not finish within 300 s\)"):  # fmt: skip
-        recorder.close()
-    assert asked == [rerun3d.FLUSH_SECONDS] == [300.0]
-    assert not list(tmp_path.iterdir())  # nothing at its path, no temporary
+    stopped = "the writer stopped at \\d+ bytes; a full disk or a file-size limit"
+    for limited, why in ((False, "its writer did not finish within 3 s"), (True, stopped)):
+        monkeypatch.setattr(rerun3d, "FLUSH_SECONDS", 10.0 if limited else 3.0)  # the bound, shortened
+        monkeypatch.setattr(rerun3d, "at_a_limit", lambda path, limited=limited: limited)
+        target = tmp_path / "rec.rrd"
+        recorder = RigRecorder(target)
+        recorder.instant(0, 0, {"a": CameraView(CAMERA, np.zeros((60, 80, 3), np.uint8), {})})
+        recorder.stream.flush, asked[:] = slow, []
+        began = time.monotonic()
+        with pytest.raises(RecordingError, match=rf"rec.rrd: the recording could not be written \({why}"):
+            recorder.close()
+        assert all(0 < t <= 1.0 for t in asked) and not list(tmp_path.iterdir())  # nothing at its path
+        took = time.monotonic() - began
+        assert (2.0 <= took < 7.0) if limited else (2.9 <= took < 4.5), took  # stalled: named, not at 10 s
 
 
 def test_a_recording_stopped_by_a_file_size_limit_names_it_in_one_line(tmp_path):
@@ -320,10 +330,10 @@ def _started(args, until: str, cwd):
 @pytest.mark.parametrize("signum, status", [(2, 130), (15, 143)])
 def test_the_live_rig_stopped_by_a_signal_keeps_the_instants_it_finished(tmp_path, signum, status):
     pytest.importorskip("rerun")
-    from test_multiview import write_room_rig
     from test_rerun import Recording
 
     from conftest import ROOT
+    from test_multiview import write_room_rig
 
     write_room_rig(tmp_path / "rec", size=128, half_baseline=0.3)
     out = tmp_path / "live.rrd"

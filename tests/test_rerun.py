@@ -326,6 +326,7 @@ def test_the_multiview_command_records_its_instants_with_the_refined_rig(tmp_pat
     with both cameras' kept and filled points on the room's walls, the ground truth's points and the
     abs_rel scalar, the recorded rig and the refined one."""
     from fisheyedepth.cli import multiview as command
+
     from test_multiview import write_room_rig
 
     write_room_rig(tmp_path / "rec", size=128, half_baseline=0.3)  # at 128 px 0.2 m resolves little

@@ -3,6 +3,7 @@ poses, calibration, extrinsics and images; the imported rig must reproduce every
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -184,6 +185,8 @@ def test_an_imported_bag_reproduces_poses_stamps_calibration_and_pixels(kind, po
     )
     assert np.allclose(layout.cameras["left"].cam_to_body, T_BODY_IMU @ T_IMU_LEFT, atol=1e-12)
     assert np.allclose(layout.cameras["right"].cam_to_body, T_BODY_RIGHT, atol=1e-12)
+    assert layout.topics == {"left": "/left/image_raw", "right": "/right/image_raw/compressed"}
+    assert layout.frame_ids == {"left": "cam_left", "right": "cam_right"}  # what a bag of its outputs names
     for name in ("left", "right"):
         kept = layout.frames("seq0", name)
         assert [f.key for f in kept] == [T0 + i * 100_000_000 for i in range(1, 5)]
@@ -193,6 +196,45 @@ def test_an_imported_bag_reproduces_poses_stamps_calibration_and_pixels(kind, po
             assert np.array_equal(pixels, frames[i])  # lossless, in BGR order, for both encodings
     with pytest.raises(FileExistsError, match="rig.yaml exists"):
         import_rosbag(bag, out, {"left": "/left/image_raw"}, odometry="/odom")
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros2-mcap"])
+def test_a_bag_in_and_a_bag_out(kind, frames, tmp_path, capsys):
+    """``fisheyedepth-multiview`` reads a bag as the importer does (its options), leaves no folder of its
+    import behind, and writes its outputs as a bag under the input's topics and frames, at its stamps."""
+    from fisheyedepth.cli.multiview import main
+
+    from test_rosout import read_back
+
+    bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
+    write_bag(bag, kind, frames)
+    out, bag_out = tmp_path / "out", tmp_path / "distance.mcap"
+    cameras = ["--camera", "left=/left/image_raw", "--camera", "right=/right/image_raw/compressed"]
+    args = [str(bag), "--out", str(out), *cameras, "--odometry", "/odom", "--bag-out", str(bag_out),
+            "--max-distance", "20", "--quiet"]  # fmt: skip
+    assert main(args) in (0, 1)  # 1: ran, but one scene seen by two cameras keeps no pixel
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["root"] == str(bag) and len(summary["images"]) == 8
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([bag.name, "out", "distance.mcap"])
+    found = read_back(bag_out)
+    stamps = [T0 + i * 100_000_000 for i in range(1, 5)]  # the imported images: those within the poses
+    for ns, frame in (("/left", "cam_left"), ("/right", "cam_right")):
+        for what in ("distance", "confidence", "camera_info", "points"):
+            assert [s for s, _, _ in found[f"{ns}/{what}"]] == stamps, (ns, what)
+        assert {msg.header.frame_id for _, _, msg in found[f"{ns}/distance"]} == {frame}
+    assert found["/left/camera_info"][0][2].distortion_model == "equidistant"
+    assert found["/right/camera_info"][0][2].distortion_model == "plumb_bob"
+    static = {t.child_frame_id for t in found["/tf_static"][0][2].transforms}
+    assert static == {"cam_left", "cam_right"}
+    assert len(found["/tf"]) == 4  # one body pose an instant
+    assert main([str(bag), "--out", str(tmp_path / "o2"), "--quiet"]) == 2  # a bag needs its topics
+    assert "a ROS bag; name its cameras and poses" in capsys.readouterr().err
+    rig = tmp_path / "rig"
+    from fisheyedepth.data.rosbag import import_rosbag
+
+    import_rosbag(bag, rig, {"left": "/left/image_raw"}, odometry="/odom")
+    assert main([str(rig), "--out", str(tmp_path / "o3"), "--odometry", "/odom", "--quiet"]) == 2
+    assert "--odometry: options of a ROS bag given as" in capsys.readouterr().err
 
 
 def camera_info(ros: str, model: str, D, K, width=640, height=480):

@@ -7,7 +7,12 @@ printed as they go, and each instant is written to a Rerun recording (:mod:`fish
 
     python scripts/tools/live_rig.py RIG --out OUT/recording.rrd [--threads 2] [--max-instants N]
         [--min-distance 0.3] [--max-distance 80] [--points 100000] [--no-record] [--overwrite]
+        [--foxglove [PORT]] [--bag-out BAG.mcap]
     rerun OUT/recording.rrd
+
+``--foxglove [PORT]`` (default 8765) serves every instant as it is computed to Foxglove on
+``ws://127.0.0.1:PORT`` (:class:`fisheyedepth.rosout.foxglove.FoxgloveLive`); ``--bag-out`` writes the same
+as a ROS 2 bag or MCAP file (:class:`fisheyedepth.rosout.BagRecorder`), put in place when the replay ends.
 
 RIG: a rig layout (docs/data-format.md), or a Project Aria export such as ``realdata/aria_gen2_rig``
 (converted into the rig layout in a temporary folder first, by ``fisheyedepth-import-aria``'s function).
@@ -129,9 +134,12 @@ def maps(result) -> dict[str, np.ndarray]:
     return {"kept": result.fused.distance, "filled": result.fused.dense}
 
 
-def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=None, quiet: bool = False):
+def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=None, quiet: bool = False,
+           sinks=()):  # fmt: skip
     """Every instant of ``found`` through ``stereo`` (and into ``recorder``, a
-    :class:`~fisheyedepth.rerun3d.RigRecorder`, when given), yielding ``(instant, results, seconds)``:
+    :class:`~fisheyedepth.rerun3d.RigRecorder`, when given, and each of ``sinks``, a bag or a Foxglove
+    server: ``add(camera, stamp, image, distance, confidence, body_to_world)``), yielding
+    ``(instant, results, seconds)``:
     the cameras' :class:`~fisheyedepth.stereo.pipeline.CameraResult` and the seconds the instant took
     (reading, stereo and recording)."""
     from fisheyedepth.rerun3d import CameraView
@@ -148,6 +156,10 @@ def replay(layout: RigLayout, stereo: RigStereo, found: list[Instant], recorder=
         if recorder is not None:
             views = {n: CameraView(stereo.cameras[n], rgb(images[n]), maps(r)) for n, r in results.items()}
             recorder.instant(instant.time_ns, instant.index, views, instant.body_to_world)
+        for sink in sinks:
+            for name, r in results.items():
+                sink.add(name, instant.time_ns, images[name], r.fused.distance, r.fused.confidence,
+                         instant.body_to_world)  # fmt: skip
         seconds = time.perf_counter() - began
         yield instant, results, seconds  # counted as finished before it is announced
         if not quiet:
@@ -170,6 +182,9 @@ def main(argv=None) -> int:
     parser.add_argument("--max-distance", type=float, default=80.0)
     parser.add_argument("--points", type=int, default=100_000, help="points per image and map at most")
     parser.add_argument("--no-record", action="store_true", help="stereo only, no recording")
+    parser.add_argument("--foxglove", type=int, nargs="?", const=8765, metavar="PORT",
+                        help="serve the instants on ws://127.0.0.1:PORT (default 8765)")  # fmt: skip
+    parser.add_argument("--bag-out", type=Path, help="also a ROS 2 bag (a folder) or an .mcap file")
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
@@ -181,6 +196,13 @@ def main(argv=None) -> int:
         check_threads(args.threads, "--threads")
         if not args.no_record:
             check_apart(args.out, "--out", {"the rig recording": args.rig})
+        if args.foxglove is not None and not 0 <= args.foxglove <= 65535:
+            raise ValueError(f"--foxglove: port {args.foxglove}; 0 (any free one) to 65535")
+        if args.bag_out is not None:
+            from fisheyedepth.rosout import check_bag_out
+
+            check_apart(args.bag_out, "--bag-out", {"the rig recording": args.rig})
+            check_bag_out(args.bag_out, args.overwrite)
         with sigterm_raises():
             summary = run(args)
     except (OSError, ValueError, ImportError) as err:
@@ -227,9 +249,10 @@ def run(args) -> dict:
                     RigRecorder(args.out, "fisheyedepth-live-rig", args.points, args.overwrite)
                 )
                 recorder.rig(extrinsics)
+            sinks = ros_sinks(args, stack, layout, cameras, extrinsics)
             seconds, stopped = [], None
             try:
-                for _, _, s in replay(layout, stereo, found, recorder, args.quiet):
+                for _, _, s in replay(layout, stereo, found, recorder, args.quiet, sinks):
                     seconds.append(s)
             except (Terminated, KeyboardInterrupt) as stop:  # the instants finished are kept
                 if not seconds:
@@ -238,6 +261,25 @@ def run(args) -> dict:
     total = sum(seconds)
     return {"instants": len(seconds), "seconds": total, "fps": len(seconds) / total if total else 0.0,
             "stopped": stopped}  # fmt: skip
+
+
+def ros_sinks(args, stack: contextlib.ExitStack, layout: RigLayout, cameras: dict, extrinsics: dict) -> list:
+    """The ROS tools' ends of the replay: a bag (``--bag-out``) and a Foxglove server (``--foxglove``), each
+    closed by ``stack`` (the bag put in place, also after a stop: it keeps the instants finished)."""
+    sinks = []
+    names = {"image_topics": layout.topics, "frame_ids": layout.frame_ids}
+    if args.bag_out is not None:
+        from fisheyedepth.rosout import BagRecorder, BagWriter
+
+        writer = stack.enter_context(BagWriter(args.bag_out, args.overwrite))
+        sinks.append(BagRecorder(writer, cameras, extrinsics, **names))
+    if args.foxglove is not None:
+        from fisheyedepth.rosout.foxglove import FoxgloveLive
+
+        live = stack.enter_context(FoxgloveLive(cameras, extrinsics, port=args.foxglove, **names))
+        print(f"serving to Foxglove on ws://127.0.0.1:{live.port}", file=sys.stderr, flush=True)
+        sinks.append(live)
+    return sinks
 
 
 if __name__ == "__main__":

@@ -281,18 +281,27 @@ class FramePrediction:
 
 
 @contextlib.contextmanager
-def frame_recording(path: Path | None, source, overwrite: bool = False):
-    """A :class:`FrameRecording` of ``source``'s frames (an ``images.FrameSource``) into ``path`` (refused at
-    once if the file exists, without ``overwrite``; put in place whole when the block ends, not at all
-    when it fails); None without a path."""
-    if path is None:
+def frame_recording(path: Path | None, source, overwrite: bool = False, bag_out: Path | None = None):
+    """A :class:`FrameRecording` of ``source``'s frames (an ``images.FrameSource``) into the Rerun
+    recording ``path`` and the ROS 2 bag ``bag_out`` (:class:`~.rosout.BagRecorder`), either or both
+    (each refused at once if it exists, without ``overwrite``; put in place whole when the block ends,
+    not at all when it fails); None without either."""
+    if path is None and bag_out is None:
         yield None
         return
-    from .rerun3d import RigRecorder
-
     odometry = None if source.live or source.files is None else layout_odometry(source.source)
-    with RigRecorder(path, "fisheyedepth-predict", overwrite=overwrite) as recorder:
-        yield FrameRecording(recorder, source.live, video_fps(source), odometry)
+    with contextlib.ExitStack() as stack:
+        recorder = bag = None
+        if bag_out is not None:
+            from .rosout import BagRecorder, BagWriter
+
+            cam_to_body = {"camera": np.eye(4) if odometry is None else odometry[1]}
+            bag = BagRecorder(stack.enter_context(BagWriter(bag_out, overwrite)), {}, cam_to_body)
+        if path is not None:
+            from .rerun3d import RigRecorder
+
+            recorder = stack.enter_context(RigRecorder(path, "fisheyedepth-predict", overwrite=overwrite))
+        yield FrameRecording(recorder, source.live, video_fps(source), odometry, bag)
 
 
 def video_fps(source) -> float:
@@ -313,7 +322,10 @@ class FrameRecording:
     ``odometry``), its timestamp; for a live camera, the nanoseconds since its first frame was
     recorded; else the frame's index over ``fps`` (a video's own rate; 10 for a folder of images).
     ``odometry``: frame name -> 4x4 body-to-world pose and the camera's ``cam_to_body``
-    (:func:`layout_odometry`); without it the body stays at the identity."""
+    (:func:`layout_odometry`); without it the body stays at the identity. ``bag``: a
+    :class:`~.rosout.BagRecorder` each frame also goes into, stamped with the same ``time`` (camera
+    ``camera``: topics ``/camera/distance``, ``/camera/camera_info``, ``/camera/points``; no confidence,
+    which the network does not give). Either ``recorder`` or ``bag`` may be None."""
 
     def __init__(
         self,
@@ -321,10 +333,13 @@ class FrameRecording:
         live: bool = False,
         fps: float = 10.0,
         odometry: tuple[dict[str, np.ndarray], np.ndarray] | None = None,
+        bag=None,
     ):
         self.recorder, self.live, self.fps = recorder, live, fps if fps and fps > 0 else 10.0
         self.poses, cam_to_body = odometry if odometry is not None else ({}, np.eye(4))
-        self.recorder.rig({"camera": cam_to_body})
+        if self.recorder is not None:
+            self.recorder.rig({"camera": cam_to_body})
+        self.bag = bag
         self.count, self.start = 0, None
 
     def time_ns(self, name: str) -> int:
@@ -340,8 +355,12 @@ class FrameRecording:
         """One frame: ``distance`` ``[H, W]`` metres (NaN without a ray), ``rgb`` ``[H, W, 3]`` uint8."""
         from .rerun3d import CameraView
 
-        view = CameraView(camera, rgb, {"distance": distance})
-        self.recorder.instant(self.time_ns(name), self.count, {"camera": view}, self.poses.get(name))
+        stamp, pose = self.time_ns(name), self.poses.get(name)
+        if self.recorder is not None:
+            view = CameraView(camera, rgb, {"distance": distance})
+            self.recorder.instant(stamp, self.count, {"camera": view}, pose)
+        if self.bag is not None:
+            self.bag.add("camera", stamp, np.ascontiguousarray(rgb[..., ::-1]), distance, None, pose, camera)
         self.count += 1
 
 

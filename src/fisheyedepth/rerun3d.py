@@ -64,6 +64,8 @@ AXIS_LENGTH = 0.05  # metres: each camera's axes (x red, y green, z blue) at its
 # writer that stops answering (a hung network mount) would hold the command; beyond this it is an error.
 # Its writer keeps up with the logging as it goes, so what is left at the end takes seconds.
 FLUSH_SECONDS = 300.0
+STALLED_SECONDS = 2.0  # a writer whose file has not grown this long, at a file-size limit or a full disk,
+# has stopped: the SDK's flush can wait for such a writer for ever, so it is named then, not at the bound
 
 
 def import_rerun():
@@ -112,16 +114,28 @@ def write_failure(path: Path, err: Exception) -> str:
     if "timed out" in str(err):
         return f"its writer did not finish within {FLUSH_SECONDS:g} s"
     limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-    try:
-        free = os.statvfs(Path(path).parent)
-        full = free.f_bavail * free.f_frsize < 1 << 20  # under a megabyte left for a non-root writer
-    except OSError:
-        full = False
-    if full:
+    if disk_full(path):
         return f"no space left on device in {Path(path).parent}"
     if limit != resource.RLIM_INFINITY:
         return f"the file-size limit of this process, {limit} bytes (ulimit -f)"
     return f"{err}; a full disk or a file-size limit?"
+
+
+def disk_full(path: Path) -> bool:
+    """Under a megabyte left (for a non-root writer) in ``path``'s folder."""
+    try:
+        free = os.statvfs(Path(path).parent)
+    except OSError:
+        return False
+    return free.f_bavail * free.f_frsize < 1 << 20
+
+
+def at_a_limit(path: Path) -> bool:
+    """The process has a file-size limit (``ulimit -f``), or ``path``'s disk is full: where a writer that
+    has stopped growing its file has stopped for good."""
+    import resource
+
+    return resource.getrlimit(resource.RLIMIT_FSIZE)[0] != resource.RLIM_INFINITY or disk_full(path)
 
 
 class RigRecorder:
@@ -295,19 +309,54 @@ class RigRecorder:
 
     def _finish(self) -> None:
         with self._writing():
-            self.stream.flush(timeout_sec=FLUSH_SECONDS)
+            self._flush()
             self.rr.bindings.finalize_deferred_sinks(recording=self.stream.to_native())
             self.stream.disconnect()
+
+    def _flush(self) -> None:
+        """The SDK's flush, bounded by :data:`FLUSH_SECONDS`, in slices of a second: between them a
+        writer whose file has not grown for :data:`STALLED_SECONDS` while the process is at a file-size
+        limit or the disk is full has stopped, and is named as such at once (RuntimeError)."""
+        import time
+
+        def written() -> int:
+            return os.stat(self.tmp).st_size if os.path.exists(self.tmp) else 0
+
+        deadline = time.monotonic() + FLUSH_SECONDS
+        size, since = written(), time.monotonic()
+        while True:
+            left = deadline - time.monotonic()
+            try:
+                self.stream.flush(timeout_sec=max(min(1.0, left), 0.01))
+                return
+            except RuntimeError as err:
+                if "timed out" not in str(err) or left <= 1.0:
+                    raise
+            now_size = written()
+            if now_size != size:
+                size, since = now_size, time.monotonic()
+            elif time.monotonic() - since >= STALLED_SECONDS and at_a_limit(self.path):
+                raise RuntimeError(f"the writer stopped at {size} bytes")
 
     @contextlib.contextmanager
     def _writing(self):
         """The SDK's file writer stopping (a full disk, a file-size limit) as a :class:`RecordingError`,
-        the stream disconnected."""
+        the stream disconnected: on a thread of its own, waited for :data:`STALLED_SECONDS` at most (the
+        SDK's disconnect and its exit hook, like its flush, can wait for a stopped writer for ever)."""
         try:
             yield
         except RuntimeError as err:
-            with contextlib.suppress(Exception):
-                self.stream.disconnect()
+            import threading
+
+            def disconnect() -> None:
+                with contextlib.suppress(Exception):
+                    self.stream.disconnect()
+
+            thread = threading.Thread(target=disconnect, name="rerun-disconnect", daemon=True)
+            thread.start()
+            thread.join(STALLED_SECONDS)
+            if thread.is_alive():  # the SDK's exit hook would wait for the same writer: the process's
+                self.rr.unregister_shutdown()  # exit must not (every recorder here flushes on close)
             raise RecordingError(self.path, err) from None
 
     def __enter__(self) -> RigRecorder:

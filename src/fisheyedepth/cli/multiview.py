@@ -1,5 +1,7 @@
 """``fisheyedepth-multiview ROOT --out OUT [--refine] [--sources rig,time] [--matcher sgbm|sweep]``: metric
-distance from geometry over a recording in the rig layout (docs/data-format.md, "Robot rig layout"):
+distance from geometry over a recording in the rig layout (docs/data-format.md, "Robot rig layout"), or
+over a ROS bag with the import's options (``--camera NAME=TOPIC ... --odometry TOPIC``, imported into a
+folder beside ``OUT`` and removed after the run):
 every image paired with the rig's other cameras at the same instant (``rig``) and with its own camera's
 previous and next images that moved far enough (``time``, the odometry's motion), metric because the
 calibration and the odometry are.
@@ -15,7 +17,8 @@ For each image it can pair it writes, under ``OUT/<sequence>/``:
 - ``dense/<camera>/<timestamp_ns>.npy``: the filled map (every pixel a partner could match);
 - ``confidence/<camera>/<timestamp_ns>.npy``: float32 in [0, 1] of the kept pixels;
 - ``panels/<camera>/<timestamp_ns>.png``: image | checked | filled [| ground truth];
-with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
+with ``--bag-out BAG``, the same as ROS 2 messages (distance, confidence, camera info, points, tf) in
+``BAG``; with ``--refine``, ``OUT/rig.yaml``: the recording's rig.yaml with the refined ``cam_to_body`` (what
 changed, and the epipolar error before and after, in the summary); and ``OUT/summary.json``: per image
 its partners, its seconds and, where the folder has ground truth (``<sequence>/distance/<camera>/
 <timestamp_ns>.npy``), abs_rel, a1, coverage and the constant map on the same scored pixels, and the
@@ -51,12 +54,14 @@ from ..stereo.sgbm import SgbmMatcher
 from ..stereo.sweep import SweepMatcher, SweepSettings
 from ..utils import check_threads
 from . import CommandParser
+from .import_rosbag import add_bag_options, recording_of
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = CommandParser(prog="fisheyedepth-multiview", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
-    parser.add_argument("root", type=Path, help="a recording in the rig layout")
+    parser.add_argument("root", type=Path, help="a recording in the rig layout, or a ROS bag (its import's "
+                        "options: fisheyedepth-import-rosbag)")  # fmt: skip
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--sources", default="rig,time", help="rig, time, or both (default)")
     parser.add_argument("--matcher", choices=MATCHERS, default="sgbm")
@@ -76,8 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refine", nargs="?", const="rotation", choices=REFINE, help=refine_help)
     parser.add_argument("--rerun", action="store_true",
                         help=f"also write OUT/{RECORDING}, a 3-D recording for the Rerun viewer")  # fmt: skip
+    parser.add_argument("--bag-out", type=Path, help="also a ROS 2 bag of the outputs: OUT.mcap (one MCAP "
+                        "file) or a bag folder (docs/inference.md, ROS 2 bags)")  # fmt: skip
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--quiet", action="store_true")
+    add_bag_options(parser, poses_required=False)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="%(message)s")
     try:
@@ -101,18 +109,9 @@ def main(argv: list[str] | None = None) -> int:
             matcher = SgbmMatcher(SgbmSettings(args.min_distance, args.max_distance, resolution,
                                                min_confidence=args.min_confidence or 0.0))  # fmt: skip
         sources = tuple(args.sources.split(","))
-        with sigterm_raises():
-            summary = run(
-                args.root,
-                args.out,
-                matcher,
-                sources,
-                args.overwrite,
-                not args.quiet,
-                args.max_images,
-                args.refine,
-                args.rerun,
-            )
+        with sigterm_raises(), recording_of(args, args.out) as root:
+            summary = run(root, args.out, matcher, sources, args.overwrite, not args.quiet, args.max_images,
+                          args.refine, args.rerun, args.bag_out, args.root)  # fmt: skip
     except (FileNotFoundError, FileExistsError, NotADirectoryError, ValueError, ImportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

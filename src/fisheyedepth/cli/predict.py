@@ -42,16 +42,15 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
                               plan.overwrite)  # fmt: skip
     source = FrameSource(plan.input, plan.max_frames)  # lists the inputs without decoding any
     writer.check_free(source.names())
-    rerun = cfg.get("rerun", False)
-    SWITCH.check("rerun", rerun)
-    recorded = out / RECORDING if rerun else None
+    SWITCH.check("rerun", rerun := cfg.get("rerun", False))
+    recorded, bag_out = out / RECORDING if rerun else None, cfg.get("bag_out")
     summary, failed, stop = None, None, None
     try:
-        with frame_recording(recorded, source, plan.overwrite) as frames_recorded:  # refused if it exists
+        with frame_recording(recorded, source, plan.overwrite, bag_out) as recording:  # refused if it exists
             runtime = load_runtime(plan.runtime)
             batch_size = 1 if source.live else int(plan.batch_size)  # a live frame is written as it comes
             run = FramePrediction(
-                runtime, load_camera(plan.camera), plan.camera, writer, batch_size, frames_recorded
+                runtime, load_camera(plan.camera), plan.camera, writer, batch_size, recording
             )
             summary, stop = predict_frames(source, run, runtime, plan)
         failed = run.recording_error  # it stopped mid-run (and was discarded there)
@@ -62,6 +61,7 @@ def predict(cfg: DictConfig) -> dict[str, Any]:
     if recorded is not None:
         summary["recording"] = None if failed else str(recorded)
         summary["recording_error"] = failed
+    summary["bag_out"] = None if bag_out is None else str(bag_out)
     summary_path = out / "summary.json" if plan.overwrite else free_path(out / "summary.json")
     atomic_write_text(summary_path, json.dumps(summary, indent=2) + "\n")
     if failed:  # one line, exit 2: the frames predicted and their summary are kept, no recording

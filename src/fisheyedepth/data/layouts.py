@@ -107,6 +107,8 @@ class RigLayout(RecordingFiles):
         (None: the camera has none). ``max_pose_gap``: seconds (class docstring); the images it leaves out
         are listed in ``in_gaps``, as those outside the poses are in ``outside``."""
         self.root = Path(root)
+        self.topics: dict[str, str] = {}  # camera -> the ROS image topic it was imported from
+        self.frame_ids: dict[str, str] = {}  # camera -> its ROS frame id
         rig_file = existing(self.root / "rig.yaml", "rig description")
         try:
             text = rig_file.read_text(encoding="utf-8")
@@ -183,6 +185,7 @@ class RigLayout(RecordingFiles):
             else:
                 mask = None
             self.cameras[name] = CameraSpec(name, camera, extrinsic, mask)
+            self._ros_names(entry.get("ros"), name, rig_file, f"{where}.ros")
         if cameras is not None and set(cameras) - set(self.cameras):
             raise CalibrationError(
                 rig_file, "cameras", f"no camera named {sorted(set(cameras) - set(self.cameras))}"
@@ -195,6 +198,27 @@ class RigLayout(RecordingFiles):
         self.in_gaps: dict[tuple[str, str], list[int]] = {}
         self.not_understood: dict[tuple[str, str], list[str]] = {}  # file names that are no timestamp
         self._order_checked: set[Path] = set()
+
+    def _ros_names(self, ros, camera: str, rig_file: Path, where: str) -> None:
+        """A camera entry's ``ros: {image_topic: /front/image_raw, frame_id: front}`` (what
+        ``fisheyedepth-import-rosbag`` writes): the names a ROS bag of its outputs follows."""
+        if ros is None:
+            return
+        if not isinstance(ros, dict) or set(ros) - {"image_topic", "frame_id"}:
+            raise CalibrationError(
+                rig_file, where, f"expected {{image_topic: TOPIC, frame_id: FRAME}}, got {ros!r}"
+            )
+        for key, names in (("image_topic", self.topics), ("frame_id", self.frame_ids)):
+            if key in ros:
+                if (
+                    not isinstance(ros[key], str)
+                    or not ros[key].strip("/")
+                    or any(c.isspace() for c in ros[key])
+                ):
+                    raise CalibrationError(
+                        rig_file, f"{where}.{key}", f"expected a ROS name, got {ros[key]!r}"
+                    )
+                names[camera] = ros[key]
 
     def _calibration_file(self, rig, rig_file: Path) -> tuple[list[CalibratedCamera] | None, np.ndarray]:
         """The cameras of ``rig.yaml``'s top-level ``calibration`` (a Kalibr camchain or a Basalt

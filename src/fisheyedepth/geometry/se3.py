@@ -189,6 +189,30 @@ def quaternion_to_matrix(q_xyzw: Tensor) -> Tensor:
     return torch.stack(rows, dim=-1).reshape(*q.shape[:-1], 3, 3)
 
 
+def matrix_to_quaternion(R) -> np.ndarray:
+    """A rotation matrix ``3 x 3`` as the unit quaternion (x, y, z, w) with ``w >= 0`` (ROS's
+    ``geometry_msgs/Quaternion``), by Shepperd's method: the largest of the four squared components first,
+    so no division by a small number at any angle, half turns included."""
+    m = np.asarray(R, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    squares = (1 + 2 * m[0, 0] - trace, 1 + 2 * m[1, 1] - trace, 1 + 2 * m[2, 2] - trace, 1 + trace)
+    largest = int(np.argmax(squares))
+    q = np.empty(4)
+    q[largest] = np.sqrt(max(squares[largest], 0.0)) / 2
+    f = 1 / (4 * q[largest])
+    x, y, z, w = range(4)
+    pairs = {  # the other three from the off-diagonal sums and differences
+        x: ((y, m[0, 1] + m[1, 0]), (z, m[0, 2] + m[2, 0]), (w, m[2, 1] - m[1, 2])),
+        y: ((x, m[0, 1] + m[1, 0]), (z, m[1, 2] + m[2, 1]), (w, m[0, 2] - m[2, 0])),
+        z: ((x, m[0, 2] + m[2, 0]), (y, m[1, 2] + m[2, 1]), (w, m[1, 0] - m[0, 1])),
+        w: ((x, m[2, 1] - m[1, 2]), (y, m[0, 2] - m[2, 0]), (z, m[1, 0] - m[0, 1])),
+    }
+    for index, value in pairs[largest]:
+        q[index] = value * f
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
 def rotation_error_deg(T_a: Tensor, T_b: Tensor) -> Tensor:
     """Angle (degrees) of the rotation ``R_a^T R_b`` between two ``[..., 4, 4]`` poses."""
     R = T_a[..., :3, :3].transpose(-1, -2) @ T_b[..., :3, :3]

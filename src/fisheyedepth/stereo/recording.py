@@ -114,6 +114,8 @@ def run(
     max_images: int | None = None,
     refine: str | None = None,
     rerun: bool = False,
+    bag_out: str | Path | None = None,
+    source: str | Path | None = None,
 ) -> dict[str, Any]:
     """The command's work: every pairing of ``root`` matched (``matcher``: a :class:`~.matchers.Matcher`,
     :class:`.sgbm.SgbmMatcher` or :class:`.sweep.SweepMatcher`), its outputs and
@@ -122,13 +124,20 @@ def run(
     recording is never modified. Before any work: ``out`` is a folder of its own that can be written, no
     file the run would write exists there (unless ``overwrite``), and no other run writes into it; the
     outputs are written into a staging folder beside ``out`` and put in place when the run completes
-    (``summary.json`` last), so an interrupted or refused run leaves nothing in ``out``."""
+    (``summary.json`` last), so an interrupted or refused run leaves nothing in ``out``. With ``bag_out``,
+    the outputs as ROS 2 messages too (:class:`~..rosout.BagRecorder`), the bag put in place last.
+    ``source``: what ``root`` was made from (a ROS bag imported for the run), named in the summary."""
     layout, out = RigLayout(root), Path(out)
     check_sources(sources)
     if refine is not None and refine not in REFINE:
         raise ValueError(f"--refine: {refine!r}; choose from {', '.join(REFINE)}")
     check_out(layout.root, out)
     check_writable(out, "--out")
+    if bag_out is not None:
+        from ..rosout import check_bag_out
+
+        check_apart(bag_out, "--bag-out", {"the recording": layout.root, "--out": out})
+        check_bag_out(bag_out, overwrite)
     planned = pairings(layout, sources, min_baseline=matcher.min_baseline)
     planned.sort(key=lambda p: (p.sequence, p.frame.key, p.camera))  # instant by instant: pairs freed soon
     paired = [p for p in planned if p.partners]
@@ -160,15 +169,33 @@ def run(
     check_inputs(layout, paired, progress)
     with sole_writer(out):
         remove_stale_staging(out)
-        with staged_folder(out, "multiview") as staging:
+        with _bag(layout, bag_out, overwrite) as bag, staged_folder(out, "multiview") as staging:
             try:
-                summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress, rerun)
+                summary = _work(layout, staging, matcher, sources, paired, left_out, refine, progress, rerun,
+                                bag)  # fmt: skip
             except RecordingError as err:  # named where it was to be, not in the staging folder
                 raise RecordingError(out / RECORDING, err.why) from None
-            summary["root"] = str(root)
+            summary["root"] = str(source or root)
+            if bag is not None:
+                summary["bag_out"] = {"path": str(bag_out), "messages": bag.writer.count + 0}
             atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
             move_into_place(staging, out, parts, overwrite)
     return summary
+
+
+@contextlib.contextmanager
+def _bag(layout: RigLayout, bag_out, overwrite: bool):
+    """The run's :class:`~..rosout.BagRecorder` (None without ``bag_out``): its bag put in place when the
+    block completes, removed when it fails."""
+    if bag_out is None:
+        yield None
+        return
+    from ..rosout import BagRecorder, BagWriter
+
+    cameras = {name: spec.camera for name, spec in layout.cameras.items()}
+    rig = {name: spec.cam_to_body for name, spec in layout.cameras.items()}
+    with BagWriter(bag_out, overwrite) as writer:
+        yield BagRecorder(writer, cameras, rig, layout.topics, layout.frame_ids)
 
 
 def remove_stale_staging(out: Path) -> None:
@@ -186,7 +213,8 @@ def remove_stale_staging(out: Path) -> None:
 RECORDING = "recording.rrd"
 
 
-def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rerun=False) -> dict[str, Any]:
+def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rerun=False,
+          bag=None) -> dict[str, Any]:  # fmt: skip
     """The matching itself: every output of ``paired`` written into ``out`` (with ``rerun``, the 3-D
     recording too: :class:`InstantRecorder`); the summary, returned."""
     begun = time.perf_counter()
@@ -217,7 +245,7 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     with recorder or contextlib.nullcontext():
         bar = tqdm(paired, desc=f"stereo ({matcher.name})", unit="image", disable=not progress)
         for pairing in bar:
-            images.append(_image(layout, pairing, matches, out, recorder))
+            images.append(_image(layout, pairing, matches, out, recorder, bag))
     seconds = time.perf_counter() - begun
     return {
         "root": None,
@@ -237,7 +265,7 @@ def _work(layout, out, matcher, sources, paired, left_out, refine, progress, rer
     }
 
 
-def _image(layout, pairing, matches: RecordingMatches, out, recorder) -> dict[str, Any]:
+def _image(layout, pairing, matches: RecordingMatches, out, recorder, bag=None) -> dict[str, Any]:
     """One image's maps (against its partners) written into ``out``; its summary record, returned."""
     start = time.perf_counter()
     image = layout.read_image(pairing.sequence, pairing.camera, pairing.frame)
@@ -266,4 +294,8 @@ def _image(layout, pairing, matches: RecordingMatches, out, recorder) -> dict[st
     record["seconds"] = round(time.perf_counter() - start, 4)
     if recorder is not None:
         recorder.add(pairing, image, fused, truth, record)
+    if bag is not None:
+        bag.add(
+            pairing.camera, pairing.frame.key, image, fused.distance, fused.confidence, pairing.frame.pose
+        )
     return record

@@ -28,9 +28,9 @@ Camera and sequence names become folder and file names under ``out``: each must 
 (:func:`fisheyedepth.files.path_name`: no ``/``, no ``..``, ...).
 """
 
-from .importer import import_rosbag
+from .importer import import_rosbag, imported, is_bag
 from .messages import CorruptMessage, RosbagError, camera_from_info, decode_image, rigid_pose
 from .options import BagImport
 
 __all__ = ["BagImport", "CorruptMessage", "RosbagError", "camera_from_info", "decode_image", "import_rosbag",
-           "rigid_pose"]  # fmt: skip
+           "imported", "is_bag", "rigid_pose"]  # fmt: skip

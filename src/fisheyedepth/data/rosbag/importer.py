@@ -1,8 +1,13 @@
-"""One bag imported, all or nothing: :func:`import_rosbag`."""
+"""One bag imported, all or nothing: :func:`import_rosbag`; for a command that reads a bag directly, into a
+folder removed after it (:func:`imported`)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -63,3 +68,27 @@ def import_rosbag(
             raise RosbagError(message if str(job.bag) in message else f"{job.bag}: {message}") from None
     summary["out"] = str(out)
     return summary
+
+
+def is_bag(path: str | os.PathLike) -> bool:
+    """``path`` is a ROS bag: a ROS 1 ``.bag``, an ``.mcap`` or ``.db3`` file, or a ROS 2 bag folder
+    (``metadata.yaml`` in it)."""
+    path = Path(path)
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix in (".bag", ".mcap", ".db3") and path.is_file()
+
+
+@contextlib.contextmanager
+def imported(bag: str | os.PathLike, beside: str | os.PathLike, **options) -> Iterator[Path]:
+    """``bag`` imported (:func:`import_rosbag` with ``options``) into a hidden rig folder beside
+    ``beside`` (on its disk), removed when the block ends however it ends: a command reads the bag as it
+    reads a rig folder, and the user has no folder to manage."""
+    beside = Path(beside)
+    beside.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=beside.parent, prefix=f".{beside.name}.bag-import-"))
+    try:
+        import_rosbag(bag, tmp / "rig", **options)
+        yield tmp / "rig"
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

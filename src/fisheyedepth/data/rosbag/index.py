@@ -235,7 +235,10 @@ def plan_cameras(found: BagIndex) -> CameraPlan:
             summary["bit_depth"][name] = plan.bits[name]
             log.info("%s: %s: 16-bit images with %d bits of data (highest value %d), scaled to 16 bits",
                      bag, topic, plan.bits[name], found.peaks[name])  # fmt: skip
-        plan.rig_cameras.append(
-            {"name": name, "calibration": f"calibration/{name}.yaml", "cam_to_body": cam_to_body.tolist()}
-        )
+        ros = {
+            "image_topic": topic,
+            **({"frame_id": found.frame_ids[name]} if found.frame_ids.get(name) else {}),
+        }
+        plan.rig_cameras.append({"name": name, "calibration": f"calibration/{name}.yaml",
+                                 "cam_to_body": cam_to_body.tolist(), "ros": ros})  # fmt: skip
     return plan

@@ -106,7 +106,9 @@ def camera_from_info(msg, topic: str) -> CameraModel:
     - ``plumb_bob``, 5 coefficients k1 k2 p1 p2 k3 -> ``opencv`` (OpenCV's radial-tangential model);
     - ``rational_polynomial``, 8 coefficients k1 k2 p1 p2 k3 k4 k5 k6 -> ``opencv`` (rational model);
     - either with every coefficient zero, or an empty ``distortion_model`` without distortion -> pinhole;
-    - ``equidistant``, 4 coefficients k1 k2 k3 k4 -> Kannala-Brandt (``cv2.fisheye``).
+    - ``equidistant``, 4 coefficients k1 k2 k3 k4 -> Kannala-Brandt (``cv2.fisheye``);
+    - ``fisheyedepth/<model>`` (what :mod:`fisheyedepth.rosout` writes for a model ROS has no name for:
+      Mei, double sphere, Fisheye624, ...), ``D`` the model's parameters beyond its four intrinsics.
 
     Anything else (another model, another number of coefficients) is refused, naming the topic, the model
     and the coefficient count. ``R`` (the stereo rectification) and ``P`` (the projection of the
@@ -161,10 +163,18 @@ def camera_from_info(msg, topic: str) -> CameraModel:
     elif model in CAMERA_INFO_MODELS and len(D) == len(CAMERA_INFO_MODELS[model][1]):
         ours, fields = CAMERA_INFO_MODELS[model]
         data = {"model": ours, **size, **intrinsics, **dict(zip(fields, D, strict=True))}
+    elif (own := own_model(model, len(D))) is not None:  # what fisheyedepth.rosout writes
+        names = (own._fu, own._fv, own._cu, own._cv)
+        rest = [f for f in own.param_names() if f not in names]
+        data = {"model": own.model_name, **size, **dict(zip(names, intrinsics.values(), strict=True)),
+                **dict(zip(rest, D, strict=True))}  # fmt: skip
     else:
-        expected = "; ".join(
-            f"{name} with {len(fields)} ({' '.join(fields)})"
-            for name, (_, fields) in CAMERA_INFO_MODELS.items()
+        expected = (
+            "; ".join(
+                f"{name} with {len(fields)} ({' '.join(fields)})"
+                for name, (_, fields) in CAMERA_INFO_MODELS.items()
+            )
+            + "; fisheyedepth/<model> with its parameters beyond fx fy cx cy"
         )
         raise RosbagError(
             f"{topic}: distortion model {model!r} with {len(D)} coefficients {D} is not supported (expected "
@@ -175,6 +185,19 @@ def camera_from_info(msg, topic: str) -> CameraModel:
         return CameraModel.from_dict(data)  # checks that it can be a real camera's too
     except ValueError as err:  # an impossible parameter: a zero size, a negative focal length, fx 1e30
         raise RosbagError(f"{topic}: CameraInfo {shape}, distortion {model!r}, K {K}, D {D}: {err}") from None
+
+
+def own_model(distortion_model: str, coefficients: int):
+    """The camera model class of a ``fisheyedepth/<model>`` distortion model (written by
+    :func:`fisheyedepth.rosout.messages.camera_info_fields`) with as many coefficients as the model has
+    parameters beyond its four intrinsics, or None."""
+    from ...cameras.base import CAMERA_MODELS
+
+    prefix, _, name = distortion_model.partition("/")
+    cls = CAMERA_MODELS.get(name) if prefix == "fisheyedepth" else None
+    if cls is None or len(cls.param_names()) - 4 != coefficients:
+        return None
+    return cls
 
 
 def transform(t, where: str) -> np.ndarray:
