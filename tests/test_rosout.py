@@ -52,41 +52,14 @@ def test_quaternions_of_any_rotation_turn_back_into_it():
         assert np.abs(quaternion_to_matrix(torch.from_numpy(q)).numpy() - R).max() < 1e-12
 
 
+SMALL = {"width": 64, "height": 48, "fx": 50.0, "fy": 51.0, "cx": 31.5, "cy": 23.5}
 CAMERAS = {
-    "pinhole": (PinholeCamera(width=64, height=48, fx=50.0, fy=51.0, cx=31.5, cy=23.5), "plumb_bob"),
-    "plumb_bob": (
-        OpenCVCamera(
-            width=64,
-            height=48,
-            fx=50.0,
-            fy=51.0,
-            cx=31.5,
-            cy=23.5,
-            k1=-0.1,
-            k2=0.01,
-            p1=0.001,
-            p2=-0.002,
-            k3=0.001,
-        ),
-        "plumb_bob",
-    ),  # fmt: skip
+    "pinhole": (PinholeCamera(**SMALL), "plumb_bob"),
+    "plumb_bob": (OpenCVCamera(**SMALL, k1=-0.1, k2=0.01, p1=0.001, p2=-0.002, k3=0.001), "plumb_bob"),
     "rational": (
-        OpenCVCamera(
-            width=64,
-            height=48,
-            fx=50.0,
-            fy=51.0,
-            cx=31.5,
-            cy=23.5,
-            k1=-0.1,
-            k2=0.01,
-            k3=0.001,
-            k4=0.02,
-            k5=0.001,
-            k6=0.0001,
-        ),
+        OpenCVCamera(**SMALL, k1=-0.1, k2=0.01, k3=0.001, k4=0.02, k5=0.001, k6=0.0001),
         "rational_polynomial",
-    ),  # fmt: skip
+    ),
     "kannala_brandt": (
         KannalaBrandtCamera(
             width=64, height=64, fx=20.0, fy=20.5, cx=31.2, cy=32.1, k1=0.01, k2=-0.003, k3=0.0005, k4=-0.0001

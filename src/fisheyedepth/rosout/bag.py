@@ -75,7 +75,7 @@ class BagWriter:
                 check_bag_out(self.path, self.overwrite)  # a bag of the same kind, and replacing allowed
                 if self.path.is_dir():
                     old = self.tmp / "replaced"
-                    os.rename(self.path, old)  # then the new one in: no moment without a bag and a half
+                    os.rename(self.path, old)  # out of the way, removed with the temporary folder
             os.replace(made, self.path)
         finally:
             shutil.rmtree(self.tmp, ignore_errors=True)

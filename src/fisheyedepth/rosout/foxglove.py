@@ -97,12 +97,11 @@ class FoxgloveLive:
         out["confidence"].log(self._image(sure, "32FC1", stamp_ns, frame), log_time=stamp_ns)
         cam = self.cameras[camera]
         info = m.camera_info_fields(cam)
-        (fu, fv), (cu, cv) = cam.paraxial_focal(), cam.principal_point
         calibration = fx.CameraCalibration(
             timestamp=self._stamp(stamp_ns), frame_id=frame, width=cam.width, height=cam.height,
             distortion_model=FOXGLOVE_MODELS.get(info["distortion_model"], info["distortion_model"]),
             D=[float(v) for v in info["d"]], K=[float(v) for v in info["k"]],
-            R=np.eye(3).reshape(-1).tolist(), P=[fu, 0.0, cu, 0.0, 0.0, fv, cv, 0.0, 0.0, 0.0, 1.0, 0.0],
+            R=np.eye(3).reshape(-1).tolist(), P=m.paraxial_projection(cam),
         )  # fmt: skip
         out["camera_info"].log(calibration, log_time=stamp_ns)
         points, rows, cols = body_points(self.rays, cam, self.cam_to_body[camera], kept)

@@ -70,6 +70,13 @@ def camera_info_fields(camera: CameraModel) -> dict[str, Any]:
     return {"distortion_model": OWN_MODEL + name, "d": d, "k": k}
 
 
+def paraxial_projection(camera: CameraModel) -> list[float]:
+    """The 3x4 ``P`` (row-major) of the paraxial pinhole: the focal length at the principal point
+    (:meth:`~CameraModel.paraxial_focal`), a zero fourth column."""
+    (fu, fv), (cu, cv) = camera.paraxial_focal(), camera.principal_point
+    return [fu, 0.0, cu, 0.0, 0.0, fv, cv, 0.0, 0.0, 0.0, 1.0, 0.0]
+
+
 def camera_info(store, camera: CameraModel, stamp_ns: int, frame_id: str):
     """``sensor_msgs/CameraInfo`` of the raw image (:func:`camera_info_fields`); ``r`` the identity and
     ``p`` the paraxial pinhole (the focal length at the principal point,
@@ -77,8 +84,7 @@ def camera_info(store, camera: CameraModel, stamp_ns: int, frame_id: str):
     fields = camera_info_fields(camera)
     types = store.types
     k = np.asarray(fields["k"], dtype=np.float64)
-    (fu, fv), (cu, cv) = camera.paraxial_focal(), camera.principal_point
-    p = np.array([fu, 0.0, cu, 0.0, 0.0, fv, cv, 0.0, 0.0, 0.0, 1.0, 0.0])
+    p = np.asarray(paraxial_projection(camera))
     roi = types["sensor_msgs/msg/RegionOfInterest"](
         x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
     )

@@ -177,7 +177,7 @@ def run(
                 raise RecordingError(out / RECORDING, err.why) from None
             summary["root"] = str(source or root)
             if bag is not None:
-                summary["bag_out"] = {"path": str(bag_out), "messages": bag.writer.count + 0}
+                summary["bag_out"] = {"path": str(bag_out), "messages": bag.writer.count}
             atomic_write_text(staging / "summary.json", json.dumps(summary, indent=2) + "\n")
             move_into_place(staging, out, parts, overwrite)
     return summary
