@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import platform
 import re
 import subprocess
 import sys
@@ -26,7 +27,17 @@ from fisheyedepth.module import FisheyeDepthModule
 from fisheyedepth.options.defaults import keywords
 from fisheyedepth.runtimes import OnnxRuntime, TorchRuntime, TrainedDepthNet, flip_averaged
 
-from conftest import TRAIN_SEQ, bare_module, kitti02, kitti03, load_cfg, printed, tiny_batch, train_few_steps
+from conftest import (
+    TRAIN_SEQ,
+    bare_module,
+    kitti02,
+    kitti03,
+    load_cfg,
+    load_script,
+    printed,
+    tiny_batch,
+    train_few_steps,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -605,3 +616,32 @@ def test_bench_gpu_step_times_its_variants_side_by_side():
     for name, warmup, ms, _ in rows[1:]:
         assert float(warmup) > 0 and float(ms) > 0, name
     assert rows[1][3].strip() == "1.00x"
+
+
+def test_bench_synthetic_splits_a_camera_frame_into_its_stages():
+    """scripts/bench/bench_synthetic.py's breakdown, tiny: every stage takes time, the value noise is part
+    of the shading, and the textures it timed are the shading module's own again afterwards."""
+    from fisheyedepth.synthetic import noise, shading
+
+    split = load_script("bench/bench_synthetic").stages(1, 32, 1)
+    assert list(split) == ["fine cast", "shading", "of which value noise", "centre cast"]
+    assert all(ms > 0 for ms in split.values()), split
+    assert split["of which value noise"] < split["shading"]
+    assert (shading.fbm2, shading.fbm3, shading.hash01) == (noise.fbm2, noise.fbm3, noise.hash01)
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        ("fpu avx2 avx512f avx512_bf16 amx_bf16", "EPYC-like, AVX-512 BF16, AMX"),
+        ("fpu avx2 avx512f", "EPYC-like, AVX-512"),
+        ("fpu sse4_2 avx2 fma", "EPYC-like, AVX2"),
+        ("fpu sse4_2", "EPYC-like, no AVX2"),
+    ],
+)
+def test_benchmarks_name_the_cpu_by_its_widest_vector_unit(tmp_path, flags, expected):
+    """A benchmark's machine line says what sets a step's speed: the model and its vector unit."""
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(f"processor\t: 0\nmodel name\t: EPYC-like\nflags\t\t: {flags}\n\nprocessor\t: 1\n")
+    assert load_script("bench/_benchmarks").cpu_name(cpuinfo) == expected
+    assert load_script("bench/_benchmarks").cpu_name(tmp_path / "absent") == platform.machine()

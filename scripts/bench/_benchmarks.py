@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import statistics
 import subprocess
 import sys
@@ -151,6 +152,24 @@ def alternate(kinds: Sequence[str], rounds: int, measure: Callable[[str], dict])
 def paired_ratio(before: list[dict], after: list[dict], key: str) -> float:
     """The median over rounds of ``before[key] / after[key]``: the speed-up, paired per round."""
     return statistics.median(a[key] / b[key] for a, b in zip(before, after, strict=True))
+
+
+def cpu_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The CPU's model name and widest vector unit (``AVX-512 BF16``, ``AVX-512``, ``AVX2``; ``AMX``), as
+    ``/proc/cpuinfo`` says (Linux); the architecture alone elsewhere."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return platform.machine()
+    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    fields = {key.strip(): value.strip() for key, value in fields.items()}
+    flags = set(fields.get("flags", "").split())
+    isa = next((name for flag, name in _VECTOR_UNITS if flag in flags), "no AVX2")
+    amx = ", AMX" if "amx_bf16" in flags else ""
+    return f"{fields.get('model name', platform.machine())}, {isa}{amx}"
+
+
+_VECTOR_UNITS = (("avx512_bf16", "AVX-512 BF16"), ("avx512f", "AVX-512"), ("avx2", "AVX2"))
 
 
 # ------------------------------------------------------------------------------------------ memory

@@ -18,6 +18,8 @@ fuses, instead of the 1x1 convolution whose backward it calls as an external ker
 ``compile_kernels``).
 
 Usage: python scripts/bench/bench_training.py [--rounds 5] [--size 256] [--batch 4] [--no-write] [--quick]
+To stand for a CPU without AVX-512, prefix ``ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2`` (oneDNN's
+convolutions and ATen's kernels then use AVX2 only; the machine line says avx2).
 """
 
 from __future__ import annotations
