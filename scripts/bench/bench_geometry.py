@@ -14,7 +14,6 @@ Usage: python scripts/bench/bench_geometry.py [--threads 2] [--rounds 15] [--dev
 from __future__ import annotations
 
 import os
-import platform
 import statistics
 import time
 from functools import partial
@@ -32,7 +31,7 @@ from fisheyedepth.cameras import (
 from fisheyedepth.data.kitti360 import kitti360_camera
 from fisheyedepth.geometry import axis_angle_to_matrix, make_pose, sample, warp_to_source
 
-from _benchmarks import bench_parser, interleaved, markers, parse_args, publish, repeated
+from _benchmarks import bench_parser, cpu_name, interleaved, markers, parse_args, publish, repeated
 
 START, END = markers("bench_geometry")
 
@@ -111,14 +110,13 @@ def bench_warp(device, rounds: int, batch: int = 8, size: int = 256) -> dict[str
 
 
 def render(cache_rows, warp_times, args, device) -> str:
-    cpu = platform.processor() or platform.machine()
     lines = [
         START,
         "## Geometry (`scripts/bench/bench_geometry.py`)",
         "",
         f"Command: `python scripts/bench/bench_geometry.py --threads {args.threads} --rounds {args.rounds}"
         f" --device {args.device}`  ",
-        f"Machine: {os.cpu_count()} CPUs ({cpu}), torch {torch.__version__}, "
+        f"Machine: {os.cpu_count()} CPUs ({cpu_name()}), torch {torch.__version__}, "
         f"{torch.get_num_threads()} threads, device {device}; {time.strftime('%Y-%m-%d')}.",
         "",
         "Ray-cache build, KITTI-360 image_02 (Mei), float64, median of repeats:",

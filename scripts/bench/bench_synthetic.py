@@ -32,12 +32,15 @@ from _benchmarks import bench_parser, cpu_name, markers, parse_args, publish, ti
 START, END = markers("bench_synthetic")
 
 
-def render_only(frames: int, size: int, supersample: int) -> float:
-    world = make_world(0)
-    scene = scene_tensors(world)
-    rig = make_rig("kitti360", size)
-    poses = make_trajectory(world, frames + 2, 0)
+def street(frames: int, size: int, supersample: int):
+    """World 0, its scene tensors, ``frames + 2`` poses and the kitti360 rig's camera renderers."""
+    world, rig = make_world(0), make_rig("kitti360", size)
     renderers = [CameraRenderer(cam, rig.cam_to_pose[name], supersample) for name, cam in rig.cameras.items()]
+    return world, scene_tensors(world), make_trajectory(world, frames + 2, 0), renderers
+
+
+def render_only(frames: int, size: int, supersample: int) -> float:
+    world, scene, poses, renderers = street(frames, size, supersample)
     for r in renderers:  # warm-up
         r.render(scene, world, poses[0])
     seconds = timed(lambda: [r.render(scene, world, pose) for pose in poses[2:] for r in renderers])
@@ -46,9 +49,7 @@ def render_only(frames: int, size: int, supersample: int) -> float:
 
 def stages(frames: int, size: int, supersample: int) -> dict[str, float]:
     """Milliseconds per camera-frame of each stage of :meth:`CameraRenderer.render`."""
-    world, rig = make_world(0), make_rig("kitti360", size)
-    scene, poses = scene_tensors(world), make_trajectory(world, frames + 2, 0)
-    renderers = [CameraRenderer(cam, rig.cam_to_pose[name], supersample) for name, cam in rig.cameras.items()]
+    world, scene, poses, renderers = street(frames, size, supersample)
     totals = dict.fromkeys(("fine cast", "shading", "of which value noise", "centre cast"), 0.0)
     noise_seconds = [0.0]
 
@@ -137,13 +138,9 @@ def main(argv=None) -> int:
         f"Two worker processes render {fps[2] / fps[1]:.2f}x as fast as one process of two threads. Traffic"
         f" costs {100 * (1 - fps[3] / fps[2]):.0f} %; every effect {fps[3] / fps[4]:.1f}x (motion blur"
         f" renders colour 5 times) and {100 * (rows[4][1][1] / rows[3][1][1] - 1):.0f} % more disk"
-        " (noise compresses worse).",
-        "",
-        "Where rendering's time goes (ms per camera-frame, 1 process x 2 threads):",
-        "",
-        "| " + " | ".join(split) + " |",
-        "|" + "---|" * len(split),
-        "| " + " | ".join(f"{ms:.0f}" for ms in split.values()) + " |",
+        " (noise compresses worse). Where a camera-frame's time goes (1 process x 2 threads): "
+        + ", ".join(f"{name} {ms:.0f} ms" for name, ms in split.items())
+        + ".",
     ]
     lines.append(END)
     section = "\n".join(lines) + "\n"
